@@ -1,0 +1,32 @@
+"""Errors raised by mission_runner.
+
+Exception tree::
+
+    MissionRunnerError
+    ├── ConfigError          a scenario file is unreadable or invalid (names the YAML path)
+    └── SimulationError      the numeric simulator cannot run a valid scenario (e.g. all
+                             target-sensing vehicles lost)
+"""
+
+
+class MissionRunnerError(Exception):
+    """Base class of every error this package raises on purpose."""
+
+
+class ConfigError(MissionRunnerError):
+    """A scenario file could not be read or did not validate.
+
+    ``problems`` holds one ``(yaml_path, message)`` pair per problem found, e.g.
+    ``("algorithm.beta", "must be < 1/T = 8.0")``.
+    """
+
+    def __init__(self, source: str, problems: list[tuple[str, str]]) -> None:
+        self.source = source
+        self.problems = problems
+        lines = [f"{source}: invalid scenario ({len(problems)} problem(s))"]
+        lines += [f"  {path or '<root>'}: {message}" for path, message in problems]
+        super().__init__("\n".join(lines))
+
+
+class SimulationError(MissionRunnerError):
+    """A valid scenario reached a state the simulator cannot continue from."""
