@@ -1,0 +1,74 @@
+"""Coupled-oscillator pattern generator, the paper's eq. ``osc``.
+
+theta_i(k+1) = theta_i(k) + T omega_i + T sum_j a_ij sum_{l=1..n} (K_l / l) sin(l (theta_i - theta_j))
+
+With K_l > 0 for l < n and K_n < 0 small, the splay state (phases 2 pi / n apart) is a stable
+equilibrium (Lemma 1). ``n`` is the number of live vehicles, so the harmonic gains change when a
+vehicle is lost or joins and the rest re-balance.
+
+The double sum is evaluated as a complex matrix product,
+``sum_j a_ij sin(l (theta_i - theta_j)) = Im(e^{i l theta_i} * sum_j a_ij e^{-i l theta_j})``,
+which costs O(rows * slots * harmonics) instead of a Python triple loop and works unchanged for one
+vehicle (one row) and for a whole swarm or a batch of swarms (leading axes).
+"""
+
+import numpy as np
+
+
+def harmonic_gains(n_live, n_harmonics, gain, gain_last):
+    """Gains K_1..K_L for ``n_live`` vehicles: ``gain`` for l < n, ``gain_last`` for l = n, 0 above.
+
+    n_live: int array ``(...)``; returns ``(..., n_harmonics)``. A swarm of one has no coupling.
+    """
+    n_live = np.asarray(n_live)[..., None]
+    order = np.arange(1, n_harmonics + 1)
+    gains = np.where(order < n_live, gain, 0.0)
+    return np.where((order == n_live) & (n_live > 1), gain_last, gains)
+
+
+def coupling_rate(phase_rows, phase_slots, weights, gains):
+    """The coupling term sum_j a_ij sum_l (K_l / l) sin(l (theta_i - theta_j)), in rad/s per unit T.
+
+    phase_rows: ``(..., R)`` phases of the computing vehicles [rad].
+    phase_slots: ``(..., S)`` phases of every slot [rad]; entries with zero weight may be NaN.
+    weights: ``(..., R, S)`` a_ij, zero where j is not a neighbour of row i this step.
+    gains: ``(..., R, L)`` K_l for l = 1..L (see :func:`harmonic_gains`).
+    Returns ``(..., R)``.
+    """
+    n_harmonics = gains.shape[-1]
+    order = np.arange(1, n_harmonics + 1)
+    slots = np.where(weights.any(axis=-2), phase_slots, 0.0)
+    conj_slots = np.exp(-1j * slots[..., :, None] * order)  # (..., S, L)
+    mixed = weights.astype(np.complex128) @ conj_slots  # (..., R, L)
+    rows = np.exp(1j * phase_rows[..., :, None] * order)  # (..., R, L)
+    return np.sum((gains / order) * np.imag(rows * mixed), axis=-1)
+
+
+def advance_phase(phase_rows, omega_rad_s, coupling, step_s):
+    """theta(k+1) from theta(k), the natural frequency and the coupling term. Shapes ``(..., R)``."""
+    return phase_rows + step_s * (omega_rad_s + coupling)
+
+
+def splay_spacing_error(phases, live):
+    """Largest deviation of neighbouring phase gaps from 2 pi / n among live vehicles [rad].
+
+    phases: ``(..., N)`` [rad]; live: ``(..., N)`` bool. Returns ``(...)``; 0 in the splay state,
+    NaN when fewer than two vehicles are live.
+    """
+    phases = np.asarray(phases, dtype=float)
+    live = np.asarray(live, dtype=bool)
+    wrapped = np.where(live, np.mod(phases, 2 * np.pi), np.inf)
+    ordered = np.sort(wrapped, axis=-1)
+    n_live = live.sum(axis=-1)
+    first = ordered[..., :1]
+    # Close the circle: the gap after the last live phase wraps round to the first one.
+    last_index = np.maximum(n_live - 1, 0)[..., None]
+    last = np.take_along_axis(ordered, last_index, axis=-1)
+    gaps = np.diff(ordered, axis=-1)
+    gaps = np.concatenate([gaps, first + 2 * np.pi - last], axis=-1)
+    index = np.arange(gaps.shape[-1])
+    counted = (index < n_live[..., None] - 1) | (index == gaps.shape[-1] - 1)
+    ideal = 2 * np.pi / np.maximum(n_live, 1)[..., None]
+    error = np.where(counted, np.abs(gaps - ideal), 0.0)
+    error = np.where(np.isfinite(error), error, 0.0).max(axis=-1)
+    return np.where(n_live >= 2, error, np.nan)

@@ -1,0 +1,185 @@
+"""One step of the enclosing algorithm for any number of computing vehicles.
+
+This is the single implementation of the paper's law. A flying vehicle calls it with one row
+(itself, see :mod:`.vehicle`); the simulator calls it with every vehicle as a row and, for batches,
+extra leading axes (see :mod:`.swarm`). Nothing here knows about time, I/O or ground truth: the
+inputs are what a vehicle measures and hears at step k.
+
+Slots index everything a vehicle can relate to: slot 0 is the target, slots 1..N the vehicles.
+Order of one step k (every k-indexed input refers to the same instant kT):
+
+1. RLSE update of every edge from the ranges and odometries at k (eqs. cosinelaw, estimator),
+   then phat_ij(k) carried to now by odometry.
+2. Oscillator: theta_i(k+1) from the phases at k of the neighbours heard this step (eq. osc).
+3. Desired offsets r(k), r_i(k+1) through the affine shape at k and k+1 (eq. desipos).
+4. Command u_i(k) = sat(ubar_i) + delta_r_i / T + u_0 (eq. formationtrackingcontrol).
+
+A neighbour that is not heard at step k (no phase, no odometry) simply drops out of this step's
+sums, whose weights are re-normalised over the neighbours that are there.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .control import consensus_velocity, row_normalised, saturate
+from .errors import EnclosingError
+from .oscillator import advance_phase, coupling_rate, harmonic_gains
+from .rlse import EdgeEstimates, rlse_update
+from .shape import desired_offsets
+
+TARGET_SLOT = 0
+
+
+@dataclass(frozen=True)
+class EnclosingParams:
+    """The paper's parameters (ALGORITHM.md's table), shared by every vehicle.
+
+    step_s: T [s]. beta: consensus gain, 0 < beta < 1/T. saturation_m_s: Ubar [m/s].
+    forgetting_factor: beta_f in (0, 1]. coupling_gain: K_l for l < n. coupling_gain_last: K_n.
+    radius_m: rho. initial_gain: Gamma(0) = initial_gain * I.
+    """
+
+    step_s: float
+    beta: float
+    saturation_m_s: float
+    forgetting_factor: float
+    coupling_gain: float
+    coupling_gain_last: float
+    radius_m: float
+    initial_gain: float = 1.0
+
+    def __post_init__(self):
+        rules = [
+            (self.step_s > 0, "step_s must be > 0"),
+            (0 < self.beta < 1 / self.step_s, "beta must be in (0, 1/step_s)"),
+            (self.saturation_m_s > 0, "saturation_m_s must be > 0"),
+            (0 < self.forgetting_factor <= 1, "forgetting_factor must be in (0, 1]"),
+            (self.radius_m > 0, "radius_m must be > 0"),
+            (self.initial_gain > 0, "initial_gain must be > 0"),
+        ]
+        broken = [message for ok, message in rules if not ok]
+        if broken:
+            raise EnclosingError("; ".join(broken))
+
+
+@dataclass(frozen=True)
+class EnclosingState:
+    """What the computing vehicles carry from step k to k+1.
+
+    step: k. phase_rad: ``(..., R)`` theta_i(k). edges: estimator state ``(..., R, S)``.
+    """
+
+    step: int
+    phase_rad: np.ndarray
+    edges: EdgeEstimates
+
+    @classmethod
+    def initial(cls, params, phase_rad, n_slots):
+        """State at k = 0 for rows with phases ``(..., R)`` and ``n_slots`` slots."""
+        phase_rad = np.asarray(phase_rad, dtype=float)
+        edges = EdgeEstimates.initial((*phase_rad.shape, n_slots), params.initial_gain)
+        return cls(step=0, phase_rad=phase_rad, edges=edges)
+
+
+@dataclass(frozen=True)
+class StepInputs:
+    """What the computing vehicles measure and hear at step k.
+
+    odometry_m: ``(..., S, 2)`` every slot's cumulative displacement, north-east [m], in each
+        slot's own frame (shared orientation, any origin); NaN where not heard. Slot 0: the target.
+    phase_rad: ``(..., S)`` every vehicle's theta(k); NaN where not heard. Rows' own entries are
+        taken from the state.
+    range_m: ``(..., R, S)`` d_ij(k) [m]; NaN where not measured (and for the target, for
+        vehicles that do not sense it).
+    member: ``(..., S)`` bool, vehicles counted as live (n of the harmonic gains).
+    target_velocity_m_s: ``(..., 2)`` u_0(k) [m/s]; NaN where unknown (no feed-forward).
+    shape_now, shape_next: ``(..., 3, 3)`` affine shape at k and k+1.
+    omega_rad_s: ``(..., R)`` each row's natural frequency.
+    """
+
+    odometry_m: np.ndarray
+    phase_rad: np.ndarray
+    range_m: np.ndarray
+    member: np.ndarray
+    target_velocity_m_s: np.ndarray
+    shape_now: np.ndarray
+    shape_next: np.ndarray
+    omega_rad_s: np.ndarray
+
+
+@dataclass(frozen=True)
+class StepOutputs:
+    """What the law computes at step k.
+
+    velocity_m_s: ``(..., R, 2)`` u_i(k), north-east [m/s].
+    consensus_m_s: ``(..., R, 2)`` the saturated term sat(ubar_i), |.| <= Ubar.
+    estimate_m: ``(..., R, S, 2)`` phat_ij(k), NaN where the edge is not estimated.
+    consensus_weights: ``(..., R, S)`` abar_ij used this step.
+    """
+
+    velocity_m_s: np.ndarray
+    consensus_m_s: np.ndarray
+    estimate_m: np.ndarray
+    consensus_weights: np.ndarray
+
+
+def enclosing_step(params, row_slots, state, inputs):
+    """Advance the rows ``row_slots`` ``(R,)`` from step k to k+1. Returns ``(state, outputs)``."""
+    row_slots = np.asarray(row_slots)
+    n_slots = inputs.phase_rad.shape[-1]
+    if state.edges.anchor_range_m.shape[-1] != n_slots:
+        raise EnclosingError(
+            f"state has {state.edges.anchor_range_m.shape[-1]} slots, inputs have {n_slots}"
+        )
+    slot_index = np.arange(n_slots)
+    not_self = slot_index != row_slots[:, None]  # (R, S)
+
+    # 1. Relative localization.
+    row_odometry = inputs.odometry_m[..., row_slots, :]
+    relative_odometry = row_odometry[..., :, None, :] - inputs.odometry_m[..., None, :, :]
+    relative_odometry = np.where(not_self[..., None], relative_odometry, np.nan)
+    range_m = np.where(not_self, inputs.range_m, np.nan)
+    edges = rlse_update(state.edges, range_m, relative_odometry, params.forgetting_factor)
+    estimate = edges.current(relative_odometry)
+
+    # 2. Oscillator over the vehicles heard this step.
+    phase = inputs.phase_rad.copy()
+    phase[..., row_slots] = state.phase_rad
+    phase[..., TARGET_SLOT] = np.nan
+    heard = np.isfinite(phase) & inputs.member
+    oscillator_weights = row_normalised(not_self & heard[..., None, :])
+    n_live = inputs.member[..., 1:].sum(axis=-1)
+    gains = harmonic_gains(
+        n_live, n_slots - 1, params.coupling_gain, params.coupling_gain_last
+    )[..., None, :]
+    coupling = coupling_rate(state.phase_rad, phase, oscillator_weights, gains)
+    phase_next = advance_phase(state.phase_rad, inputs.omega_rad_s, coupling, params.step_s)
+
+    # 3. Desired offsets; the target's is 0 whatever the shape.
+    offsets = desired_offsets(phase, params.radius_m, inputs.shape_now)
+    offsets[..., TARGET_SLOT, :] = 0.0
+    row_offsets = desired_offsets(state.phase_rad, params.radius_m, inputs.shape_now)
+    desired_relative = row_offsets[..., :, None, :] - offsets[..., None, :, :]
+    row_offsets_next = desired_offsets(phase_next, params.radius_m, inputs.shape_next)
+
+    # 4. Saturated consensus plus feed-forward.
+    usable = not_self & np.isfinite(estimate).all(axis=-1)
+    usable &= np.isfinite(desired_relative).all(axis=-1)
+    weights = row_normalised(usable)
+    consensus = saturate(
+        consensus_velocity(estimate, desired_relative, weights, params.beta),
+        params.saturation_m_s,
+    )
+    target_velocity = np.nan_to_num(inputs.target_velocity_m_s, nan=0.0)
+    feed_forward = (row_offsets_next - row_offsets) / params.step_s
+    velocity = consensus + feed_forward + target_velocity[..., None, :]
+
+    next_state = EnclosingState(step=state.step + 1, phase_rad=phase_next, edges=edges)
+    outputs = StepOutputs(
+        velocity_m_s=velocity,
+        consensus_m_s=consensus,
+        estimate_m=estimate,
+        consensus_weights=weights,
+    )
+    return next_state, outputs

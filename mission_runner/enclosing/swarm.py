@@ -1,0 +1,53 @@
+"""The whole-swarm face of the algorithm, for the numeric simulator: every vehicle is a row of
+one :func:`.step.enclosing_step` call, with optional leading batch axes (many runs at once).
+"""
+
+import numpy as np
+
+from .step import EnclosingState, StepInputs, enclosing_step
+
+
+class SwarmEnclosing:
+    """All N vehicles of a swarm (slots 1..N; slot 0 the target), batched over leading axes.
+
+    initial_phase_rad, omega_rad_s: ``(..., N)``.
+    """
+
+    def __init__(self, params, initial_phase_rad, omega_rad_s):
+        self.params = params
+        self.omega_rad_s = np.asarray(omega_rad_s, dtype=float)
+        phase = np.asarray(initial_phase_rad, dtype=float)
+        self.n_vehicles = phase.shape[-1]
+        self.rows = np.arange(1, self.n_vehicles + 1)
+        self.state = EnclosingState.initial(params, phase, self.n_vehicles + 1)
+
+    @property
+    def phase_rad(self):
+        """``(..., N)`` theta_i(k) of every vehicle."""
+        return self.state.phase_rad
+
+    def step(self, odometry_m, range_m, live, target_velocity_m_s, shape_now, shape_next):
+        """One step for every vehicle.
+
+        odometry_m: ``(..., N+1, 2)`` slot 0 the target; NaN for lost vehicles.
+        range_m: ``(..., N, N+1)``. live: ``(..., N)`` bool. Lost vehicles' phases are not heard.
+        Returns :class:`.step.StepOutputs` with R = N.
+        """
+        live = np.asarray(live, dtype=bool)
+        member = np.concatenate([np.zeros((*live.shape[:-1], 1), dtype=bool), live], axis=-1)
+        phase = np.concatenate(
+            [np.full((*live.shape[:-1], 1), np.nan), np.where(live, self.phase_rad, np.nan)],
+            axis=-1,
+        )
+        inputs = StepInputs(
+            odometry_m=odometry_m,
+            phase_rad=phase,
+            range_m=range_m,
+            member=member,
+            target_velocity_m_s=target_velocity_m_s,
+            shape_now=shape_now,
+            shape_next=shape_next,
+            omega_rad_s=self.omega_rad_s,
+        )
+        self.state, outputs = enclosing_step(self.params, self.rows, self.state, inputs)
+        return outputs

@@ -1,0 +1,144 @@
+"""The per-vehicle face of the algorithm: what one drone computes from its own measurements and its
+neighbours' messages. The flying controller calls this; it is :func:`.step.enclosing_step` with a
+single row, plus the bookkeeping from vehicle ids to slots.
+"""
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import EnclosingError
+from .shape import IDENTITY
+from .step import TARGET_SLOT, EnclosingState, StepInputs, enclosing_step
+
+
+@dataclass(frozen=True)
+class NeighbourReport:
+    """A neighbour's step-k message: its phase theta_j(k) [rad] and odometry o_j(k) ``(2,)`` [m]."""
+
+    phase_rad: float
+    odometry_m: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class TargetReport:
+    """The target's motion as the swarm knows it at step k (Assumption 2).
+
+    odometry_m: ``(2,)`` the target's cumulative displacement [m] (needed by vehicles that range to
+    it). velocity_m_s: ``(2,)`` u_0(k) [m/s].
+    """
+
+    odometry_m: tuple[float, float]
+    velocity_m_s: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class VehicleCommand:
+    """Result of one vehicle step.
+
+    velocity_m_s: ``(2,)`` north-east velocity setpoint u_i(k) [m/s], before vehicle limits.
+    consensus_m_s: ``(2,)`` the saturated consensus term. estimates_m: phat_ij(k) per peer id
+    (0 = target) for the edges estimated this step. neighbours_used: peer ids in this step's sum.
+    """
+
+    velocity_m_s: np.ndarray
+    consensus_m_s: np.ndarray
+    estimates_m: dict[int, np.ndarray]
+    neighbours_used: tuple[int, ...]
+
+
+class VehicleEnclosing:
+    """One vehicle's enclosing law.
+
+    vehicle_ids: every vehicle id the swarm may contain (fixed at start; ids are > 0, 0 is the
+    target). The vehicle's own phase at the current step is :attr:`phase_rad`: broadcast it with
+    the odometry before calling :meth:`step`.
+    """
+
+    def __init__(self, params, vehicle_id, vehicle_ids, initial_phase_rad, omega_rad_s):
+        ids = list(vehicle_ids)
+        if vehicle_id not in ids:
+            raise EnclosingError(f"vehicle {vehicle_id} is not among the swarm's ids {ids}")
+        if TARGET_SLOT in ids or len(set(ids)) != len(ids):
+            raise EnclosingError(f"vehicle ids must be unique and non-zero, got {ids}")
+        self.params = params
+        self.vehicle_id = vehicle_id
+        self._slot_of = {peer: slot for slot, peer in enumerate(ids, start=1)}
+        self._slot_of[TARGET_SLOT] = TARGET_SLOT
+        self._row = np.array([self._slot_of[vehicle_id]])
+        self._n_slots = len(ids) + 1
+        self._omega = np.array([float(omega_rad_s)])
+        self.state = EnclosingState.initial(params, [initial_phase_rad], self._n_slots)
+
+    @property
+    def phase_rad(self):
+        """theta_i at the current step."""
+        return float(self.state.phase_rad[0])
+
+    @property
+    def step_index(self):
+        """k: how many steps this vehicle has taken."""
+        return self.state.step
+
+    def step(
+        self,
+        own_odometry_m,
+        neighbours: Mapping[int, NeighbourReport],
+        ranges_m: Mapping[int, float],
+        target: TargetReport | None,
+        members,
+        shape_now=IDENTITY,
+        shape_next=IDENTITY,
+    ):
+        """Advance from step k to k+1 and return the command for step k.
+
+        own_odometry_m: ``(2,)`` own cumulative displacement at k [m]. neighbours: the step-k
+        messages heard from other vehicles, by id. ranges_m: d_ij(k) by peer id (0 = target).
+        target: the target's motion at k, or None if unknown. members: ids of the vehicles counted
+        as live (including this one). shape_now/shape_next: affine shape at k and k+1.
+        """
+        n = self._n_slots
+        odometry = np.full((n, 2), np.nan)
+        phase = np.full(n, np.nan)
+        ranges = np.full((1, n), np.nan)
+        member = np.zeros(n, dtype=bool)
+        odometry[self._row[0]] = own_odometry_m
+        for peer, report in neighbours.items():
+            slot = self._slot(peer)
+            odometry[slot] = report.odometry_m
+            phase[slot] = report.phase_rad
+        for peer, distance in ranges_m.items():
+            ranges[0, self._slot(peer)] = distance
+        for peer in members:
+            member[self._slot(peer)] = True
+        velocity = np.full(2, np.nan)
+        if target is not None:
+            odometry[TARGET_SLOT] = target.odometry_m
+            velocity = np.asarray(target.velocity_m_s, dtype=float)
+        inputs = StepInputs(
+            odometry_m=odometry,
+            phase_rad=phase,
+            range_m=ranges,
+            member=member,
+            target_velocity_m_s=velocity,
+            shape_now=np.asarray(shape_now, dtype=float),
+            shape_next=np.asarray(shape_next, dtype=float),
+            omega_rad_s=self._omega,
+        )
+        self.state, out = enclosing_step(self.params, self._row, self.state, inputs)
+        peers = {slot: peer for peer, slot in self._slot_of.items()}
+        used = np.flatnonzero(out.consensus_weights[0] > 0)
+        estimated = np.flatnonzero(np.isfinite(out.estimate_m[0]).all(axis=-1))
+        return VehicleCommand(
+            velocity_m_s=out.velocity_m_s[0],
+            consensus_m_s=out.consensus_m_s[0],
+            estimates_m={peers[s]: out.estimate_m[0, s] for s in estimated},
+            neighbours_used=tuple(peers[s] for s in used),
+        )
+
+    def _slot(self, peer):
+        try:
+            return self._slot_of[peer]
+        except KeyError:
+            raise EnclosingError(f"unknown vehicle id {peer}; known: {sorted(self._slot_of)}")
