@@ -1,6 +1,7 @@
 """Coupled-oscillator pattern generator, the paper's eq. ``osc``.
 
-theta_i(k+1) = theta_i(k) + T omega_i + T sum_j a_ij sum_{l=1..n} (K_l / l) sin(l (theta_i - theta_j))
+theta_i(k+1) = theta_i(k) + T omega_i
+               + T sum_j a_ij sum_{l=1..n} (K_l / l) sin(l (theta_i - theta_j))
 
 With K_l > 0 for l < n and K_n < 0 small, the splay state (phases 2 pi / n apart) is a stable
 equilibrium (Lemma 1). ``n`` is the number of live vehicles, so the harmonic gains change when a
@@ -45,7 +46,7 @@ def coupling_rate(phase_rows, phase_slots, weights, gains):
 
 
 def advance_phase(phase_rows, omega_rad_s, coupling, step_s):
-    """theta(k+1) from theta(k), the natural frequency and the coupling term. Shapes ``(..., R)``."""
+    """theta(k+1) from theta(k), the natural frequency and the coupling. Shapes ``(..., R)``."""
     return phase_rows + step_s * (omega_rad_s + coupling)
 
 

@@ -1,4 +1,4 @@
-"""Relative localization by recursive least squares with forgetting, eqs. ``cosinelaw`` and ``estimator``.
+"""Relative localization by RLSE with forgetting, eqs. ``cosinelaw`` and ``estimator``.
 
 For an edge (i, j), with v the relative displacement p_ij(b) - p_ij(a) over an interval a -> b:
 
@@ -39,7 +39,7 @@ class EdgeEstimates:
 
     @classmethod
     def initial(cls, shape, initial_gain=1.0):
-        """Paper's initial values: phat = 0, Gamma = initial_gain * I, no anchor. ``shape = (..., R, S)``."""
+        """The paper's phat = 0, Gamma = initial_gain * I; no anchor. ``shape``: ``(..., R, S)``."""
         return cls(
             estimate_m=np.zeros((*shape, 2)),
             gain=np.broadcast_to(np.eye(2) * initial_gain, (*shape, 2, 2)).copy(),
@@ -97,8 +97,9 @@ def rlse_update(estimates, range_m, relative_odometry_m, forgetting_factor):
     new_gain[..., 1, 1] = (g11 - gv_e * vg_e / denominator) / forgetting_factor
     correction_n = new_gain[..., 0, 0] * v_n + new_gain[..., 0, 1] * v_e
     correction_e = new_gain[..., 1, 0] * v_n + new_gain[..., 1, 1] * v_e
-    new_estimate = np.stack([p[..., 0] + v_n + correction_n * eps,
-                             p[..., 1] + v_e + correction_e * eps], axis=-1)
+    new_estimate = np.stack(
+        [p[..., 0] + v_n + correction_n * eps, p[..., 1] + v_e + correction_e * eps], axis=-1
+    )
 
     return EdgeEstimates(
         estimate_m=np.where(update[..., None], new_estimate, p),

@@ -43,6 +43,4 @@ def desired_offsets(phase_rad, radius_m, shape):
     circle_e = radius_m * np.sin(phase_rad)
     linear = shape[..., None, :2, :2]
     offset = shape[..., None, :2, 2]
-    return (
-        linear[..., 0] * circle_n[..., None] + linear[..., 1] * circle_e[..., None] + offset
-    )
+    return linear[..., 0] * circle_n[..., None] + linear[..., 1] * circle_e[..., None] + offset

@@ -150,9 +150,9 @@ def enclosing_step(params, row_slots, state, inputs):
     heard = np.isfinite(phase) & inputs.member
     oscillator_weights = row_normalised(not_self & heard[..., None, :])
     n_live = inputs.member[..., 1:].sum(axis=-1)
-    gains = harmonic_gains(
-        n_live, n_slots - 1, params.coupling_gain, params.coupling_gain_last
-    )[..., None, :]
+    gains = harmonic_gains(n_live, n_slots - 1, params.coupling_gain, params.coupling_gain_last)[
+        ..., None, :
+    ]
     coupling = coupling_rate(state.phase_rad, phase, oscillator_weights, gains)
     phase_next = advance_phase(state.phase_rad, inputs.omega_rad_s, coupling, params.step_s)
 

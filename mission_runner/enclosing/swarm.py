@@ -26,7 +26,7 @@ class SwarmEnclosing:
         """``(..., N)`` theta_i(k) of every vehicle."""
         return self.state.phase_rad
 
-    def step(self, odometry_m, range_m, live, target_velocity_m_s, shape_now, shape_next):
+    def step(self, *, odometry_m, range_m, live, target_velocity_m_s, shape_now, shape_next):
         """One step for every vehicle.
 
         odometry_m: ``(..., N+1, 2)`` slot 0 the target; NaN for lost vehicles.

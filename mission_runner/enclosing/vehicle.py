@@ -83,6 +83,7 @@ class VehicleEnclosing:
 
     def step(
         self,
+        *,
         own_odometry_m,
         neighbours: Mapping[int, NeighbourReport],
         ranges_m: Mapping[int, float],
@@ -141,4 +142,5 @@ class VehicleEnclosing:
         try:
             return self._slot_of[peer]
         except KeyError:
-            raise EnclosingError(f"unknown vehicle id {peer}; known: {sorted(self._slot_of)}")
+            known = sorted(self._slot_of)
+            raise EnclosingError(f"unknown vehicle id {peer}; known: {known}") from None
