@@ -1,0 +1,479 @@
+"""The scenario model: one typed YAML file describes a mission, for the simulator, the emulator and
+the flying runner alike. It is validated once at load; every problem is reported with its YAML
+path (``vehicles[2].initial_phase_rad``) and the rule it breaks, before anything runs or is written.
+
+Planar quantities are ``[north, east]`` pairs in metres (m/s for velocities): the paper's ``[x, y]``
+is ``[north, east]`` here. Time-varying values (the target's path, the affine shape) are data:
+constants, sinusoids, waypoints or safe expressions of ``t`` (see :mod:`.expressions`); never
+Python code.
+"""
+
+import itertools
+import math
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from .errors import ConfigError
+from .expressions import ExpressionError, compile_expression
+
+Pair = Annotated[list[float], Field(min_length=2, max_length=2)]
+PositiveFloat = Annotated[float, Field(gt=0)]
+NonNegativeFloat = Annotated[float, Field(ge=0)]
+
+
+class Model(BaseModel):
+    """Strict, immutable, closed: unknown keys, wrong types and NaN/inf are errors."""
+
+    model_config = ConfigDict(strict=True, extra="forbid", allow_inf_nan=False, frozen=True)
+
+
+def _expression(text):
+    try:
+        compile_expression(text)
+    except ExpressionError as error:
+        raise ValueError(str(error)) from None
+    return text
+
+
+Expression = Annotated[str, Field(min_length=1)]
+
+
+# --- Time-varying scalars -----------------------------------------------------------------------
+
+
+class ConstantSignal(Model):
+    """A value that does not change."""
+
+    kind: Literal["constant"] = Field(title="Kind", description="Signal kind.")
+    value: float = Field(title="Value", description="The constant value.")
+
+
+class SinusoidSignal(Model):
+    """offset + amplitude * sin(2 pi t / period_s + phase_rad)."""
+
+    kind: Literal["sinusoid"] = Field(title="Kind", description="Signal kind.")
+    offset: float = Field(0.0, title="Offset", description="Mean value.")
+    amplitude: float = Field(title="Amplitude", description="Peak deviation from the offset.")
+    period_s: PositiveFloat = Field(title="Period", description="Period in seconds.")
+    phase_rad: float = Field(0.0, title="Phase", description="Phase at t = 0, radians.")
+
+
+class WaypointSignal(Model):
+    """Piecewise-linear through ``[t_s, value]`` points, held constant outside them."""
+
+    kind: Literal["waypoints"] = Field(title="Kind", description="Signal kind.")
+    points: Annotated[list[Pair], Field(min_length=1)] = Field(
+        title="Points", description="[time_s, value] pairs with strictly increasing times."
+    )
+
+    @field_validator("points")
+    @classmethod
+    def _increasing(cls, points):
+        if any(b[0] <= a[0] for a, b in itertools.pairwise(points)):
+            raise ValueError("times must be strictly increasing")
+        return points
+
+
+class ExpressionSignal(Model):
+    """A safe arithmetic expression of ``t`` in seconds, e.g. ``1 + 0.5 * sin(pi * t / 12.5)``."""
+
+    kind: Literal["expression"] = Field(title="Kind", description="Signal kind.")
+    expression: Expression = Field(title="Expression", description="Expression of t [s].")
+
+    _check = field_validator("expression")(_expression)
+
+
+Signal = (
+    float
+    | Annotated[
+        ConstantSignal | SinusoidSignal | WaypointSignal | ExpressionSignal,
+        Field(discriminator="kind"),
+    ]
+)
+
+
+# --- Target paths ---------------------------------------------------------------------------------
+
+
+class LinePath(Model):
+    """p0(t) = start + velocity * t."""
+
+    kind: Literal["line"] = Field(title="Kind", description="Path kind.")
+    start_m: Pair = Field([0.0, 0.0], title="Start", description="[north, east] at t = 0 [m].")
+    velocity_m_s: Pair = Field(title="Velocity", description="[north, east] velocity [m/s].")
+
+
+class SinusoidPath(Model):
+    """A line plus a sinusoid on each axis: start + v t + amplitude sin(2 pi t / T + phi)."""
+
+    kind: Literal["sinusoid"] = Field(title="Kind", description="Path kind.")
+    start_m: Pair = Field([0.0, 0.0], title="Start", description="[north, east] at t = 0 [m].")
+    velocity_m_s: Pair = Field([0.0, 0.0], title="Drift", description="Mean velocity [m/s].")
+    amplitude_m: Pair = Field(title="Amplitude", description="[north, east] amplitude [m].")
+    period_s: PositiveFloat = Field(title="Period", description="Period of the oscillation [s].")
+    phase_rad: float = Field(0.0, title="Phase", description="Phase at t = 0 [rad].")
+
+
+class CirclePath(Model):
+    """center + radius [cos(2 pi t / T + phi), sin(2 pi t / T + phi)] (north, east)."""
+
+    kind: Literal["circle"] = Field(title="Kind", description="Path kind.")
+    center_m: Pair = Field([0.0, 0.0], title="Centre", description="[north, east] [m].")
+    radius_m: PositiveFloat = Field(title="Radius", description="Circle radius [m].")
+    period_s: PositiveFloat = Field(title="Period", description="Time for one lap [s].")
+    phase_rad: float = Field(0.0, title="Phase", description="Angle at t = 0 [rad].")
+
+
+class WaypointPath(Model):
+    """Piecewise-linear through ``[t_s, north_m, east_m]`` points, held at the ends."""
+
+    kind: Literal["waypoints"] = Field(title="Kind", description="Path kind.")
+    points: Annotated[
+        list[Annotated[list[float], Field(min_length=3, max_length=3)]], Field(min_length=1)
+    ] = Field(title="Points", description="[time_s, north_m, east_m], increasing times.")
+
+    @field_validator("points")
+    @classmethod
+    def _increasing(cls, points):
+        if any(b[0] <= a[0] for a, b in itertools.pairwise(points)):
+            raise ValueError("times must be strictly increasing")
+        return points
+
+
+class ExpressionPath(Model):
+    """north(t) and east(t) as safe expressions of ``t`` in seconds."""
+
+    kind: Literal["expression"] = Field(title="Kind", description="Path kind.")
+    north: Expression = Field(title="North", description="North position [m] as f(t).")
+    east: Expression = Field(title="East", description="East position [m] as f(t).")
+
+    _check = field_validator("north", "east")(_expression)
+
+
+TargetPath = Annotated[
+    LinePath | SinusoidPath | CirclePath | WaypointPath | ExpressionPath,
+    Field(discriminator="kind"),
+]
+
+
+class TargetConfig(Model):
+    """The moving target (index 0 of the paper)."""
+
+    path: TargetPath = Field(title="Path", description="The target's planar path.")
+    altitude_m: float = Field(0.0, title="Altitude", description="Height above home [m].")
+
+
+# --- Algorithm ------------------------------------------------------------------------------------
+
+
+class ShapeConfig(Model):
+    """Affine shaping of the circle, A = Translation @ Shearing @ Scaling; each entry a signal."""
+
+    translate_north_m: Signal = Field(0.0, title="T_x", description="Translation north [m].")
+    translate_east_m: Signal = Field(0.0, title="T_y", description="Translation east [m].")
+    scale_north: Signal = Field(1.0, title="S_x", description="Scaling along north (> 0).")
+    scale_east: Signal = Field(1.0, title="S_y", description="Scaling along east (> 0).")
+    shear_a: Signal = Field(0.0, title="H_a", description="Shear of north by east.")
+    shear_b: Signal = Field(0.0, title="H_b", description="Shear of east by north.")
+
+
+class AlgorithmConfig(Model):
+    """The paper's parameters (ALGORITHM.md)."""
+
+    beta: PositiveFloat = Field(title="beta", description="Consensus gain, < 1/step_s.")
+    saturation_m_s: PositiveFloat = Field(
+        title="Ubar", description="Bound of the consensus term [m/s]."
+    )
+    forgetting_factor: float = Field(
+        gt=0, le=1, title="beta_f", description="RLSE forgetting factor in (0, 1]."
+    )
+    omega_rad_s: PositiveFloat = Field(
+        title="omega", description="Natural frequency of the oscillators [rad/s]."
+    )
+    coupling_gain: PositiveFloat = Field(1.0, title="K_l", description="K_l for l < n (> 0).")
+    coupling_gain_last: float = Field(
+        -1.0, lt=0, title="K_n", description="K_n (< 0, small in magnitude)."
+    )
+    radius_m: PositiveFloat = Field(title="rho", description="Circle radius [m].")
+    initial_gain: PositiveFloat = Field(1.0, title="Gamma(0)", description="Gamma(0) = value * I.")
+    shape: ShapeConfig = Field(ShapeConfig(), title="Shape", description="Affine shaping.")
+
+
+class TimingConfig(Model):
+    """Discrete time of the law."""
+
+    step_s: PositiveFloat = Field(title="T", description="Step length [s].")
+    steps: Annotated[int, Field(gt=0, le=10_000_000)] = Field(
+        title="Steps", description="Number of steps to run."
+    )
+
+
+class VehicleConfig(Model):
+    """One vehicle of the swarm."""
+
+    id: Annotated[int, Field(gt=0, le=250)] = Field(
+        title="Id", description="Vehicle id (1..250; 0 is the target). MAVLink system id."
+    )
+    initial_position_m: Pair = Field(
+        title="Initial position", description="[north, east] at k = 0 [m] (truth; never seen)."
+    )
+    initial_phase_rad: float = Field(title="theta(0)", description="Initial oscillator phase.")
+    senses_target: bool = Field(
+        False, title="Senses target", description="Ranges to the target (edge to index 0)."
+    )
+    omega_rad_s: PositiveFloat | None = Field(
+        None, title="omega_i", description="This vehicle's own frequency (default: algorithm's)."
+    )
+    speed_limit_m_s: PositiveFloat = Field(
+        10.0, title="U_i", description="Horizontal speed bound of the vehicle [m/s]."
+    )
+
+
+class SensorConfig(Model):
+    """Measurement imperfections (all off by default: the paper's noise-free model)."""
+
+    range_noise_std_m: NonNegativeFloat = Field(
+        0.0, title="Range noise", description="Std of Gaussian range noise [m] (UWB: 0.05-0.1)."
+    )
+    range_dropout_probability: float = Field(
+        0.0, ge=0, lt=1, title="Range dropout", description="Probability a range is missing."
+    )
+    range_max_m: PositiveFloat | None = Field(
+        None, title="Range limit", description="Ranges beyond this are not measured [m]."
+    )
+    displacement_noise_std_m: NonNegativeFloat = Field(
+        0.0, title="Flow noise", description="Std of per-step displacement noise, per axis [m]."
+    )
+    displacement_drift_m_s: NonNegativeFloat = Field(
+        0.0,
+        title="Flow drift",
+        description="Magnitude of a constant odometry drift per vehicle, random direction [m/s].",
+    )
+
+
+class EventConfig(Model):
+    """Something that happens to a vehicle at a step (or a time)."""
+
+    kind: Literal["vehicle_lost", "vehicle_joins"] = Field(
+        title="Kind", description="vehicle_lost: stops for good; vehicle_joins: absent until then."
+    )
+    vehicle: int = Field(title="Vehicle", description="Vehicle id.")
+    at_step: Annotated[int, Field(ge=0)] | None = Field(None, title="Step", description="k.")
+    at_s: NonNegativeFloat | None = Field(None, title="Time", description="Time [s].")
+
+    def step(self, step_s):
+        """The step index at which the event takes effect."""
+        return self.at_step if self.at_step is not None else math.ceil(self.at_s / step_s - 1e-9)
+
+
+class BatchConfig(Model):
+    """How ``--runs N`` varies the runs after the first (run 0 is the scenario as pinned)."""
+
+    position_spread_m: NonNegativeFloat = Field(
+        2.0, title="Position spread", description="Initial positions jitter, uniform in a disc."
+    )
+    randomize_phases: bool = Field(
+        True, title="Random phases", description="Draw initial phases uniformly in [0, 2 pi)."
+    )
+
+
+class MetricsConfig(Model):
+    """Tolerances that define 'converged' in the summary."""
+
+    tracking_tolerance_m: PositiveFloat = Field(0.05, title="Tracking tol.", description="[m].")
+    localization_tolerance_m: PositiveFloat = Field(
+        1e-3, title="Localization tol.", description="[m]."
+    )
+    phase_tolerance_rad: PositiveFloat = Field(0.01, title="Phase tol.", description="[rad].")
+
+
+METRICS = (
+    "final_tracking_error_m",
+    "final_localization_error_m",
+    "final_phase_spacing_error_rad",
+    "tracking_converged_step",
+    "localization_converged_step",
+    "phase_converged_step",
+    "max_consensus_speed_m_s",
+    "max_speed_m_s",
+    "min_separation_m",
+    "final_live_vehicles",
+)
+MetricName = Literal[METRICS]
+
+
+class Expectation(Model):
+    """Bounds a metric must respect for the scenario to pass."""
+
+    max: float | None = Field(None, title="Maximum", description="Metric must be <= this.")
+    min: float | None = Field(None, title="Minimum", description="Metric must be >= this.")
+
+
+class Scenario(Model):
+    """A whole mission."""
+
+    name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")] = Field(
+        title="Name", description="Short name, used for output folders."
+    )
+    description: str = Field("", title="Description", description="What the scenario shows.")
+    seed: Annotated[int, Field(ge=0)] = Field(0, title="Seed", description="RNG seed.")
+    timing: TimingConfig = Field(title="Timing", description="Step length and count.")
+    algorithm: AlgorithmConfig = Field(title="Algorithm", description="Law parameters.")
+    target: TargetConfig = Field(title="Target", description="The moving target.")
+    vehicles: Annotated[list[VehicleConfig], Field(min_length=1, max_length=250)] = Field(
+        title="Vehicles", description="The swarm."
+    )
+    sensors: SensorConfig = Field(SensorConfig(), title="Sensors", description="Noise model.")
+    events: list[EventConfig] = Field([], title="Events", description="Losses and joins.")
+    batch: BatchConfig = Field(BatchConfig(), title="Batch", description="For --runs N.")
+    metrics: MetricsConfig = Field(MetricsConfig(), title="Metrics", description="Tolerances.")
+    expect: dict[MetricName, Expectation] = Field(
+        {}, title="Expectations", description="Pass/fail bounds on summary metrics."
+    )
+
+
+# --- Loading --------------------------------------------------------------------------------------
+
+
+def load_scenario(path):
+    """Read and validate a scenario file. Raises :class:`ConfigError` listing every problem."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise ConfigError(str(path), [("", f"cannot read file: {error.strerror}")]) from None
+    return parse_scenario(text, source=str(path))
+
+
+def parse_scenario(text, source="<string>"):
+    """Validate scenario YAML text; see :func:`load_scenario`."""
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(error, "problem", None) or str(error)
+        raise ConfigError(source, [("", f"{where}not valid YAML: {problem}")]) from None
+    if not isinstance(data, dict):
+        raise ConfigError(source, [("", "must be a mapping of keys to values")])
+    return validate_scenario(data, source)
+
+
+def validate_scenario(data, source="<data>"):
+    """Validate already-parsed scenario data (a dict)."""
+    try:
+        scenario = Scenario.model_validate(data)
+    except ValidationError as error:
+        raise ConfigError(source, _pydantic_problems(error)) from None
+    problems = _rule_problems(scenario)
+    if problems:
+        raise ConfigError(source, problems)
+    return scenario
+
+
+def yaml_path(location):
+    """``("vehicles", 2, "id")`` -> ``"vehicles[2].id"``."""
+    text = ""
+    for part in location:
+        text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
+    return text
+
+
+def _clean_location(location):
+    """Drop pydantic's union-branch markers so the location is a YAML path."""
+    cleaned, skip_tag = [], False
+    for part in location:
+        if skip_tag:
+            skip_tag = False
+            continue
+        if isinstance(part, str) and part.startswith("tagged-union["):
+            skip_tag = True
+            continue
+        if part in ("float", "int", "str", "bool") or (
+            isinstance(part, str) and part.startswith(("function-", "list["))
+        ):
+            continue
+        cleaned.append(part)
+    return tuple(cleaned)
+
+
+def _pydantic_problems(error):
+    problems = []
+    for item in error.errors(include_url=False):
+        location = _clean_location(item["loc"])
+        message = item["msg"]
+        if item["type"] == "value_error":
+            message = message.removeprefix("Value error, ")
+        # A union of a number and a tagged mapping reports both branches; keep the one that
+        # matches what was written.
+        scalar_branch = item["loc"] and item["loc"][-1] in ("float", "int")
+        if scalar_branch and isinstance(item.get("input"), dict):
+            continue
+        problems.append((yaml_path(location), message))
+    return problems
+
+
+def _rule_problems(scenario):
+    """Rules that span several fields, each reported at the path a user would edit."""
+    problems = []
+    step_s = scenario.timing.step_s
+    if scenario.algorithm.beta >= 1 / step_s:
+        problems.append(
+            (
+                "algorithm.beta",
+                f"must be < 1/timing.step_s = {1 / step_s:g} (got {scenario.algorithm.beta:g})",
+            )
+        )
+    ids = [vehicle.id for vehicle in scenario.vehicles]
+    for index, vehicle in enumerate(scenario.vehicles):
+        if ids.index(vehicle.id) != index:
+            problems.append((f"vehicles[{index}].id", f"duplicate vehicle id {vehicle.id}"))
+        if vehicle.speed_limit_m_s <= scenario.algorithm.saturation_m_s:
+            problems.append(
+                (
+                    f"vehicles[{index}].speed_limit_m_s",
+                    "must be > algorithm.saturation_m_s (the paper needs Ubar < U_i)",
+                )
+            )
+    if not any(vehicle.senses_target for vehicle in scenario.vehicles):
+        problems.append(("vehicles", "at least one vehicle must have senses_target: true"))
+    joined_later = set()
+    for index, event in enumerate(scenario.events):
+        where = f"events[{index}]"
+        if (event.at_step is None) == (event.at_s is None):
+            problems.append((where, "give exactly one of at_step or at_s"))
+            continue
+        if event.vehicle not in ids:
+            problems.append((f"{where}.vehicle", f"no vehicle with id {event.vehicle}"))
+        if event.step(step_s) >= scenario.timing.steps:
+            problems.append((where, f"happens after the last step ({scenario.timing.steps})"))
+        if event.kind == "vehicle_joins":
+            joined_later.add(event.vehicle)
+    sensing_from_start = [
+        vehicle.id
+        for vehicle in scenario.vehicles
+        if vehicle.senses_target and vehicle.id not in joined_later
+    ]
+    if ids and any(v.senses_target for v in scenario.vehicles) and not sensing_from_start:
+        problems.append(("vehicles", "a vehicle sensing the target must be present from k = 0"))
+    problems += _shape_problems(scenario)
+    return problems
+
+
+def _shape_problems(scenario):
+    from .scenario import signal_values  # noqa: PLC0415 - scenario imports this module
+
+    step_s, steps = scenario.timing.step_s, scenario.timing.steps
+    times = np.arange(steps + 1) * step_s
+    problems = []
+    for name in ("scale_north", "scale_east"):
+        values = signal_values(getattr(scenario.algorithm.shape, name), times)
+        if not np.all(np.isfinite(values)) or np.min(values) <= 0:
+            problems.append(
+                (f"algorithm.shape.{name}", "must stay finite and > 0 over the whole run")
+            )
+    return problems

@@ -1,0 +1,97 @@
+"""Headline metrics of a simulated (or flown) run, their distribution over a batch, and the
+scenario's pass/fail expectations.
+"""
+
+import numpy as np
+
+from ..config import METRICS
+
+
+def converged_step(error, tolerance):
+    """First step from which ``error`` ``(B, K)`` stays <= tolerance; -1 where it never does."""
+    above = ~(error <= tolerance)  # NaN counts as not converged
+    last_above = np.where(
+        above.any(axis=-1), error.shape[-1] - 1 - np.argmax(above[..., ::-1], axis=-1), -1
+    )
+    step = last_above + 1
+    return np.where(step >= error.shape[-1], -1, step)
+
+
+def run_metrics(result):
+    """Headline metrics of every run: ``{name: (B,) array}``, names as in ``config.METRICS``."""
+    tolerances = result.scenario.metrics
+    commands = result.commands_m_s
+    speed = np.sqrt(np.sum(commands * commands, axis=-1)).max(axis=(-1, -2))
+    metrics = {
+        "final_tracking_error_m": result.tracking_error_m[:, -1],
+        "final_localization_error_m": result.localization_error_m[:, -1],
+        "final_phase_spacing_error_rad": result.phase_spacing_error_rad[:, -1],
+        "tracking_converged_step": converged_step(
+            result.tracking_error_m, tolerances.tracking_tolerance_m
+        ),
+        "localization_converged_step": converged_step(
+            result.localization_error_m, tolerances.localization_tolerance_m
+        ),
+        "phase_converged_step": converged_step(
+            result.phase_spacing_error_rad, tolerances.phase_tolerance_rad
+        ),
+        "max_consensus_speed_m_s": result.consensus_speed_m_s.max(axis=-1),
+        "max_speed_m_s": speed,
+        "min_separation_m": result.separation_m.min(axis=-1),
+        "final_live_vehicles": result.live[:, -1].sum(axis=-1),
+    }
+    assert set(metrics) == set(METRICS)
+    return metrics
+
+
+LOWER_IS_WORSE = {"min_separation_m", "final_live_vehicles"}
+
+
+def distribution(values, name):
+    """Median, p95 and worst of one metric over runs. Convergence steps of -1 count as never."""
+    values = np.asarray(values, dtype=float)
+    if name.endswith("_converged_step"):
+        never = int(np.sum(values < 0))
+        finite = values[values >= 0]
+        if finite.size == 0:
+            return {"median": None, "p95": None, "worst": None, "never_converged": never}
+        worst = None if never else float(finite.max())
+        return {
+            "median": float(np.median(np.where(values < 0, np.inf, values)))
+            if never * 2 < values.size
+            else None,
+            "p95": float(np.percentile(finite, 95)) if never == 0 else None,
+            "worst": worst,
+            "never_converged": never,
+        }
+    if name in LOWER_IS_WORSE:
+        return {
+            "median": float(np.median(values)),
+            "p5": float(np.percentile(values, 5)),
+            "worst": float(values.min()),
+        }
+    return {
+        "median": float(np.median(values)),
+        "p95": float(np.percentile(values, 95)),
+        "worst": float(values.max()),
+    }
+
+
+def check_expectations(expect, metrics):
+    """Failed expectations as readable strings (empty when the run passes).
+
+    expect: the scenario's ``expect`` mapping; metrics: ``{name: scalar}`` of one run. A
+    convergence step of -1 (never) fails any bound on it.
+    """
+    failures = []
+    for name, bound in expect.items():
+        value = metrics[name]
+        never = name.endswith("_converged_step") and value < 0
+        if value is None or never or not np.isfinite(value):
+            failures.append(f"{name} = {'never' if never else value}: no value to compare")
+            continue
+        if bound.max is not None and value > bound.max:
+            failures.append(f"{name} = {value:.6g} > max {bound.max:g}")
+        if bound.min is not None and value < bound.min:
+            failures.append(f"{name} = {value:.6g} < min {bound.min:g}")
+    return failures

@@ -1,0 +1,229 @@
+"""The numeric simulator: the paper's discrete-time model around the algorithm.
+
+p_i(k+1) = p_i(k) + T sat_{U_i}(u_i(k)) (first-order dynamics with a speed bound), ranges and
+odometry synthesised from the true positions with optional noise, dropout and drift, and the
+algorithm run as :class:`~mission_runner.enclosing.SwarmEnclosing` - the same step function a
+flying vehicle runs. Runs are batched on a leading axis: ``runs=N`` simulates N initial conditions
+at once. Ground truth is used here only to make measurements and to score the run.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import Scenario
+from ..enclosing import EnclosingParams, SwarmEnclosing, splay_spacing_error
+from ..errors import SimulationError
+from ..scenario import shape_matrices, target_positions
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """Time series of a (batched) run; B runs, K steps, N vehicles.
+
+    times_s ``(K+1,)``; target_m ``(K+1, 2)``; positions_m ``(B, K+1, N, 2)``;
+    phases_rad ``(B, K+1, N)``; commands_m_s ``(B, K, N, 2)`` (after the speed bound);
+    live ``(B, K+1, N)``; tracking_error_m ``(B, K+1)``; localization_error_m ``(B, K)`` (max over
+    estimated edges at step k); phase_spacing_error_rad ``(B, K+1)``; consensus_speed_m_s
+    ``(B, K)`` (max over vehicles of |sat(ubar)|); separation_m ``(B, K+1)`` (closest live pair).
+    """
+
+    scenario: Scenario
+    times_s: np.ndarray
+    target_m: np.ndarray
+    positions_m: np.ndarray
+    phases_rad: np.ndarray
+    commands_m_s: np.ndarray
+    live: np.ndarray
+    tracking_error_m: np.ndarray
+    localization_error_m: np.ndarray
+    phase_spacing_error_rad: np.ndarray
+    consensus_speed_m_s: np.ndarray
+    separation_m: np.ndarray
+
+    @property
+    def runs(self):
+        return self.tracking_error_m.shape[0]
+
+
+def algorithm_params(scenario):
+    """The scenario's :class:`EnclosingParams`."""
+    algorithm = scenario.algorithm
+    return EnclosingParams(
+        step_s=scenario.timing.step_s,
+        beta=algorithm.beta,
+        saturation_m_s=algorithm.saturation_m_s,
+        forgetting_factor=algorithm.forgetting_factor,
+        coupling_gain=algorithm.coupling_gain,
+        coupling_gain_last=algorithm.coupling_gain_last,
+        radius_m=algorithm.radius_m,
+        initial_gain=algorithm.initial_gain,
+    )
+
+
+def initial_conditions(scenario, runs):
+    """Initial positions ``(B, N, 2)`` and phases ``(B, N)``: run 0 as pinned, the rest drawn."""
+    positions = np.array([v.initial_position_m for v in scenario.vehicles], dtype=float)
+    phases = np.array([v.initial_phase_rad for v in scenario.vehicles], dtype=float)
+    positions = np.repeat(positions[None], runs, axis=0)
+    phases = np.repeat(phases[None], runs, axis=0)
+    if runs > 1:
+        rng = np.random.default_rng([scenario.seed, 1])
+        extra, n = runs - 1, positions.shape[1]
+        radius = scenario.batch.position_spread_m * np.sqrt(rng.uniform(size=(extra, n)))
+        angle = rng.uniform(0, 2 * np.pi, size=(extra, n))
+        positions[1:] += radius[..., None] * np.stack([np.cos(angle), np.sin(angle)], -1)
+        if scenario.batch.randomize_phases:
+            phases[1:] = rng.uniform(0, 2 * np.pi, size=(extra, n))
+    return positions, phases
+
+
+class _Noise:
+    """Measurement noise for a batch; run 0 draws from its own stream so it equals a single run."""
+
+    def __init__(self, seed, runs):
+        self._first = np.random.default_rng([seed, 0])
+        self._rest = np.random.default_rng([seed, 2]) if runs > 1 else None
+
+    def draw(self, method, shape, **kwargs):
+        first = getattr(self._first, method)(size=(1, *shape[1:]), **kwargs)
+        if self._rest is None:
+            return first
+        rest = getattr(self._rest, method)(size=(shape[0] - 1, *shape[1:]), **kwargs)
+        return np.concatenate([first, rest], axis=0)
+
+
+def _event_schedule(scenario):
+    """live_from_schedule(k) -> ``(N,)`` bool, and the steps at which membership changes."""
+    ids = [v.id for v in scenario.vehicles]
+    joins = {
+        e.vehicle: e.step(scenario.timing.step_s)
+        for e in scenario.events
+        if e.kind == "vehicle_joins"
+    }
+    losses = {
+        e.vehicle: e.step(scenario.timing.step_s)
+        for e in scenario.events
+        if e.kind == "vehicle_lost"
+    }
+    start = np.array([joins.get(i, 0) for i in ids])
+    stop = np.array([losses.get(i, np.iinfo(np.int64).max) for i in ids])
+    return lambda k: (start <= k) & (k < stop)
+
+
+def simulate(scenario, runs=1, on_step=None):
+    """Run ``scenario`` ``runs`` times (vectorised). ``on_step(k, total)`` reports progress."""
+    if runs < 1:
+        raise SimulationError(f"runs must be >= 1, got {runs}")
+    step_s, steps = scenario.timing.step_s, scenario.timing.steps
+    sensors = scenario.sensors
+    n = len(scenario.vehicles)
+    params = algorithm_params(scenario)
+    times = np.arange(steps + 1) * step_s
+    target = target_positions(scenario.target.path, np.append(times, times[-1] + step_s))
+    shapes = shape_matrices(scenario.algorithm.shape, np.append(times, times[-1] + step_s))
+    omega = np.array([v.omega_rad_s or scenario.algorithm.omega_rad_s for v in scenario.vehicles])
+    senses = np.array([v.senses_target for v in scenario.vehicles])
+    speed_limit = np.array([v.speed_limit_m_s for v in scenario.vehicles])[:, None]
+    live_at = _event_schedule(scenario)
+
+    position, phase = initial_conditions(scenario, runs)
+    origin = position.copy()
+    swarm = SwarmEnclosing(params, phase, np.broadcast_to(omega, phase.shape))
+    noise = _Noise(scenario.seed, runs)
+    drift = np.zeros((runs, n, 2))
+    if sensors.displacement_drift_m_s > 0:
+        angle = noise.draw("uniform", (runs, n), low=0, high=2 * np.pi)
+        drift = sensors.displacement_drift_m_s * np.stack([np.cos(angle), np.sin(angle)], -1)
+    odometry_error = np.zeros((runs, n, 2))
+
+    out = {
+        "positions_m": np.empty((runs, steps + 1, n, 2)),
+        "phases_rad": np.empty((runs, steps + 1, n)),
+        "commands_m_s": np.empty((runs, steps, n, 2)),
+        "live": np.empty((runs, steps + 1, n), dtype=bool),
+        "localization_error_m": np.empty((runs, steps)),
+        "consensus_speed_m_s": np.empty((runs, steps)),
+    }
+    not_self = ~np.eye(n, n + 1, k=1, dtype=bool)
+    target_column = np.concatenate([senses[:, None], np.ones((n, n), dtype=bool)], axis=1)
+
+    for k in range(steps):
+        live = np.broadcast_to(live_at(k), (runs, n))
+        if not (live & senses).any(axis=-1).all():
+            raise SimulationError(f"step {k}: no live vehicle senses the target")
+        everyone = np.concatenate([np.broadcast_to(target[k], (runs, 1, 2)), position], axis=1)
+        truth = position[:, :, None, :] - everyone[:, None, :, :]  # (B, N, N+1, 2)
+        ranges = np.sqrt(np.sum(truth * truth, axis=-1))
+        measured = not_self & target_column & live[:, :, None]
+        measured &= np.concatenate([np.ones((runs, 1), dtype=bool), live], axis=1)[:, None, :]
+        if sensors.range_noise_std_m > 0:
+            ranges = ranges + noise.draw("normal", ranges.shape, scale=sensors.range_noise_std_m)
+        if sensors.range_dropout_probability > 0:
+            measured &= noise.draw("uniform", ranges.shape) >= sensors.range_dropout_probability
+        if sensors.range_max_m is not None:
+            measured &= ranges <= sensors.range_max_m
+        ranges = np.where(measured, np.abs(ranges), np.nan)
+
+        odometry = position - origin + drift * times[k] + odometry_error
+        odometry = np.where(live[..., None], odometry, np.nan)
+        target_odometry = np.broadcast_to(target[k] - target[0], (runs, 1, 2))
+        odometry = np.concatenate([target_odometry, odometry], axis=1)
+        target_velocity = (target[k + 1] - target[k]) / step_s
+
+        out["phases_rad"][:, k] = swarm.phase_rad
+        step = swarm.step(
+            odometry_m=odometry,
+            range_m=ranges,
+            live=live,
+            target_velocity_m_s=target_velocity,
+            shape_now=shapes[k],
+            shape_next=shapes[k + 1],
+        )
+        estimated = np.isfinite(step.estimate_m).all(axis=-1)
+        error = np.sqrt(np.sum((step.estimate_m - truth) ** 2, axis=-1))
+        out["localization_error_m"][:, k] = np.where(estimated, error, 0.0).max(axis=(-1, -2))
+        speed = np.sqrt(np.sum(step.consensus_m_s**2, axis=-1))
+        out["consensus_speed_m_s"][:, k] = np.where(live, speed, 0.0).max(axis=-1)
+
+        command = step.velocity_m_s
+        norm = np.sqrt(np.sum(command * command, axis=-1, keepdims=True))
+        command = command * np.minimum(1.0, speed_limit / np.maximum(norm, 1e-300))
+        command = np.where(live[..., None], command, 0.0)
+        out["commands_m_s"][:, k] = command
+        out["positions_m"][:, k] = position
+        out["live"][:, k] = live
+        position = position + step_s * command
+        if sensors.displacement_noise_std_m > 0:
+            odometry_error += noise.draw(
+                "normal", position.shape, scale=sensors.displacement_noise_std_m
+            )
+        if on_step is not None:
+            on_step(k + 1, steps)
+
+    out["positions_m"][:, steps] = position
+    out["phases_rad"][:, steps] = swarm.phase_rad
+    out["live"][:, steps] = live_at(steps)
+    return _scored(scenario, times, target[: steps + 1], out)
+
+
+def _scored(scenario, times, target, out):
+    positions, live = out["positions_m"], out["live"]
+    centroid = np.sum(np.where(live[..., None], positions, 0.0), axis=-2) / np.maximum(
+        live.sum(axis=-1, keepdims=True), 1
+    )
+    tracking = np.sqrt(np.sum((centroid - target) ** 2, axis=-1))
+    spacing = splay_spacing_error(out["phases_rad"], live)
+    gaps = positions[..., :, None, :] - positions[..., None, :, :]
+    distance = np.sqrt(np.sum(gaps * gaps, axis=-1))
+    pair = live[..., :, None] & live[..., None, :] & ~np.eye(live.shape[-1], dtype=bool)
+    separation = np.where(pair, distance, np.inf).min(axis=(-1, -2))
+    return SimulationResult(
+        scenario=scenario,
+        times_s=times,
+        target_m=target,
+        tracking_error_m=tracking,
+        phase_spacing_error_rad=spacing,
+        separation_m=separation,
+        **out,
+    )
