@@ -1,0 +1,159 @@
+"""``mission-runner``: the command line.
+
+    mission-runner simulate CONFIG [--out DIR] [--runs N] [--no-figures] [--quiet]
+
+Exit codes: 0 success (and every ``expect:`` bound met), 1 an expectation failed, 2 bad input
+(the message names the problem and, for configs, the YAML path).
+"""
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+from .config import load_scenario
+from .errors import MissionRunnerError
+
+EXIT_OK, EXIT_EXPECTATION_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+
+
+def main(argv=None):
+    parser = _parser()
+    arguments = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.WARNING if arguments.quiet else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return arguments.handler(arguments)
+    except MissionRunnerError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+def _parser():
+    parser = argparse.ArgumentParser(
+        prog="mission-runner",
+        description="Multi-drone moving-target enclosing: simulate or fly a scenario.",
+    )
+    commands = parser.add_subparsers(required=True, metavar="COMMAND")
+
+    simulate = commands.add_parser(
+        "simulate", help="run a scenario in the paper's discrete-time model"
+    )
+    simulate.add_argument("config", type=Path, help="scenario YAML file")
+    simulate.add_argument(
+        "--out", type=Path, default=None, help="output folder (default: out/<scenario name>)"
+    )
+    simulate.add_argument(
+        "--runs", type=_positive_int, default=1, help="batch of N initial conditions (default 1)"
+    )
+    simulate.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    simulate.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+    simulate.set_defaults(handler=_simulate)
+    return parser
+
+
+def _positive_int(text):
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _simulate(arguments):
+    from .outputs import write_results  # noqa: PLC0415 - keep `--help` fast
+    from .sim.simulator import simulate  # noqa: PLC0415
+
+    scenario = load_scenario(arguments.config)
+    out_dir = arguments.out or Path("out") / scenario.name
+    progress = _progress(scenario.timing.steps, arguments.quiet, f"{scenario.name}")
+    started = time.perf_counter()
+    try:
+        result = simulate(scenario, runs=arguments.runs, on_step=progress.update_to)
+    finally:
+        progress.close()
+    wall = time.perf_counter() - started
+    document = write_results(
+        result,
+        out_dir,
+        config_path=arguments.config,
+        wall_time_s=wall,
+        figures=not arguments.no_figures,
+    )
+    if not arguments.quiet:
+        print(_summary_text(document, out_dir))
+    return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
+
+
+class _Progress:
+    """A tqdm bar on stderr when it is a terminal; nothing otherwise."""
+
+    def __init__(self, total, quiet, label):
+        self._bar = None
+        if not quiet and sys.stderr.isatty():
+            from tqdm import tqdm  # noqa: PLC0415
+
+            self._bar = tqdm(total=total, desc=label, unit="step", leave=False)
+
+    def update_to(self, done, total):
+        if self._bar is not None:
+            self._bar.update(done - self._bar.n)
+
+    def close(self):
+        if self._bar is not None:
+            self._bar.close()
+
+
+def _progress(total, quiet, label):
+    return _Progress(total, quiet, label)
+
+
+def _summary_text(document, out_dir):
+    metrics = document["metrics"]
+    lines = [
+        f"scenario {document['scenario']}: {document['steps']} steps of {document['step_s']} s"
+        + (f", {document['runs']} runs" if document["runs"] > 1 else "")
+        + (f" in {document['wall_time_s']:.2f} s" if "wall_time_s" in document else ""),
+    ]
+    width = max(len(name) for name in metrics)
+    lines += [f"  {name:<{width}}  {_format(value)}" for name, value in metrics.items()]
+    if "batch" in document:
+        lines.append(f"  batch ({document['runs']} runs): median / p95 / worst")
+        for name, stats in document["batch"].items():
+            if isinstance(stats, dict):
+                values = [stats.get("median"), stats.get("p95", stats.get("p5")), stats["worst"]]
+                text = " / ".join(_format(value) for value in values)
+                if stats.get("never_converged"):
+                    text += f"  ({stats['never_converged']} never)"
+                lines.append(f"    {name:<{width}}  {text}")
+        lines.append(
+            f"    runs passing expectations: {document['batch']['runs_passing_expectations']}"
+        )
+    expectations = document["expectations"]
+    if expectations["checked"]:
+        verdict = "PASS" if expectations["passed"] else "FAIL"
+        lines.append(f"expectations: {verdict} ({len(expectations['checked'])} checked)")
+        lines += [f"  failed: {failure}" for failure in expectations["failures"]]
+    written = ["summary.json", "timeseries.csv", *document.get("figures", [])]
+    lines.append(f"results in {out_dir}/ ({', '.join(written)})")
+    return "\n".join(lines)
+
+
+def _format(value):
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,136 @@
+"""Figures like the paper's: XY paths, relative phases, localization error, tracking error.
+
+Rendered with matplotlib's non-interactive Agg backend straight to PNG files.
+"""
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from .outputs import write_atomic
+
+
+def write_figures(result, out_dir, run=0):
+    """Write the figures of run ``run`` (and the batch band if there are several runs).
+
+    Returns the list of file names written.
+    """
+    out_dir = Path(out_dir)
+    names = []
+    for name, draw in (
+        ("xy.png", _xy),
+        ("phases.png", _phases),
+        ("localization_error.png", _localization),
+        ("tracking_error.png", _tracking),
+    ):
+        figure = draw(result, run)
+        _save(figure, out_dir / name)
+        names.append(name)
+    if result.runs > 1:
+        _save(_batch(result), out_dir / "batch_tracking_error.png")
+        names.append("batch_tracking_error.png")
+    return names
+
+
+def _save(figure, path):
+    import io  # noqa: PLC0415
+
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=120)
+    plt.close(figure)
+    write_atomic(path, buffer.getvalue())
+
+
+def _labels(result):
+    return [f"vehicle {vehicle.id}" for vehicle in result.scenario.vehicles]
+
+
+def _xy(result, run):
+    figure, axes = plt.subplots(figsize=(7, 5.5), layout="constrained")
+    positions, live = result.positions_m[run], result.live[run]
+    colours = plt.cm.tab10(np.arange(positions.shape[1]) % 10)
+    for index, label in enumerate(_labels(result)):
+        path = np.where(live[:, index, None], positions[:, index], np.nan)
+        axes.plot(path[:, 1], path[:, 0], lw=0.8, color=colours[index], label=label)
+        axes.plot(*positions[0, index, ::-1], "o", mfc="none", color=colours[index])
+        alive = np.flatnonzero(live[:, index])
+        if alive.size:
+            end = positions[alive[-1], index]
+            marker = "o" if alive[-1] == len(live) - 1 else "x"
+            axes.plot(end[1], end[0], marker, color=colours[index], ms=8)
+    count = np.maximum(live.sum(axis=-1, keepdims=True), 1)
+    centroid = np.sum(np.where(live[..., None], positions, 0), axis=1) / count
+    axes.plot(result.target_m[:, 1], result.target_m[:, 0], "k--", lw=1.5, label="target")
+    axes.plot(centroid[:, 1], centroid[:, 0], color="crimson", lw=1.2, label="centroid")
+    axes.plot(*result.target_m[-1, ::-1], "k^", ms=9)
+    axes.set_xlabel("east [m]")
+    axes.set_ylabel("north [m]")
+    axes.set_aspect("equal", adjustable="datalim")
+    axes.set_title(f"{result.scenario.name}: paths (hollow = start, x = lost)")
+    axes.legend(fontsize=8, loc="best")
+    axes.grid(alpha=0.3)
+    return figure
+
+
+def _phases(result, run):
+    figure, axes = plt.subplots(figsize=(7, 4), layout="constrained")
+    omega = np.array(
+        [v.omega_rad_s or result.scenario.algorithm.omega_rad_s for v in result.scenario.vehicles]
+    )
+    relative = result.phases_rad[run] - result.times_s[:, None] * omega
+    relative = np.where(result.live[run], relative, np.nan)
+    for index, label in enumerate(_labels(result)):
+        axes.plot(result.times_s, relative[:, index], label=label)
+    axes.set_xlabel("time [s]")
+    axes.set_ylabel(r"$\theta_i - kT\omega_i$ [rad]")
+    axes.set_title("relative phases")
+    axes.legend(fontsize=8)
+    axes.grid(alpha=0.3)
+    return figure
+
+
+def _log_plot(times, values, title, ylabel):
+    figure, axes = plt.subplots(figsize=(7, 4), layout="constrained")
+    axes.semilogy(times, np.maximum(values, 1e-16))
+    axes.set_xlabel("time [s]")
+    axes.set_ylabel(ylabel)
+    axes.set_title(title)
+    axes.grid(alpha=0.3, which="both")
+    return figure
+
+
+def _localization(result, run):
+    return _log_plot(
+        result.times_s[:-1],
+        result.localization_error_m[run],
+        r"relative localization error $\max_{ij} \|\hat p_{ij} - p_{ij}\|$",
+        "error [m]",
+    )
+
+
+def _tracking(result, run):
+    return _log_plot(
+        result.times_s,
+        result.tracking_error_m[run],
+        r"formation tracking error $\|\bar p\|$ (centroid to target)",
+        "error [m]",
+    )
+
+
+def _batch(result):
+    figure, axes = plt.subplots(figsize=(7, 4), layout="constrained")
+    error = np.maximum(result.tracking_error_m, 1e-16)
+    low, median, high = np.percentile(error, [5, 50, 95], axis=0)
+    axes.fill_between(result.times_s, low, high, alpha=0.3, label="5-95 %")
+    axes.semilogy(result.times_s, median, label="median")
+    axes.semilogy(result.times_s, error.max(axis=0), lw=0.7, color="crimson", label="worst")
+    axes.set_xlabel("time [s]")
+    axes.set_ylabel("tracking error [m]")
+    axes.set_title(f"tracking error over {result.runs} runs")
+    axes.legend(fontsize=8)
+    axes.grid(alpha=0.3, which="both")
+    return figure

@@ -1,0 +1,171 @@
+"""Write a run's results: ``timeseries.csv``, ``summary.json`` and the figures.
+
+Every file is written to a temporary name and renamed into place, so a crash or Ctrl-C never leaves
+a half-written result that looks complete.
+"""
+
+import csv
+import io
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .sim.metrics import check_expectations, distribution, run_metrics
+
+
+def write_atomic(path, data):
+    """Write ``data`` (str or bytes) to ``path`` via a temporary file and an atomic rename."""
+    path = Path(path)
+    temporary = path.with_name(f".{path.name}.partial")
+    mode = "wb" if isinstance(data, bytes) else "w"
+    with open(temporary, mode, encoding=None if mode == "wb" else "utf-8") as handle:
+        handle.write(data)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(temporary, path)
+
+
+def versions():
+    """Versions that matter to reproduce a result."""
+    return {
+        "mission_runner": __version__,
+        "numpy": np.__version__,
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+    }
+
+
+def timeseries_csv(result, run=0):
+    """CSV text of one run: one row per step k = 0..K."""
+    ids = [vehicle.id for vehicle in result.scenario.vehicles]
+    header = [
+        "step",
+        "time_s",
+        "target_north_m",
+        "target_east_m",
+        "tracking_error_m",
+        "localization_error_m",
+        "phase_spacing_error_rad",
+        "consensus_speed_m_s",
+    ]
+    for vehicle in ids:
+        header += [
+            f"v{vehicle}_north_m",
+            f"v{vehicle}_east_m",
+            f"v{vehicle}_phase_rad",
+            f"v{vehicle}_cmd_north_m_s",
+            f"v{vehicle}_cmd_east_m_s",
+            f"v{vehicle}_live",
+        ]
+    steps = result.commands_m_s.shape[1]
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(header)
+
+    def number(value):
+        return "" if value is None or not np.isfinite(value) else f"{value:.9g}"
+
+    for k in range(steps + 1):
+        last = k == steps
+        row = [
+            k,
+            number(result.times_s[k]),
+            number(result.target_m[k, 0]),
+            number(result.target_m[k, 1]),
+            number(result.tracking_error_m[run, k]),
+            None if last else number(result.localization_error_m[run, k]),
+            number(result.phase_spacing_error_rad[run, k]),
+            None if last else number(result.consensus_speed_m_s[run, k]),
+        ]
+        for index in range(len(ids)):
+            position = result.positions_m[run, k, index]
+            command = None if last else result.commands_m_s[run, k, index]
+            row += [
+                number(position[0]),
+                number(position[1]),
+                number(result.phases_rad[run, k, index]),
+                None if last else number(command[0]),
+                None if last else number(command[1]),
+                int(result.live[run, k, index]),
+            ]
+        writer.writerow(["" if value is None else value for value in row])
+    return buffer.getvalue()
+
+
+def summary(result, *, config_path=None, wall_time_s=None):
+    """The summary dict: run 0's metrics, expectations, batch distribution, parameters, versions."""
+    scenario = result.scenario
+    metrics = run_metrics(result)
+    first = {name: _plain(values[0]) for name, values in metrics.items()}
+    failures = check_expectations(scenario.expect, first)
+    document = {
+        "scenario": scenario.name,
+        "description": scenario.description,
+        "config": None if config_path is None else str(config_path),
+        "seed": scenario.seed,
+        "runs": result.runs,
+        "steps": scenario.timing.steps,
+        "step_s": scenario.timing.step_s,
+        "metrics": first,
+        "expectations": {
+            "checked": sorted(scenario.expect),
+            "passed": not failures,
+            "failures": failures,
+        },
+        "parameters": scenario.model_dump(mode="json", exclude={"expect"}),
+        "versions": versions(),
+    }
+    if result.runs > 1:
+        document["batch"] = {name: distribution(values, name) for name, values in metrics.items()}
+        per_run = [
+            not check_expectations(
+                scenario.expect, {name: _plain(values[run]) for name, values in metrics.items()}
+            )
+            for run in range(result.runs)
+        ]
+        document["batch"]["runs_passing_expectations"] = int(sum(per_run))
+    if wall_time_s is not None:
+        document["wall_time_s"] = round(wall_time_s, 4)
+    return document
+
+
+def _plain(value):
+    value = value.item() if hasattr(value, "item") else value
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def write_results(result, out_dir, *, config_path=None, wall_time_s=None, figures=True):
+    """Write timeseries.csv, summary.json and (optionally) the figures into ``out_dir``.
+
+    Returns the summary dict.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    document = summary(result, config_path=config_path, wall_time_s=wall_time_s)
+    write_atomic(out_dir / "timeseries.csv", timeseries_csv(result))
+    if result.runs > 1:
+        write_atomic(out_dir / "batch.csv", batch_csv(result))
+    if figures:
+        from .figures import write_figures  # noqa: PLC0415 - matplotlib is slow to import
+
+        document["figures"] = write_figures(result, out_dir)
+    write_atomic(out_dir / "summary.json", json.dumps(document, indent=2) + "\n")
+    return document
+
+
+def batch_csv(result):
+    """One row per run with its headline metrics."""
+    metrics = run_metrics(result)
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(["run", *metrics])
+    for run in range(result.runs):
+        writer.writerow([run, *(f"{values[run]:.9g}" for values in metrics.values())])
+    return buffer.getvalue()
