@@ -368,7 +368,7 @@ def validate_scenario(data, source="<data>"):
     try:
         scenario = Scenario.model_validate(data)
     except ValidationError as error:
-        raise ConfigError(source, _pydantic_problems(error)) from None
+        raise ConfigError(source, _pydantic_problems(error, data)) from None
     problems = _rule_problems(scenario)
     if problems:
         raise ConfigError(source, problems)
@@ -383,9 +383,9 @@ def yaml_path(location):
     return text
 
 
-def _clean_location(location):
-    """Drop pydantic's union-branch markers so the location is a YAML path."""
-    cleaned, skip_tag = [], False
+def _clean_location(location, data):
+    """Drop pydantic's union-branch markers so the location is the YAML path that was written."""
+    cleaned, node, skip_tag = [], data, False
     for part in location:
         if skip_tag:
             skip_tag = False
@@ -393,18 +393,25 @@ def _clean_location(location):
         if isinstance(part, str) and part.startswith("tagged-union["):
             skip_tag = True
             continue
-        if part in ("float", "int", "str", "bool") or (
+        if part in ("float", "int", "str", "bool", "[key]") or (
             isinstance(part, str) and part.startswith(("function-", "list["))
         ):
             continue
+        # A discriminated union inserts the tag ("line", "sinusoid", ...) into the location.
+        if isinstance(node, dict) and part not in node and node.get("kind") == part:
+            continue
         cleaned.append(part)
+        try:
+            node = node[part]
+        except (KeyError, IndexError, TypeError):
+            node = None
     return tuple(cleaned)
 
 
-def _pydantic_problems(error):
+def _pydantic_problems(error, data):
     problems = []
     for item in error.errors(include_url=False):
-        location = _clean_location(item["loc"])
+        location = _clean_location(item["loc"], data)
         message = item["msg"]
         if item["type"] == "value_error":
             message = message.removeprefix("Value error, ")
