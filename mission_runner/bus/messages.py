@@ -1,0 +1,300 @@
+"""Messages the vehicles, sensors and ground station exchange over the bus.
+
+Each message is a frozen dataclass that encodes to compact UTF-8 JSON (``to_payload``) and
+decodes with full validation (``from_payload``): every field must have its declared type,
+every number must be finite and in range, and unknown or missing keys are rejected. A bad
+payload raises ``MessageDecodeError``; subscriber loops count and skip it.
+
+Units and frames are in the field names. "north"/"east" are axes of a frame that every
+vehicle shares in orientation but not in origin (each vehicle's own odometry frame), so
+only differences of odometry between two messages of the same sender are meaningful.
+``time_s`` is the sender's clock in seconds; clocks are not assumed synchronised, and the
+step index ``step`` is what aligns messages of the same instant kT across vehicles.
+
+Optional fields are left out of the payload when they are None.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import math
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from types import NoneType, UnionType
+from typing import Any, ClassVar, Self
+
+from mission_runner.bus.errors import MessageDecodeError, MessageValueError
+from mission_runner.bus.topics import TARGET_PEER_ID, TopicKind
+
+
+class ControlCommand(enum.StrEnum):
+    """Commands of the mission control topic."""
+
+    START = "start"
+    STOP = "stop"
+    HOLD = "hold"
+    LAND = "land"
+
+
+def _reject_constant(name: str) -> float:
+    raise ValueError(f"non-finite number {name} is not allowed")
+
+
+def _check_value(name: str, value: Any, annotation: Any) -> Any:
+    """Return ``value`` checked (and normalised) against ``annotation``; raise ValueError."""
+    if isinstance(annotation, UnionType):
+        options = typing.get_args(annotation)
+        if value is None and NoneType in options:
+            return None
+        (annotation,) = (option for option in options if option is not NoneType)
+    if annotation is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ValueError(f"{name} must be a number, got {type(value).__name__}")
+        if not math.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {value!r}")
+        return float(value)
+    if annotation is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"{name} must be an integer, got {type(value).__name__}")
+        return value
+    if annotation is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"{name} must be true or false, got {type(value).__name__}")
+        return value
+    if annotation is str:
+        if not isinstance(value, str):
+            raise ValueError(f"{name} must be a string, got {type(value).__name__}")
+        return value
+    if isinstance(annotation, type) and issubclass(annotation, enum.Enum):
+        try:
+            return annotation(value)
+        except ValueError:
+            allowed = ", ".join(repr(member.value) for member in annotation)
+            raise ValueError(f"{name} must be one of {allowed}, got {value!r}") from None
+    raise TypeError(f"unsupported field annotation {annotation!r} for {name}")
+
+
+def _require(condition: bool, problem: str) -> None:
+    if not condition:
+        raise ValueError(problem)
+
+
+class Message:
+    """Base of the bus messages: typed construction, JSON encoding and validated decoding."""
+
+    __slots__ = ()
+
+    _hints: ClassVar[dict[str, Any]]
+    _optional: ClassVar[frozenset[str]]
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls._hints = {}
+
+    def __post_init__(self) -> None:
+        try:
+            self._normalise()
+            self._check()
+        except ValueError as exc:
+            raise MessageValueError(type(self).__name__, str(exc)) from None
+
+    @classmethod
+    def _field_types(cls) -> dict[str, Any]:
+        if not cls._hints:
+            hints = typing.get_type_hints(cls)
+            cls._hints = {field.name: hints[field.name] for field in fields(cls)}  # type: ignore[arg-type]
+            cls._optional = frozenset(
+                name
+                for name, hint in cls._hints.items()
+                if isinstance(hint, UnionType) and NoneType in typing.get_args(hint)
+            )
+        return cls._hints
+
+    def _normalise(self) -> None:
+        for name, annotation in self._field_types().items():
+            value = _check_value(name, getattr(self, name), annotation)
+            # Frozen dataclass: normalising an int to float must bypass __setattr__.
+            object.__setattr__(self, name, value)
+
+    def _check(self) -> None:
+        """Constraints between fields and value ranges; raise ValueError. Override."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object of this message (None fields left out, enums as their value)."""
+        out: dict[str, Any] = {}
+        for name in self._field_types():
+            value = getattr(self, name)
+            if value is None:
+                continue
+            out[name] = value.value if isinstance(value, enum.Enum) else value
+        return out
+
+    def to_payload(self) -> bytes:
+        """Compact UTF-8 JSON encoding of this message."""
+        return json.dumps(
+            self.to_dict(), separators=(",", ":"), allow_nan=False, ensure_ascii=False
+        ).encode("utf-8")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Self:
+        """Build a message from a decoded JSON object; raise MessageDecodeError if invalid."""
+        name = cls.__name__
+        if not isinstance(data, Mapping):
+            raise MessageDecodeError(name, f"expected a JSON object, got {type(data).__name__}")
+        field_types = cls._field_types()
+        unknown = sorted(set(data) - set(field_types))
+        if unknown:
+            raise MessageDecodeError(name, f"unknown field(s) {', '.join(map(str, unknown))}")
+        missing = sorted(set(field_types) - set(data) - cls._optional)
+        if missing:
+            raise MessageDecodeError(name, f"missing field(s) {', '.join(missing)}")
+        try:
+            return cls(**data)
+        except MessageValueError as exc:
+            raise MessageDecodeError(name, exc.problem) from None
+
+    @classmethod
+    def from_payload(cls, payload: bytes | bytearray | memoryview) -> Self:
+        """Decode a payload made by ``to_payload``; raise MessageDecodeError if invalid."""
+        name = cls.__name__
+        try:
+            text = bytes(payload).decode("utf-8")
+            data = json.loads(text, parse_constant=_reject_constant)
+        except UnicodeDecodeError as exc:
+            raise MessageDecodeError(name, f"payload is not UTF-8 ({exc.reason})") from None
+        except (ValueError, RecursionError, TypeError) as exc:
+            # ValueError covers JSONDecodeError, rejected NaN/Infinity and over-long integers.
+            raise MessageDecodeError(name, f"payload is not valid JSON ({exc})") from None
+        return cls.from_dict(data)
+
+
+@dataclass(frozen=True, slots=True)
+class StepMessage(Message):
+    """What vehicle ``vehicle_id`` broadcasts at step ``step`` (time kT) of the algorithm.
+
+    ``odometry_*_m`` is the vehicle's cumulative displacement since switch-on in its own
+    north-east frame: a neighbour gets v_j(k) by differencing two of these, so a lost or
+    late message never corrupts its estimate, it only delays it. ``phase_rad`` is the
+    oscillator phase theta_i(k).
+
+    The ``target_*`` fields relay the target (Assumption 2: vehicles that sense the target
+    broadcast it): the target's cumulative displacement in this vehicle's frame and its
+    velocity. They are all None when this vehicle does not sense the target, and all set
+    otherwise.
+    """
+
+    vehicle_id: int
+    step: int
+    time_s: float
+    phase_rad: float
+    odometry_north_m: float
+    odometry_east_m: float
+    target_odometry_north_m: float | None = None
+    target_odometry_east_m: float | None = None
+    target_velocity_north_m_s: float | None = None
+    target_velocity_east_m_s: float | None = None
+
+    @property
+    def has_target(self) -> bool:
+        """Whether this message relays the target."""
+        return self.target_odometry_north_m is not None
+
+    def _check(self) -> None:
+        _require(self.vehicle_id >= 1, f"vehicle_id must be >= 1, got {self.vehicle_id}")
+        _require(self.step >= 0, f"step must be >= 0, got {self.step}")
+        target = (
+            self.target_odometry_north_m,
+            self.target_odometry_east_m,
+            self.target_velocity_north_m_s,
+            self.target_velocity_east_m_s,
+        )
+        _require(
+            all(value is None for value in target) or all(value is not None for value in target),
+            "the target_* fields must be all set (vehicle senses the target) or all None",
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class RangeMessage(Message):
+    """A range measured by vehicle ``vehicle_id`` to ``peer_id`` (0 = the target).
+
+    ``step`` is the algorithm step whose boundary the range was sampled at, when the
+    driver knows it; otherwise the consumer aligns by ``time_s``.
+    """
+
+    vehicle_id: int
+    peer_id: int
+    time_s: float
+    range_m: float
+    step: int | None = None
+
+    def _check(self) -> None:
+        _require(self.vehicle_id >= 1, f"vehicle_id must be >= 1, got {self.vehicle_id}")
+        _require(
+            self.peer_id >= TARGET_PEER_ID,
+            f"peer_id must be >= {TARGET_PEER_ID} (0 = target), got {self.peer_id}",
+        )
+        _require(self.peer_id != self.vehicle_id, "peer_id must differ from vehicle_id")
+        _require(self.range_m >= 0.0, f"range_m must be >= 0, got {self.range_m}")
+        _require(self.step is None or self.step >= 0, f"step must be >= 0, got {self.step}")
+
+
+@dataclass(frozen=True, slots=True)
+class TargetObservation(Message):
+    """What a target tracker (radar, vision) on vehicle ``vehicle_id`` measured.
+
+    ``range_m`` is the vehicle-to-target distance; the velocity is the target's, in the
+    shared north-east orientation.
+    """
+
+    vehicle_id: int
+    time_s: float
+    range_m: float
+    velocity_north_m_s: float
+    velocity_east_m_s: float
+
+    def _check(self) -> None:
+        _require(self.vehicle_id >= 1, f"vehicle_id must be >= 1, got {self.vehicle_id}")
+        _require(self.range_m >= 0.0, f"range_m must be >= 0, got {self.range_m}")
+
+
+@dataclass(frozen=True, slots=True)
+class MissionControl(Message):
+    """A mission command from the ground station: start, stop, hold or land."""
+
+    command: ControlCommand
+    time_s: float
+    reason: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleStatus(Message):
+    """A vehicle's progress report (retained, and its last will), for progress views.
+
+    ``state`` is the controller's state name (e.g. ``"following"``, ``"holding"``,
+    ``"lost"``); ``tracking_ok`` whether it currently follows the algorithm on fresh data.
+    """
+
+    vehicle_id: int
+    time_s: float
+    state: str
+    step: int
+    tracking_ok: bool
+    detail: str = ""
+
+    def _check(self) -> None:
+        _require(self.vehicle_id >= 1, f"vehicle_id must be >= 1, got {self.vehicle_id}")
+        _require(self.step >= 0, f"step must be >= 0, got {self.step}")
+        _require(bool(self.state), "state must not be empty")
+
+
+MESSAGE_TYPES: Mapping[TopicKind, type[Message]] = {
+    TopicKind.STEP: StepMessage,
+    TopicKind.RANGE: RangeMessage,
+    TopicKind.TARGET: TargetObservation,
+    TopicKind.CONTROL: MissionControl,
+    TopicKind.STATUS: VehicleStatus,
+}
+"""Which message type each topic kind of the layout carries."""

@@ -1,0 +1,223 @@
+"""Message encoding: round trips, strict decoding, and bad payloads as typed errors."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from mission_runner.bus import (
+    MESSAGE_TYPES,
+    ControlCommand,
+    Message,
+    MessageDecodeError,
+    MessageValueError,
+    MissionControl,
+    RangeMessage,
+    StepMessage,
+    TargetObservation,
+    TopicKind,
+    VehicleStatus,
+)
+
+finite = st.floats(allow_nan=False, allow_infinity=False)
+non_negative = st.floats(min_value=0.0, allow_nan=False, allow_infinity=False)
+vehicle_ids = st.integers(1, 64)
+
+step_messages = st.builds(
+    StepMessage,
+    vehicle_id=vehicle_ids,
+    step=st.integers(0, 10**9),
+    time_s=finite,
+    phase_rad=finite,
+    odometry_north_m=finite,
+    odometry_east_m=finite,
+) | st.builds(
+    StepMessage,
+    vehicle_id=vehicle_ids,
+    step=st.integers(0, 10**9),
+    time_s=finite,
+    phase_rad=finite,
+    odometry_north_m=finite,
+    odometry_east_m=finite,
+    target_odometry_north_m=finite,
+    target_odometry_east_m=finite,
+    target_velocity_north_m_s=finite,
+    target_velocity_east_m_s=finite,
+)
+range_messages = st.builds(
+    RangeMessage,
+    vehicle_id=st.just(1),
+    peer_id=st.integers(2, 64) | st.just(0),
+    time_s=finite,
+    range_m=non_negative,
+    step=st.none() | st.integers(0, 10**9),
+)
+target_observations = st.builds(
+    TargetObservation,
+    vehicle_id=vehicle_ids,
+    time_s=finite,
+    range_m=non_negative,
+    velocity_north_m_s=finite,
+    velocity_east_m_s=finite,
+)
+mission_controls = st.builds(
+    MissionControl,
+    command=st.sampled_from(ControlCommand),
+    time_s=finite,
+    reason=st.none() | st.text(),
+)
+vehicle_statuses = st.builds(
+    VehicleStatus,
+    vehicle_id=vehicle_ids,
+    time_s=finite,
+    state=st.text(min_size=1),
+    step=st.integers(0, 10**9),
+    tracking_ok=st.booleans(),
+    detail=st.text(),
+)
+any_message = (
+    step_messages | range_messages | target_observations | mission_controls | (vehicle_statuses)
+)
+
+STEP = StepMessage(
+    vehicle_id=2,
+    step=41,
+    time_s=5.125,
+    phase_rad=1.5707963267948966,
+    odometry_north_m=12.5,
+    odometry_east_m=-3.25,
+)
+
+
+@given(any_message)
+def test_every_message_round_trips_exactly(message: Message) -> None:
+    payload = message.to_payload()
+    assert isinstance(payload, bytes)
+    assert type(message).from_payload(payload) == message
+
+
+@given(any_message)
+def test_payload_is_compact_json_without_none_fields(message: Message) -> None:
+    payload = message.to_payload()
+    data = json.loads(payload)
+    compact = json.dumps(data, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
+    assert payload == compact
+    assert None not in data.values()
+
+
+def test_step_message_payload_names_units_in_keys() -> None:
+    assert json.loads(STEP.to_payload()) == {
+        "vehicle_id": 2,
+        "step": 41,
+        "time_s": 5.125,
+        "phase_rad": 1.5707963267948966,
+        "odometry_north_m": 12.5,
+        "odometry_east_m": -3.25,
+    }
+    assert not STEP.has_target
+
+
+def test_integers_are_accepted_for_float_fields_and_stored_as_floats() -> None:
+    message = StepMessage(1, 0, 0, 0, 1, 2)
+    assert isinstance(message.odometry_north_m, float)
+    assert StepMessage.from_payload(message.to_payload()) == message
+
+
+def test_every_topic_kind_has_a_message_type() -> None:
+    assert set(MESSAGE_TYPES) == set(TopicKind)
+
+
+@pytest.mark.parametrize(
+    ("build", "problem"),
+    [
+        (lambda: StepMessage(0, 0, 0.0, 0.0, 0.0, 0.0), "vehicle_id must be >= 1"),
+        (lambda: StepMessage(1, -1, 0.0, 0.0, 0.0, 0.0), "step must be >= 0"),
+        (lambda: StepMessage(1, 0, math.nan, 0.0, 0.0, 0.0), "time_s must be finite"),
+        (lambda: StepMessage(1, 0, 0.0, math.inf, 0.0, 0.0), "phase_rad must be finite"),
+        (lambda: StepMessage(True, 0, 0.0, 0.0, 0.0, 0.0), "vehicle_id must be an integer"),
+        (lambda: StepMessage(1, 0, "0", 0.0, 0.0, 0.0), "time_s must be a number"),
+        (
+            lambda: StepMessage(1, 0, 0.0, 0.0, 0.0, 0.0, target_odometry_north_m=1.0),
+            "all set",
+        ),
+        (lambda: RangeMessage(1, 1, 0.0, 1.0), "peer_id must differ"),
+        (lambda: RangeMessage(1, -1, 0.0, 1.0), "peer_id must be >= 0"),
+        (lambda: RangeMessage(1, 0, 0.0, -0.1), "range_m must be >= 0"),
+        (lambda: MissionControl("takeoff", 0.0), "command must be one of"),
+        (lambda: VehicleStatus(1, 0.0, "", 0, True), "state must not be empty"),
+        (lambda: VehicleStatus(1, 0.0, "ok", 0, 1), "tracking_ok must be true or false"),
+    ],
+)
+def test_invalid_fields_raise_a_value_error_naming_the_field(build, problem: str) -> None:
+    with pytest.raises(MessageValueError, match=problem) as raised:
+        build()
+    assert isinstance(raised.value, ValueError)
+
+
+def test_messages_are_immutable() -> None:
+    with pytest.raises(AttributeError):
+        STEP.step = 42  # type: ignore[misc]
+
+
+@pytest.mark.parametrize(
+    ("payload", "problem"),
+    [
+        (b"", "not valid JSON"),
+        (b"\xff\xfe", "not UTF-8"),
+        (b"[1, 2]", "expected a JSON object"),
+        (b'"step"', "expected a JSON object"),
+        (b'{"vehicle_id": 2}', "missing field"),
+        (STEP.to_payload()[:-1] + b',"speed_m_s":1}', "unknown field"),
+        (STEP.to_payload().replace(b"5.125", b"NaN"), "non-finite"),
+        (STEP.to_payload().replace(b"5.125", b"Infinity"), "non-finite"),
+        (STEP.to_payload().replace(b"5.125", b"1e999"), "time_s must be finite"),
+        (STEP.to_payload().replace(b"41", b"41.0"), "step must be an integer"),
+        (STEP.to_payload().replace(b"41", b"-1"), "step must be >= 0"),
+        (STEP.to_payload().replace(b"12.5", b'"12.5"'), "must be a number"),
+        (STEP.to_payload().replace(b"41", b"1" * 5000), "not valid JSON"),
+        (b"[" * 100_000, "not valid JSON"),
+    ],
+)
+def test_bad_payloads_raise_decode_errors(payload: bytes, problem: str) -> None:
+    with pytest.raises(MessageDecodeError, match=problem) as raised:
+        StepMessage.from_payload(payload)
+    assert raised.value.message_type == "StepMessage"
+
+
+def test_payload_of_one_type_does_not_decode_as_another() -> None:
+    status = VehicleStatus(2, 1.0, "following", 3, True)
+    with pytest.raises(MessageDecodeError):
+        StepMessage.from_payload(status.to_payload())
+    with pytest.raises(MessageDecodeError):
+        RangeMessage.from_payload(STEP.to_payload())
+
+
+@given(st.binary(max_size=200))
+def test_arbitrary_bytes_never_raise_anything_but_decode_errors(payload: bytes) -> None:
+    for message_type in MESSAGE_TYPES.values():
+        with contextlib.suppress(MessageDecodeError):
+            message_type.from_payload(payload)
+
+
+@given(
+    st.dictionaries(
+        st.sampled_from(["vehicle_id", "step", "time_s", "x"]),
+        st.none() | st.booleans() | st.integers() | finite | st.text(max_size=3),
+    )
+)
+def test_arbitrary_objects_never_raise_anything_but_decode_errors(data: dict) -> None:
+    payload = json.dumps(data).encode()
+    for message_type in MESSAGE_TYPES.values():
+        with contextlib.suppress(MessageDecodeError):
+            message_type.from_payload(payload)
+
+
+def test_control_command_decodes_to_the_enum() -> None:
+    decoded = MissionControl.from_payload(b'{"command":"land","time_s":3,"reason":"battery"}')
+    assert decoded == MissionControl(ControlCommand.LAND, 3.0, "battery")
+    assert decoded.command is ControlCommand.LAND
