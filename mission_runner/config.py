@@ -215,8 +215,9 @@ class TimingConfig(Model):
 class VehicleConfig(Model):
     """One vehicle of the swarm."""
 
-    id: Annotated[int, Field(gt=0, le=250)] = Field(
-        title="Id", description="Vehicle id (1..250; 0 is the target). MAVLink system id."
+    id: Annotated[int, Field(gt=0, le=65535)] = Field(
+        title="Id",
+        description="Vehicle id (> 0; 0 is the target). Flying vehicles: the MAVLink system id.",
     )
     initial_position_m: Pair = Field(
         title="Initial position", description="[north, east] at k = 0 [m] (truth; never seen)."
@@ -293,6 +294,8 @@ class MetricsConfig(Model):
 
 METRICS = (
     "final_tracking_error_m",
+    "tail_tracking_error_rms_m",
+    "tail_localization_error_median_m",
     "final_localization_error_m",
     "final_phase_spacing_error_rad",
     "tracking_converged_step",
@@ -324,7 +327,7 @@ class Scenario(Model):
     timing: TimingConfig = Field(title="Timing", description="Step length and count.")
     algorithm: AlgorithmConfig = Field(title="Algorithm", description="Law parameters.")
     target: TargetConfig = Field(title="Target", description="The moving target.")
-    vehicles: Annotated[list[VehicleConfig], Field(min_length=1, max_length=250)] = Field(
+    vehicles: Annotated[list[VehicleConfig], Field(min_length=1, max_length=4096)] = Field(
         title="Vehicles", description="The swarm."
     )
     sensors: SensorConfig = Field(SensorConfig(), title="Sensors", description="Noise model.")

@@ -15,15 +15,17 @@ def saturate(velocity_m_s, limit_m_s):
     return velocity_m_s * (limit_m_s / np.maximum(limit_m_s, norm))
 
 
-def consensus_velocity(estimate_m, desired_relative_m, weights, beta):
+def consensus_velocity(error_north_m, error_east_m, weights, beta):
     """ubar_i = -beta sum_j abar_ij (phat_ij - r_ij).
 
-    estimate_m, desired_relative_m: ``(..., R, S, 2)`` [m], may be NaN where the weight is 0.
-    weights: ``(..., R, S)`` abar_ij, rows summing to 1 (or all 0 for an isolated vehicle).
+    error_north_m, error_east_m: ``(..., R, S)`` phat_ij - r_ij [m], may be NaN where the weight
+    is 0. weights: ``(..., R, S)`` abar_ij, rows summing to 1 (or all 0 for an isolated vehicle).
     Returns ``(..., R, 2)`` [m/s].
     """
-    error = np.where(weights[..., None] > 0, estimate_m - desired_relative_m, 0.0)
-    return -beta * np.sum(weights[..., None] * error, axis=-2)
+    used = weights > 0
+    north = np.sum(np.where(used, weights * error_north_m, 0.0), axis=-1)
+    east = np.sum(np.where(used, weights * error_east_m, 0.0), axis=-1)
+    return -beta * np.stack([north, east], axis=-1)
 
 
 def row_normalised(mask):

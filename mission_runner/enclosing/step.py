@@ -114,14 +114,21 @@ class StepOutputs:
 
     velocity_m_s: ``(..., R, 2)`` u_i(k), north-east [m/s].
     consensus_m_s: ``(..., R, 2)`` the saturated term sat(ubar_i), |.| <= Ubar.
-    estimate_m: ``(..., R, S, 2)`` phat_ij(k), NaN where the edge is not estimated.
+    estimate_north_m, estimate_east_m: ``(..., R, S)`` phat_ij(k), NaN where the edge is not
+        estimated (see :attr:`estimate_m` for the ``(..., R, S, 2)`` form).
     consensus_weights: ``(..., R, S)`` abar_ij used this step.
     """
 
     velocity_m_s: np.ndarray
     consensus_m_s: np.ndarray
-    estimate_m: np.ndarray
+    estimate_north_m: np.ndarray
+    estimate_east_m: np.ndarray
     consensus_weights: np.ndarray
+
+    @property
+    def estimate_m(self):
+        """phat_ij(k) as ``(..., R, S, 2)``."""
+        return np.stack([self.estimate_north_m, self.estimate_east_m], axis=-1)
 
 
 def enclosing_step(params, row_slots, state, inputs):
@@ -135,13 +142,16 @@ def enclosing_step(params, row_slots, state, inputs):
     slot_index = np.arange(n_slots)
     not_self = slot_index != row_slots[:, None]  # (R, S)
 
-    # 1. Relative localization.
-    row_odometry = inputs.odometry_m[..., row_slots, :]
-    relative_odometry = row_odometry[..., :, None, :] - inputs.odometry_m[..., None, :, :]
-    relative_odometry = np.where(not_self[..., None], relative_odometry, np.nan)
+    # 1. Relative localization, on north and east planes ``(..., R, S)``. Self edges carry no
+    # range, so they never anchor and never estimate.
+    odometry_north, odometry_east = inputs.odometry_m[..., 0], inputs.odometry_m[..., 1]
+    relative_north = odometry_north[..., row_slots, None] - odometry_north[..., None, :]
+    relative_east = odometry_east[..., row_slots, None] - odometry_east[..., None, :]
     range_m = np.where(not_self, inputs.range_m, np.nan)
-    edges = rlse_update(state.edges, range_m, relative_odometry, params.forgetting_factor)
-    estimate = edges.current(relative_odometry)
+    edges = rlse_update(
+        state.edges, range_m, relative_north, relative_east, params.forgetting_factor
+    )
+    estimate_north, estimate_east = edges.current(relative_north, relative_east)
 
     # 2. Oscillator over the vehicles heard this step.
     phase = inputs.phase_rad.copy()
@@ -160,15 +170,14 @@ def enclosing_step(params, row_slots, state, inputs):
     offsets = desired_offsets(phase, params.radius_m, inputs.shape_now)
     offsets[..., TARGET_SLOT, :] = 0.0
     row_offsets = desired_offsets(state.phase_rad, params.radius_m, inputs.shape_now)
-    desired_relative = row_offsets[..., :, None, :] - offsets[..., None, :, :]
     row_offsets_next = desired_offsets(phase_next, params.radius_m, inputs.shape_next)
+    error_north = estimate_north - (row_offsets[..., :, None, 0] - offsets[..., None, :, 0])
+    error_east = estimate_east - (row_offsets[..., :, None, 1] - offsets[..., None, :, 1])
 
     # 4. Saturated consensus plus feed-forward.
-    usable = not_self & np.isfinite(estimate).all(axis=-1)
-    usable &= np.isfinite(desired_relative).all(axis=-1)
-    weights = row_normalised(usable)
+    weights = row_normalised(not_self & np.isfinite(error_north + error_east))
     consensus = saturate(
-        consensus_velocity(estimate, desired_relative, weights, params.beta),
+        consensus_velocity(error_north, error_east, weights, params.beta),
         params.saturation_m_s,
     )
     target_velocity = np.nan_to_num(inputs.target_velocity_m_s, nan=0.0)
@@ -179,7 +188,8 @@ def enclosing_step(params, row_slots, state, inputs):
     outputs = StepOutputs(
         velocity_m_s=velocity,
         consensus_m_s=consensus,
-        estimate_m=estimate,
+        estimate_north_m=estimate_north,
+        estimate_east_m=estimate_east,
         consensus_weights=weights,
     )
     return next_state, outputs

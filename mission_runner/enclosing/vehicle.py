@@ -130,11 +130,12 @@ class VehicleEnclosing:
         self.state, out = enclosing_step(self.params, self._row, self.state, inputs)
         peers = {slot: peer for peer, slot in self._slot_of.items()}
         used = np.flatnonzero(out.consensus_weights[0] > 0)
-        estimated = np.flatnonzero(np.isfinite(out.estimate_m[0]).all(axis=-1))
+        estimated = np.flatnonzero(np.isfinite(out.estimate_north_m[0]))
+        estimate = out.estimate_m[0]
         return VehicleCommand(
             velocity_m_s=out.velocity_m_s[0],
             consensus_m_s=out.consensus_m_s[0],
-            estimates_m={peers[s]: out.estimate_m[0, s] for s in estimated},
+            estimates_m={peers[s]: estimate[s] for s in estimated},
             neighbours_used=tuple(peers[s] for s in used),
         )
 

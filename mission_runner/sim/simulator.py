@@ -144,6 +144,7 @@ def simulate(scenario, runs=1, on_step=None):
         "live": np.empty((runs, steps + 1, n), dtype=bool),
         "localization_error_m": np.empty((runs, steps)),
         "consensus_speed_m_s": np.empty((runs, steps)),
+        "separation_m": np.empty((runs, steps + 1)),
     }
     not_self = ~np.eye(n, n + 1, k=1, dtype=bool)
     target_column = np.concatenate([senses[:, None], np.ones((n, n), dtype=bool)], axis=1)
@@ -152,11 +153,24 @@ def simulate(scenario, runs=1, on_step=None):
         live = np.broadcast_to(live_at(k), (runs, n))
         if not (live & senses).any(axis=-1).all():
             raise SimulationError(f"step {k}: no live vehicle senses the target")
-        everyone = np.concatenate([np.broadcast_to(target[k], (runs, 1, 2)), position], axis=1)
-        truth = position[:, :, None, :] - everyone[:, None, :, :]  # (B, N, N+1, 2)
-        ranges = np.sqrt(np.sum(truth * truth, axis=-1))
+        # True relative positions p_i - p_j on north/east planes (B, N, N+1), slot 0 the target.
+        truth_north = (
+            position[:, :, None, 0]
+            - np.concatenate([np.full((runs, 1), target[k, 0]), position[..., 0]], axis=1)[
+                :, None, :
+            ]
+        )
+        truth_east = (
+            position[:, :, None, 1]
+            - np.concatenate([np.full((runs, 1), target[k, 1]), position[..., 1]], axis=1)[
+                :, None, :
+            ]
+        )
+        true_ranges = np.sqrt(truth_north * truth_north + truth_east * truth_east)
+        out["separation_m"][:, k] = _closest_pair(true_ranges[..., 1:], live)
         measured = not_self & target_column & live[:, :, None]
         measured &= np.concatenate([np.ones((runs, 1), dtype=bool), live], axis=1)[:, None, :]
+        ranges = true_ranges
         if sensors.range_noise_std_m > 0:
             ranges = ranges + noise.draw("normal", ranges.shape, scale=sensors.range_noise_std_m)
         if sensors.range_dropout_probability > 0:
@@ -180,9 +194,12 @@ def simulate(scenario, runs=1, on_step=None):
             shape_now=shapes[k],
             shape_next=shapes[k + 1],
         )
-        estimated = np.isfinite(step.estimate_m).all(axis=-1)
-        error = np.sqrt(np.sum((step.estimate_m - truth) ** 2, axis=-1))
-        out["localization_error_m"][:, k] = np.where(estimated, error, 0.0).max(axis=(-1, -2))
+        error_north = step.estimate_north_m - truth_north
+        error_east = step.estimate_east_m - truth_east
+        error = np.sqrt(error_north * error_north + error_east * error_east)
+        out["localization_error_m"][:, k] = np.where(np.isfinite(error), error, 0.0).max(
+            axis=(-1, -2)
+        )
         speed = np.sqrt(np.sum(step.consensus_m_s**2, axis=-1))
         out["consensus_speed_m_s"][:, k] = np.where(live, speed, 0.0).max(axis=-1)
 
@@ -204,7 +221,17 @@ def simulate(scenario, runs=1, on_step=None):
     out["positions_m"][:, steps] = position
     out["phases_rad"][:, steps] = swarm.phase_rad
     out["live"][:, steps] = live_at(steps)
+    gaps = position[:, :, None, :] - position[:, None, :, :]
+    out["separation_m"][:, steps] = _closest_pair(
+        np.sqrt(np.sum(gaps * gaps, axis=-1)), out["live"][:, steps]
+    )
     return _scored(scenario, times, target[: steps + 1], out)
+
+
+def _closest_pair(distance, live):
+    """Smallest distance between two live vehicles; ``distance`` ``(B, N, N)``, live ``(B, N)``."""
+    pair = live[:, :, None] & live[:, None, :] & ~np.eye(live.shape[-1], dtype=bool)
+    return np.where(pair, distance, np.inf).min(axis=(-1, -2))
 
 
 def _scored(scenario, times, target, out):
@@ -214,16 +241,11 @@ def _scored(scenario, times, target, out):
     )
     tracking = np.sqrt(np.sum((centroid - target) ** 2, axis=-1))
     spacing = splay_spacing_error(out["phases_rad"], live)
-    gaps = positions[..., :, None, :] - positions[..., None, :, :]
-    distance = np.sqrt(np.sum(gaps * gaps, axis=-1))
-    pair = live[..., :, None] & live[..., None, :] & ~np.eye(live.shape[-1], dtype=bool)
-    separation = np.where(pair, distance, np.inf).min(axis=(-1, -2))
     return SimulationResult(
         scenario=scenario,
         times_s=times,
         target_m=target,
         tracking_error_m=tracking,
         phase_spacing_error_rad=spacing,
-        separation_m=separation,
         **out,
     )

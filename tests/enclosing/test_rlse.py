@@ -15,10 +15,9 @@ def run_edge(path, measured):
     history = []
     for k, relative in enumerate(path):
         distance = np.linalg.norm(relative) if measured[k] else np.nan
-        estimates = rlse_update(
-            estimates, np.array([[distance]]), (relative - path[0])[None, None], 0.7
-        )
-        history.append(estimates.current((relative - path[0])[None, None])[0, 0] - relative)
+        moved = (relative - path[0])[:, None, None]
+        estimates = rlse_update(estimates, np.array([[distance]]), *moved, 0.7)
+        history.append(np.ravel(estimates.current(*moved)) - relative)
     return np.linalg.norm(np.array(history), axis=-1)
 
 
@@ -40,19 +39,20 @@ def test_missing_ranges_stretch_the_update_instead_of_corrupting_it():
 
 def test_edges_without_odometry_keep_their_anchor():
     estimates = EdgeEstimates.initial((1, 2))
-    first = rlse_update(estimates, np.array([[3.0, 4.0]]), np.zeros((1, 2, 2)), 0.7)
+    zero = np.zeros((1, 2))
+    first = rlse_update(estimates, np.array([[3.0, 4.0]]), zero, zero, 0.7)
     assert first.anchored.all()
-    odometry = np.array([[[1.0, 0.0], [np.nan, np.nan]]])
-    second = rlse_update(first, np.array([[3.5, 4.2]]), odometry, 0.7)
+    north, east = np.array([[1.0, np.nan]]), np.array([[0.0, np.nan]])
+    second = rlse_update(first, np.array([[3.5, 4.2]]), north, east, 0.7)
     np.testing.assert_array_equal(second.anchor_range_m[0, 1], 4.0)
     np.testing.assert_array_equal(second.estimate_m[0, 1], first.estimate_m[0, 1])
-    assert np.isnan(second.current(odometry)[0, 1]).all()
-    assert np.isfinite(second.current(odometry)[0, 0]).all()
+    now = np.stack(second.current(north, east), axis=-1)
+    assert np.isnan(now[0, 1]).all()
+    assert np.isfinite(now[0, 0]).all()
 
 
 def test_first_measurement_anchors_with_the_papers_initial_values():
-    estimates = rlse_update(
-        EdgeEstimates.initial((2, 3)), np.full((2, 3), 2.0), np.zeros((2, 3, 2)), 0.7
-    )
+    zero = np.zeros((2, 3))
+    estimates = rlse_update(EdgeEstimates.initial((2, 3)), np.full((2, 3), 2.0), zero, zero, 0.7)
     np.testing.assert_array_equal(estimates.estimate_m, 0.0)
     np.testing.assert_array_equal(estimates.gain, np.broadcast_to(np.eye(2), (2, 3, 2, 2)))
