@@ -1,0 +1,243 @@
+"""The bus interface every implementation offers, and the subscription both share.
+
+A bus moves ``(topic, payload)`` pairs between the tasks of a mission: one vehicle
+controller per vehicle, sensor drivers, the ground station. ``InProcessBus`` does it inside
+one event loop; ``MqttBus`` through an MQTT broker. Both:
+
+- are async context managers that own their background tasks;
+- publish with a bounded wait (``timeout=`` is required) that ends in a typed error;
+- hand each subscription the messages whose topic matches its MQTT pattern (``+``, ``#``),
+  in arrival order, through a bounded queue that drops the oldest message when a slow
+  consumer falls behind (counted in ``Subscription.dropped``), so a publisher never blocks
+  on a slow subscriber and memory stays bounded.
+
+Usage::
+
+    async with bus.subscribe(topics.all_steps()) as steps:
+        await bus.publish_message(topics.step(1), message, timeout=0.05)
+        topic, step = await steps.receive_message(StepMessage, timeout=0.125)
+"""
+
+from __future__ import annotations
+
+import abc
+import asyncio
+import collections
+import logging
+from collections.abc import AsyncIterator
+from contextlib import AbstractAsyncContextManager
+from types import TracebackType
+from typing import Generic, Self, TypeVar
+
+from mission_runner.bus.errors import BusConnectionError, BusTimeoutError, MessageDecodeError
+from mission_runner.bus.messages import Message
+
+logger = logging.getLogger(__name__)
+
+M = TypeVar("M", bound=Message)
+
+DEFAULT_QUEUE_SIZE = 256
+"""Messages a subscription holds before dropping the oldest: 16 vehicles x 8 Hz x 2 s."""
+
+
+class Subscription:
+    """Messages matching ``pattern``, oldest first, in a bounded drop-oldest queue.
+
+    Made by ``Bus.subscribe``; valid inside its ``async with`` block. Iterating with
+    ``async for topic, payload in subscription`` ends when the subscription or its bus
+    closes. ``receive`` waits at most ``timeout`` seconds.
+
+    Counters: ``received`` (messages that matched), ``dropped`` (oldest messages discarded
+    because the queue was full), ``decode_errors`` (payloads ``receive_message`` skipped).
+    """
+
+    def __init__(self, pattern: str, *, queue_size: int, endpoint: str) -> None:
+        if queue_size < 1:
+            raise ValueError(f"queue_size must be >= 1, got {queue_size}")
+        self.pattern = pattern
+        self.queue_size = queue_size
+        self.received = 0
+        self.dropped = 0
+        self.decode_errors = 0
+        self._endpoint = endpoint
+        self._items: collections.deque[tuple[str, bytes]] = collections.deque()
+        self._nonempty = asyncio.Event()
+        self._closed = False
+
+    def __repr__(self) -> str:
+        return (
+            f"<Subscription {self.pattern!r} queued={len(self._items)} "
+            f"received={self.received} dropped={self.dropped}>"
+        )
+
+    @property
+    def closed(self) -> bool:
+        """Whether no more messages will arrive (subscription exited or bus closed)."""
+        return self._closed
+
+    def __len__(self) -> int:
+        """Messages waiting to be received."""
+        return len(self._items)
+
+    def offer(self, topic: str, payload: bytes) -> None:
+        """Queue a message (bus side). Never blocks: drops the oldest when full."""
+        if self._closed:
+            return
+        if len(self._items) >= self.queue_size:
+            self._items.popleft()
+            self.dropped += 1
+            if self.dropped == 1 or self.dropped % 1000 == 0:
+                logger.warning(
+                    "subscription %r is not keeping up: dropped %d oldest message(s)",
+                    self.pattern,
+                    self.dropped,
+                )
+        self._items.append((topic, payload))
+        self.received += 1
+        self._nonempty.set()
+
+    def close(self) -> None:
+        """Stop accepting messages and wake waiting receivers (bus side)."""
+        self._closed = True
+        self._nonempty.set()
+
+    def poll(self) -> tuple[str, bytes] | None:
+        """The oldest queued message, or None if none is queued. Never waits."""
+        if not self._items:
+            return None
+        return self._items.popleft()
+
+    async def _next(self) -> tuple[str, bytes] | None:
+        """The oldest message, waiting as long as needed; None once closed and drained."""
+        while not self._items:
+            if self._closed:
+                return None
+            self._nonempty.clear()
+            await self._nonempty.wait()
+        return self._items.popleft()
+
+    async def receive(self, *, timeout: float) -> tuple[str, bytes]:
+        """The oldest ``(topic, payload)``, waiting at most ``timeout`` seconds.
+
+        Raises BusTimeoutError if nothing arrives in time and BusConnectionError if the
+        subscription is closed and drained.
+        """
+        try:
+            async with asyncio.timeout(timeout):
+                item = await self._next()
+        except TimeoutError:
+            raise BusTimeoutError(
+                f"receive on {self.pattern!r}",
+                timeout,
+                hint="no matching message arrived; the publishers may be silent",
+            ) from None
+        if item is None:
+            raise BusConnectionError(self._endpoint, f"subscription {self.pattern!r} is closed")
+        return item
+
+    async def receive_message(self, message_type: type[M], *, timeout: float) -> tuple[str, M]:
+        """The oldest message decoded as ``message_type``, within ``timeout`` seconds overall.
+
+        Payloads that do not decode are logged, counted in ``decode_errors`` and skipped.
+        """
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            try:
+                topic, payload = await self.receive(timeout=max(deadline - loop.time(), 0.0))
+            except BusTimeoutError:
+                raise BusTimeoutError(
+                    f"receive of a {message_type.__name__} on {self.pattern!r}", timeout
+                ) from None
+            decoded = self._decode(message_type, topic, payload)
+            if decoded is not None:
+                return topic, decoded
+
+    def _decode(self, message_type: type[M], topic: str, payload: bytes) -> M | None:
+        try:
+            return message_type.from_payload(payload)
+        except MessageDecodeError as exc:
+            self.decode_errors += 1
+            logger.warning("skipping a message on %s: %s", topic, exc)
+            return None
+
+    def __aiter__(self) -> AsyncIterator[tuple[str, bytes]]:
+        return self
+
+    async def __anext__(self) -> tuple[str, bytes]:
+        item = await self._next()
+        if item is None:
+            raise StopAsyncIteration
+        return item
+
+    def messages(self, message_type: type[M]) -> AsyncIterator[tuple[str, M]]:
+        """Iterate ``(topic, message)`` decoded as ``message_type``, skipping bad payloads."""
+        return _TypedMessages(self, message_type)
+
+
+class _TypedMessages(Generic[M]):
+    def __init__(self, subscription: Subscription, message_type: type[M]) -> None:
+        self._subscription = subscription
+        self._message_type = message_type
+
+    async def __anext__(self) -> tuple[str, M]:
+        while True:
+            item = await self._subscription._next()
+            if item is None:
+                raise StopAsyncIteration
+            decoded = self._subscription._decode(self._message_type, *item)
+            if decoded is not None:
+                return item[0], decoded
+
+    def __aiter__(self) -> Self:
+        return self
+
+
+class Bus(abc.ABC):
+    """A publish/subscribe message bus with MQTT topic semantics.
+
+    Use as ``async with bus:``; publishing or subscribing outside that block raises
+    BusConnectionError.
+    """
+
+    endpoint: str
+    """Where the bus connects, for error messages (``"host:port"`` or ``"in-process"``)."""
+
+    @abc.abstractmethod
+    async def __aenter__(self) -> Self: ...
+
+    @abc.abstractmethod
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None: ...
+
+    @abc.abstractmethod
+    async def publish(
+        self, topic: str, payload: bytes, *, retain: bool = False, timeout: float
+    ) -> None:
+        """Publish ``payload`` on ``topic`` (no wildcards), waiting at most ``timeout`` s.
+
+        ``retain`` asks the bus to keep the payload as the topic's last value, handed to
+        later subscribers; an empty retained payload clears it. Raises BusConnectionError
+        if the message could not be handed over in time; the message is then dropped.
+        """
+
+    @abc.abstractmethod
+    def subscribe(
+        self, pattern: str, *, queue_size: int | None = None, timeout: float | None = None
+    ) -> AbstractAsyncContextManager[Subscription]:
+        """A context manager yielding a ``Subscription`` to ``pattern`` (MQTT wildcards).
+
+        Messages published after entering are delivered. ``timeout`` bounds the wait for
+        the broker's acknowledgement (the bus's default when None); ``queue_size`` bounds
+        the subscription's queue (the bus's default when None).
+        """
+
+    async def publish_message(
+        self, topic: str, message: Message, *, retain: bool = False, timeout: float
+    ) -> None:
+        """Encode ``message`` and publish it (see ``publish``)."""
+        await self.publish(topic, message.to_payload(), retain=retain, timeout=timeout)

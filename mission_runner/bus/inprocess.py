@@ -1,0 +1,243 @@
+"""In-process bus: every vehicle task of one event loop talks through shared queues.
+
+The default bus: no broker, no sockets. The numeric simulator and scenario tests run all
+vehicle controllers in one process on it. An optional ``LinkModel`` delays and drops
+deliveries (seeded, and timed by an injected ``Clock``) so tests can check step alignment
+under a bad network deterministically.
+
+Semantics match ``MqttBus`` with QoS 0: MQTT wildcard patterns (``topic_matches``),
+retained messages handed to new subscribers, per-subscription drop-oldest queues.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import heapq
+import itertools
+import logging
+import math
+import random
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Self
+
+from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
+from mission_runner.bus.clock import Clock, MonotonicClock
+from mission_runner.bus.errors import BusConnectionError
+from mission_runner.bus.topics import topic_matches, validate_pattern, validate_topic
+
+logger = logging.getLogger(__name__)
+
+ENDPOINT = "in-process"
+
+
+@dataclass(frozen=True, slots=True)
+class LinkModel:
+    """A lossy, late network between every publisher and every subscription.
+
+    Each delivery of a message to a matching subscription is dropped with probability
+    ``loss_probability``, otherwise delivered ``latency_s + U(0, jitter_s)`` seconds after
+    publishing, on the bus's clock. Draws come from ``random.Random(seed)`` in publish order,
+    so a run is reproducible. Unless ``reorder`` is True, a subscription receives messages
+    in publish order (as over one TCP connection): a message never overtakes an earlier one.
+    """
+
+    latency_s: float = 0.0
+    jitter_s: float = 0.0
+    loss_probability: float = 0.0
+    seed: int = 0
+    reorder: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("latency_s", "jitter_s"):
+            value = getattr(self, name)
+            if not math.isfinite(value) or value < 0.0:
+                raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+        if not 0.0 <= self.loss_probability <= 1.0:
+            raise ValueError(f"loss_probability must be in [0, 1], got {self.loss_probability!r}")
+
+    @property
+    def delays(self) -> bool:
+        """Whether deliveries are late at all (else they are immediate)."""
+        return self.latency_s > 0.0 or self.jitter_s > 0.0
+
+
+class InProcessBus(Bus):
+    """A bus inside one event loop (see the module docstring).
+
+    ``publish`` never waits: delivery is immediate (or scheduled by the link model) and a
+    full subscription queue drops its oldest message. ``timeout`` is accepted for interface
+    compatibility. Counters: ``published``, ``lost`` (deliveries the link model dropped).
+    """
+
+    endpoint = ENDPOINT
+
+    def __init__(
+        self,
+        *,
+        link: LinkModel | None = None,
+        clock: Clock | None = None,
+        queue_size: int = DEFAULT_QUEUE_SIZE,
+    ) -> None:
+        self.link = link
+        self.clock: Clock = clock if clock is not None else MonotonicClock()
+        self.queue_size = queue_size
+        self.published = 0
+        self.lost = 0
+        self._rng = random.Random(link.seed if link is not None else 0)
+        self._subscriptions: list[Subscription] = []
+        self._retained: dict[str, bytes] = {}
+        self._open = False
+        self._closed = False
+        self._task_group: asyncio.TaskGroup | None = None
+        self._delivery: asyncio.Task[None] | None = None
+        # Delayed deliveries: (due time, publish sequence, subscription, topic, payload).
+        self._pending: list[tuple[float, int, Subscription, str, bytes]] = []
+        self._sequence = itertools.count()
+        self._last_due: dict[Subscription, float] = {}
+        self._scheduled = asyncio.Event()
+        self._sleeper: asyncio.Task[None] | None = None
+        self._sleeping_until = math.inf
+
+    async def __aenter__(self) -> Self:
+        if self._open or self._closed:
+            raise RuntimeError("an InProcessBus can be entered only once")
+        if self.link is not None and self.link.delays:
+            self._task_group = asyncio.TaskGroup()
+            await self._task_group.__aenter__()
+            self._delivery = self._task_group.create_task(
+                self._deliver_late(), name="in-process bus delivery"
+            )
+        self._open = True
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self._open = False
+        self._closed = True
+        for subscription in self._subscriptions:
+            subscription.close()
+        self._subscriptions.clear()
+        if self._task_group is not None:
+            # The delivery loop only ends by cancellation; messages still in flight are lost,
+            # as they would be in a network that goes down.
+            if self._delivery is not None:
+                self._delivery.cancel()
+            await self._task_group.__aexit__(exc_type, exc, tb)
+            self._task_group = None
+        self._pending.clear()
+
+    def _check_open(self, action: str) -> None:
+        if not self._open:
+            state = "closed" if self._closed else "not entered yet"
+            raise BusConnectionError(
+                ENDPOINT, f"cannot {action}: the bus is {state}", hint="use it inside `async with`"
+            )
+
+    @property
+    def subscriptions(self) -> tuple[Subscription, ...]:
+        """Live subscriptions, oldest first."""
+        return tuple(self._subscriptions)
+
+    @property
+    def in_flight(self) -> int:
+        """Deliveries delayed by the link model and not yet handed to their subscription."""
+        return len(self._pending)
+
+    async def publish(
+        self, topic: str, payload: bytes, *, retain: bool = False, timeout: float
+    ) -> None:
+        validate_topic(topic)
+        self._check_open(f"publish to {topic!r}")
+        payload = bytes(payload)
+        self.published += 1
+        if retain:
+            if payload:
+                self._retained[topic] = payload
+            else:
+                self._retained.pop(topic, None)
+        for subscription in self._subscriptions:
+            if topic_matches(subscription.pattern, topic):
+                self._deliver(subscription, topic, payload)
+
+    def _deliver(self, subscription: Subscription, topic: str, payload: bytes) -> None:
+        link = self.link
+        if link is None:
+            subscription.offer(topic, payload)
+            return
+        # Always draw both numbers so one delivery's outcome never shifts the next one's.
+        lost = self._rng.random() < link.loss_probability
+        jitter_s = self._rng.uniform(0.0, link.jitter_s)
+        if lost:
+            self.lost += 1
+            return
+        if not link.delays:
+            subscription.offer(topic, payload)
+            return
+        due_s = self.clock.now() + link.latency_s + jitter_s
+        if not link.reorder:
+            due_s = max(due_s, self._last_due.get(subscription, -math.inf))
+            self._last_due[subscription] = due_s
+        heapq.heappush(self._pending, (due_s, next(self._sequence), subscription, topic, payload))
+        self._scheduled.set()
+        if due_s < self._sleeping_until and self._sleeper is not None:
+            # The delivery loop sleeps until a later message; wake it to reschedule.
+            self._sleeper.cancel()
+
+    async def _deliver_late(self) -> None:
+        while True:
+            now_s = self.clock.now()
+            while self._pending and self._pending[0][0] <= now_s:
+                _, _, subscription, topic, payload = heapq.heappop(self._pending)
+                subscription.offer(topic, payload)
+                if subscription.closed:
+                    self._last_due.pop(subscription, None)
+            if not self._pending:
+                self._scheduled.clear()
+                await self._scheduled.wait()
+                continue
+            self._sleeping_until = self._pending[0][0]
+            assert self._task_group is not None
+            self._sleeper = self._task_group.create_task(
+                self.clock.sleep(self._sleeping_until - now_s), name="in-process bus link delay"
+            )
+            try:
+                # asyncio.wait returns when the sleeper ends, cancelled or not, but raises if
+                # this loop itself is cancelled.
+                await asyncio.wait({self._sleeper})
+            finally:
+                self._sleeper.cancel()
+                self._sleeper = None
+                self._sleeping_until = math.inf
+
+    @contextlib.asynccontextmanager
+    async def _subscription(
+        self, pattern: str, queue_size: int | None
+    ) -> AsyncIterator[Subscription]:
+        validate_pattern(pattern)
+        self._check_open(f"subscribe to {pattern!r}")
+        subscription = Subscription(
+            pattern, queue_size=queue_size or self.queue_size, endpoint=ENDPOINT
+        )
+        for topic, payload in self._retained.items():
+            if topic_matches(pattern, topic):
+                subscription.offer(topic, payload)
+        self._subscriptions.append(subscription)
+        try:
+            yield subscription
+        finally:
+            subscription.close()
+            with contextlib.suppress(ValueError):
+                self._subscriptions.remove(subscription)
+            self._last_due.pop(subscription, None)
+
+    def subscribe(
+        self, pattern: str, *, queue_size: int | None = None, timeout: float | None = None
+    ) -> contextlib.AbstractAsyncContextManager[Subscription]:
+        return self._subscription(pattern, queue_size)
