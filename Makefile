@@ -1,0 +1,27 @@
+# Small entry points; every target works on a fresh machine (Python 3.11 + pip).
+PYTHON ?= python3
+
+.PHONY: demo install test lint bench
+
+## Set up and run the paper's tracking scenario (summary + figures in out/paper_tracking/).
+demo: install
+	mission-runner simulate configs/paper_tracking.yaml --out out/paper_tracking
+
+install:
+	$(PYTHON) -m pip install --quiet -e ".[test]"
+
+## Set up (package, test tools, mosquitto if missing and we are root) and run every test.
+test: install
+	@command -v mosquitto >/dev/null 2>&1 || command -v /usr/sbin/mosquitto >/dev/null 2>&1 || \
+	  { if [ "$$(id -u)" = 0 ]; then \
+	      (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto) >/dev/null; \
+	    else echo "mosquitto missing: install it (e.g. sudo apt-get install mosquitto)"; exit 1; fi; }
+	$(PYTHON) -m ruff check .
+	$(PYTHON) -m pytest
+
+lint:
+	$(PYTHON) -m ruff check .
+	$(PYTHON) -m ruff format --check .
+
+bench: install
+	$(PYTHON) bench/sim_bench.py
