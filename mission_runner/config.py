@@ -39,6 +39,12 @@ def _expression(text):
     return text
 
 
+def _increasing_times(points):
+    if any(b[0] <= a[0] for a, b in itertools.pairwise(points)):
+        raise ValueError("times must be strictly increasing")
+    return points
+
+
 Expression = Annotated[str, Field(min_length=1)]
 
 
@@ -70,12 +76,7 @@ class WaypointSignal(Model):
         title="Points", description="[time_s, value] pairs with strictly increasing times."
     )
 
-    @field_validator("points")
-    @classmethod
-    def _increasing(cls, points):
-        if any(b[0] <= a[0] for a, b in itertools.pairwise(points)):
-            raise ValueError("times must be strictly increasing")
-        return points
+    _check = field_validator("points")(_increasing_times)
 
 
 class ExpressionSignal(Model):
@@ -136,12 +137,7 @@ class WaypointPath(Model):
         list[Annotated[list[float], Field(min_length=3, max_length=3)]], Field(min_length=1)
     ] = Field(title="Points", description="[time_s, north_m, east_m], increasing times.")
 
-    @field_validator("points")
-    @classmethod
-    def _increasing(cls, points):
-        if any(b[0] <= a[0] for a, b in itertools.pairwise(points)):
-            raise ValueError("times must be strictly increasing")
-        return points
+    _check = field_validator("points")(_increasing_times)
 
 
 class ExpressionPath(Model):
