@@ -1,0 +1,479 @@
+"""Settings of the vehicle emulator, as pydantic models.
+
+:class:`EmulatorConfig` is self-contained so that a scenario file can embed it as one section;
+validation errors are pydantic ``ValidationError`` s whose ``loc`` is the path inside this model
+(the scenario loader prefixes its own section name). Every field has a title and a description;
+units are in the field names.
+
+Speed and acceleration limits, take-off/return altitudes and failsafe settings are PX4
+parameters (``params``), with PX4's names and ranges, because clients read and write them with the
+parameter protocol at run time.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from sitl.params import validate_overrides
+
+MAX_VEHICLES = 250
+"""System ids are index + 1 and PX4's MAV_SYS_ID stops at 250 for vehicles."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+
+class PortsConfig(_Model):
+    """UDP port layout; defaults follow PX4 SITL (instance i: API 14580+i -> 14540+i, GCS
+    18570+i -> 14550)."""
+
+    bind_host: str = Field(
+        "0.0.0.0",
+        title="Bind address",
+        description="Local address the vehicles' UDP endpoints bind to.",
+    )
+    remote_host: str = Field(
+        "127.0.0.1",
+        title="Client address",
+        description="Address telemetry goes to until a client has sent a valid MAVLink packet; "
+        "after that the vehicle answers the first client it heard from, like PX4.",
+    )
+    api_local_base: int = Field(
+        14580,
+        ge=1,
+        le=65535,
+        title="API link local port base",
+        description="Vehicle i binds api_local_base + i for its API/offboard link (PX4: 14580).",
+    )
+    api_remote_base: int = Field(
+        14540,
+        ge=1,
+        le=65535,
+        title="API link client port base",
+        description="Vehicle i sends API telemetry to api_remote_base + i; a MAVSDK client "
+        "listens there with udpin://0.0.0.0:<port> (PX4: 14540).",
+    )
+    px4_compat_ports: bool = Field(
+        False,
+        title="PX4 client port sharing",
+        description="If true, vehicles with index > 9 all send to api_remote_base + 9 like PX4 "
+        "SITL does (clients must then tell vehicles apart by system id). If false every "
+        "vehicle gets its own client port, which works for any number of vehicles.",
+    )
+    gcs_enabled: bool = Field(
+        True,
+        title="GCS link enabled",
+        description="Open the second link for QGroundControl/MAVProxy on every vehicle.",
+    )
+    gcs_local_base: int = Field(
+        18570,
+        ge=1,
+        le=65535,
+        title="GCS link local port base",
+        description="Vehicle i binds gcs_local_base + i for its GCS link (PX4: 18570).",
+    )
+    gcs_remote_port: int = Field(
+        14550,
+        ge=1,
+        le=65535,
+        title="GCS port",
+        description="Port every vehicle's GCS link sends to (QGroundControl listens on 14550).",
+    )
+
+    def api_remote_port(self, index: int) -> int:
+        """Client port of vehicle ``index``'s API link."""
+        offset = min(index, 9) if self.px4_compat_ports else index
+        return self.api_remote_base + offset
+
+    def api_local_port(self, index: int) -> int:
+        return self.api_local_base + index
+
+    def gcs_local_port(self, index: int) -> int:
+        return self.gcs_local_base + index
+
+
+class HomeConfig(_Model):
+    """Geographic origin of the emulated world (PX4 SITL's default is Zurich Irchel park)."""
+
+    latitude_deg: float = Field(
+        47.397742, ge=-89.0, le=89.0, title="Latitude", description="Latitude of the origin, deg."
+    )
+    longitude_deg: float = Field(
+        8.545594,
+        ge=-180.0,
+        le=180.0,
+        title="Longitude",
+        description="Longitude of the origin, deg.",
+    )
+    altitude_amsl_m: float = Field(
+        488.0,
+        ge=-500.0,
+        le=9000.0,
+        title="Ground altitude",
+        description="Altitude of the (flat) ground above mean sea level, m.",
+    )
+
+
+class InitialPosition(_Model):
+    """Where one vehicle starts, relative to the world origin (on the ground)."""
+
+    north_m: float = Field(0.0, ge=-1e5, le=1e5, title="North", description="North offset, m.")
+    east_m: float = Field(0.0, ge=-1e5, le=1e5, title="East", description="East offset, m.")
+    yaw_deg: float = Field(
+        0.0, ge=-360.0, le=360.0, title="Heading", description="Initial heading, deg from north."
+    )
+
+
+class PlacementConfig(_Model):
+    """Initial positions: explicit ones first, the remaining vehicles on a grid."""
+
+    positions: list[InitialPosition] = Field(
+        default_factory=list,
+        title="Explicit start positions",
+        description="Start position of vehicle 0, 1, ...; vehicles beyond the list go on the grid.",
+    )
+    grid_spacing_m: float = Field(
+        3.0,
+        gt=0.0,
+        le=1000.0,
+        title="Grid spacing",
+        description="Distance between neighbouring vehicles on the start grid, m.",
+    )
+    grid_columns: int = Field(
+        10,
+        ge=1,
+        le=MAX_VEHICLES,
+        title="Grid columns",
+        description="Vehicles per grid row (rows go north, columns go east).",
+    )
+
+
+class PhysicsConfig(_Model):
+    """Kinematic multicopter model; speed/acceleration limits are the MPC_* parameters."""
+
+    rate_hz: float = Field(
+        50.0,
+        ge=5.0,
+        le=1000.0,
+        title="Physics rate",
+        description="Physics, state-machine and telemetry scheduling rate in simulated Hz.",
+    )
+    velocity_time_constant_s: float = Field(
+        0.15,
+        gt=0.0,
+        le=5.0,
+        title="Velocity time constant",
+        description="First-order lag of the velocity loop, s (acceleration is also limited).",
+    )
+    position_gain_1_s: float = Field(
+        1.0,
+        gt=0.0,
+        le=20.0,
+        title="Position gain",
+        description="Proportional gain from position error to velocity command, 1/s.",
+    )
+
+
+class WindConfig(_Model):
+    """Wind: a constant part plus gusts (Ornstein-Uhlenbeck per vehicle, seeded)."""
+
+    north_m_s: float = Field(0.0, ge=-50, le=50, title="Wind north", description="Mean, m/s.")
+    east_m_s: float = Field(0.0, ge=-50, le=50, title="Wind east", description="Mean, m/s.")
+    gust_std_m_s: float = Field(
+        0.0, ge=0.0, le=20.0, title="Gust strength", description="Gust standard deviation, m/s."
+    )
+    gust_time_constant_s: float = Field(
+        3.0, gt=0.0, le=600.0, title="Gust time", description="Gust correlation time, s."
+    )
+    rejection_time_s: float = Field(
+        1.5,
+        gt=0.0,
+        le=60.0,
+        title="Wind rejection time",
+        description="Time constant with which the velocity controller learns the wind; a wind "
+        "change pushes the vehicle until it has been compensated, s.",
+    )
+    drag_1_s: float = Field(
+        0.3,
+        ge=0.0,
+        le=10.0,
+        title="Drag coefficient",
+        description="Acceleration per m/s of uncompensated wind, 1/s.",
+    )
+
+
+class OdometryConfig(_Model):
+    """Error model of LOCAL_POSITION_NED, the vehicle's own flow-based odometry."""
+
+    position_noise_std_m: float = Field(
+        0.0, ge=0.0, le=10.0, title="Position noise", description="White noise per sample, m."
+    )
+    velocity_noise_std_m_s: float = Field(
+        0.0, ge=0.0, le=10.0, title="Velocity noise", description="White noise per sample, m/s."
+    )
+    drift_bias_std_m_s: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        title="Drift rate",
+        description="Standard deviation of each vehicle's constant horizontal drift velocity, m/s.",
+    )
+    drift_random_walk_m_s_per_sqrt_s: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        title="Drift random walk",
+        description="Random walk of the horizontal drift velocity, m/s per sqrt(s).",
+    )
+
+
+class StreamRates(_Model):
+    """Telemetry rates of one link in simulated Hz; 0 switches a stream off.
+
+    SET_MESSAGE_INTERVAL changes them at run time, per link, like PX4.
+    """
+
+    heartbeat_hz: float = Field(1.0, ge=0.2, le=50, title="HEARTBEAT", description="Rate, Hz.")
+    sys_status_hz: float = Field(1.0, ge=0, le=100, title="SYS_STATUS", description="Rate, Hz.")
+    extended_sys_state_hz: float = Field(
+        5.0, ge=0, le=100, title="EXTENDED_SYS_STATE", description="Rate, Hz."
+    )
+    global_position_int_hz: float = Field(
+        10.0, ge=0, le=100, title="GLOBAL_POSITION_INT", description="Rate, Hz."
+    )
+    local_position_ned_hz: float = Field(
+        10.0, ge=0, le=100, title="LOCAL_POSITION_NED", description="Rate, Hz."
+    )
+    attitude_hz: float = Field(10.0, ge=0, le=100, title="ATTITUDE", description="Rate, Hz.")
+    attitude_quaternion_hz: float = Field(
+        10.0, ge=0, le=100, title="ATTITUDE_QUATERNION", description="Rate, Hz."
+    )
+    home_position_hz: float = Field(
+        1.0, ge=0, le=100, title="HOME_POSITION", description="Rate, Hz."
+    )
+    battery_status_hz: float = Field(
+        1.0, ge=0, le=100, title="BATTERY_STATUS", description="Rate, Hz."
+    )
+    gps_raw_int_hz: float = Field(1.0, ge=0, le=100, title="GPS_RAW_INT", description="Rate, Hz.")
+    vfr_hud_hz: float = Field(4.0, ge=0, le=100, title="VFR_HUD", description="Rate, Hz.")
+    altitude_hz: float = Field(2.0, ge=0, le=100, title="ALTITUDE", description="Rate, Hz.")
+    mission_current_hz: float = Field(
+        1.0, ge=0, le=100, title="MISSION_CURRENT", description="Rate, Hz."
+    )
+
+
+def _gcs_rates() -> StreamRates:
+    return StreamRates(
+        extended_sys_state_hz=1.0,
+        global_position_int_hz=5.0,
+        local_position_ned_hz=1.0,
+        attitude_hz=5.0,
+        attitude_quaternion_hz=0.0,
+        home_position_hz=0.5,
+        battery_status_hz=0.5,
+        altitude_hz=1.0,
+    )
+
+
+class TelemetryConfig(_Model):
+    """Telemetry rates per link (PX4 uses higher rates on the API/onboard link)."""
+
+    api: StreamRates = Field(
+        default_factory=StreamRates,
+        title="API link rates",
+        description="Stream rates on the API/offboard link (MAVSDK).",
+    )
+    gcs: StreamRates = Field(
+        default_factory=_gcs_rates,
+        title="GCS link rates",
+        description="Stream rates on the GCS link (QGroundControl, MAVProxy).",
+    )
+
+
+class ClockConfig(_Model):
+    """How simulated time relates to wall time."""
+
+    mode: Literal["realtime", "lockstep"] = Field(
+        "realtime",
+        title="Clock mode",
+        description="realtime: simulated time = speed x wall time. lockstep: time advances only "
+        "as far as every registered participant has released it, as fast as the CPU allows.",
+    )
+    speed: float = Field(
+        1.0,
+        gt=0.0,
+        le=1000.0,
+        title="Speed factor",
+        description="Simulated seconds per wall second in realtime mode. MAVSDK's own timers "
+        "are wall-clock (1 s heartbeats, 3 s disconnect, 20 Hz offboard resend), so keep "
+        "COM_OF_LOSS_T > speed x 0.05 s and COM_DL_LOSS_T > speed x 1 s.",
+    )
+    lockstep_max_speed: float | None = Field(
+        None,
+        gt=0.0,
+        le=100000.0,
+        title="Lockstep speed cap",
+        description="In lockstep mode, never run faster than this many simulated seconds per "
+        "wall second (None: as fast as possible).",
+    )
+    participant_timeout_s: float | None = Field(
+        10.0,
+        gt=0.0,
+        title="Participant stall timeout",
+        description="In lockstep mode, a participant that holds the clock back this many wall "
+        "seconds is dropped with a warning, so a dead participant cannot stall the clock "
+        "(None: wait forever).",
+    )
+
+
+class KillFault(_Model):
+    """The vehicle's autopilot dies: it stops sending and answering, motors stop."""
+
+    kind: Literal["kill"] = Field(title="Kind", description="Fault kind discriminator.")
+    vehicle_index: int = Field(ge=0, title="Vehicle", description="0-based index (sysid - 1).")
+    at_s: float = Field(ge=0.0, title="Time", description="Simulated time of the fault, s.")
+
+
+class LinkDropFault(_Model):
+    """A vehicle's link carries nothing, in either direction, for a while."""
+
+    kind: Literal["link_drop"] = Field(title="Kind", description="Fault kind discriminator.")
+    vehicle_index: int = Field(ge=0, title="Vehicle", description="0-based index (sysid - 1).")
+    link: Literal["api", "gcs", "all"] = Field("all", title="Link", description="Which link drops.")
+    at_s: float = Field(ge=0.0, title="Start", description="Simulated start time, s.")
+    duration_s: float | None = Field(
+        None, gt=0.0, title="Duration", description="How long, s (None: for good)."
+    )
+
+
+class SensorFault(_Model):
+    """A sensor stops delivering data."""
+
+    kind: Literal["sensor"] = Field(title="Kind", description="Fault kind discriminator.")
+    vehicle_index: int = Field(ge=0, title="Vehicle", description="0-based index (sysid - 1).")
+    sensor: Literal["flow", "gps"] = Field(
+        title="Sensor",
+        description="flow: the optical-flow odometry (LOCAL_POSITION_NED stops, flow health "
+        "bit clears). gps: GPS_RAW_INT reports no fix, GLOBAL_POSITION_INT stops.",
+    )
+    at_s: float = Field(ge=0.0, title="Start", description="Simulated start time, s.")
+    duration_s: float | None = Field(
+        None, gt=0.0, title="Duration", description="How long, s (None: for good)."
+    )
+
+
+Fault = Annotated[KillFault | LinkDropFault | SensorFault, Field(discriminator="kind")]
+
+
+class EmulatorConfig(_Model):
+    """Everything the emulator needs to start N vehicles."""
+
+    vehicles: int = Field(
+        1,
+        ge=1,
+        le=MAX_VEHICLES,
+        title="Vehicle count",
+        description="Number of vehicles; vehicle i has system id i + 1, component id 1.",
+    )
+    seed: int = Field(
+        0,
+        ge=0,
+        title="Random seed",
+        description="Seed of every random process (wind gusts, odometry noise and drift).",
+    )
+    ports: PortsConfig = Field(
+        default_factory=PortsConfig, title="Ports", description="UDP port layout."
+    )
+    home: HomeConfig = Field(
+        default_factory=HomeConfig, title="Origin", description="Geographic origin."
+    )
+    placement: PlacementConfig = Field(
+        default_factory=PlacementConfig,
+        title="Start positions",
+        description="Where vehicles start relative to the origin.",
+    )
+    physics: PhysicsConfig = Field(
+        default_factory=PhysicsConfig, title="Physics", description="Kinematic model settings."
+    )
+    wind: WindConfig = Field(default_factory=WindConfig, title="Wind", description="Wind model.")
+    odometry: OdometryConfig = Field(
+        default_factory=OdometryConfig,
+        title="Odometry errors",
+        description="Noise and drift of LOCAL_POSITION_NED.",
+    )
+    telemetry: TelemetryConfig = Field(
+        default_factory=TelemetryConfig, title="Telemetry", description="Stream rates per link."
+    )
+    clock: ClockConfig = Field(
+        default_factory=ClockConfig, title="Clock", description="Time keeping."
+    )
+    params: dict[str, float] = Field(
+        default_factory=dict,
+        title="PX4 parameters",
+        description="Parameter values that differ from the PX4 defaults, by PX4 name, for every "
+        "vehicle (e.g. MPC_XY_VEL_MAX, MIS_TAKEOFF_ALT, COM_OF_LOSS_T, NAV_DLL_ACT).",
+    )
+    preflight_ready_after_s: float = Field(
+        1.0,
+        ge=0.0,
+        le=600.0,
+        title="Preflight time",
+        description="Simulated seconds after power-on before the estimator is ready and the "
+        "vehicle can arm (PX4 SITL: health OK after about 1 s).",
+    )
+    battery_drain_percent_per_min: float = Field(
+        1.0,
+        ge=0.0,
+        le=100.0,
+        title="Battery drain",
+        description="Battery percentage used per minute while armed.",
+    )
+    faults: list[Fault] = Field(
+        default_factory=list,
+        title="Faults",
+        description="Faults injected at given simulated times.",
+    )
+    tlog_dir: Path | None = Field(
+        None,
+        title="Telemetry log directory",
+        description="If set, every vehicle records its MAVLink traffic, both directions, to "
+        "<tlog_dir>/vehicle_<sysid>.tlog.",
+    )
+
+    @field_validator("params")
+    @classmethod
+    def _known_params(cls, value: dict[str, float]) -> dict[str, float]:
+        return validate_overrides(value)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> EmulatorConfig:
+        n = self.vehicles
+        for fault in self.faults:
+            if fault.vehicle_index >= n:
+                raise ValueError(
+                    f"fault on vehicle_index {fault.vehicle_index} but only {n} vehicle(s) exist"
+                )
+        ports = self.ports
+        ranges = {
+            "ports.api_local_base": (ports.api_local_base, ports.api_local_base + n - 1),
+            "ports.api_remote_base": (ports.api_remote_base, ports.api_remote_port(n - 1)),
+        }
+        if ports.gcs_enabled:
+            ranges["ports.gcs_local_base"] = (ports.gcs_local_base, ports.gcs_local_base + n - 1)
+            ranges["ports.gcs_remote_port"] = (ports.gcs_remote_port, ports.gcs_remote_port)
+        for name, (lo, hi) in ranges.items():
+            if hi > 65535:
+                raise ValueError(f"{name}: ports {lo}..{hi} for {n} vehicles exceed 65535")
+        names = list(ranges)
+        for i, a in enumerate(names):
+            for b in names[i + 1 :]:
+                (alo, ahi), (blo, bhi) = ranges[a], ranges[b]
+                if alo <= bhi and blo <= ahi:
+                    raise ValueError(
+                        f"{a} ({alo}..{ahi}) overlaps {b} ({blo}..{bhi}) for {n} vehicles"
+                    )
+        return self

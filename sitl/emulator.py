@@ -1,0 +1,688 @@
+"""The vehicle emulator: N PX4-like vehicles in one process, each with its own UDP links.
+
+:class:`Emulator` is an async context manager. Entering it builds the world (vectorised physics,
+odometry, one :class:`sitl.autopilot.Px4Autopilot` per vehicle), binds every UDP endpoint
+(raising :class:`sitl.errors.PortInUseError` naming the port and the setting to change) and only
+then starts its one task, ``sitl-physics``, in a task group it owns. Leaving it stops the task,
+closes the sockets and the telemetry logs.
+
+The physics task steps everything in fixed simulated steps as far as the clock allows (real time,
+sped-up real time, or lockstep; see :mod:`sitl.clock`). One step: scheduled faults, autopilot
+updates, ``physics.step(dt)``, odometry drift, step listeners, due telemetry, send.
+
+For a world module (ranging, moving target, sensor faults published on a bus) there are
+:meth:`Emulator.add_step_listener` - called after every step with ``(time_s, truth)`` - and the
+read-only :attr:`Emulator.truth`. Faults: :meth:`Emulator.kill_vehicle`,
+:meth:`Emulator.drop_link`, :meth:`Emulator.fail_sensor` (now or at a simulated time).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import heapq
+import itertools
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from sitl import physics as ph
+from sitl.autopilot import Px4Autopilot, Snapshot
+from sitl.clock import Clock
+from sitl.config import EmulatorConfig, KillFault, LinkDropFault, SensorFault
+from sitl.errors import EmulatorStateError, PortInUseError, SitlTimeoutError
+from sitl.geo import MapProjection
+from sitl.link import VehicleLink
+from sitl.modes import FlightMode
+from sitl.odometry import Odometry
+from sitl.tlog import TlogWriter
+
+logger = logging.getLogger(__name__)
+
+LinkName = Literal["api", "gcs", "all"]
+SensorName = Literal["flow", "gps"]
+
+_LOCKSTEP_BATCH_STEPS = 10
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleEndpoints:
+    """Where to reach vehicle ``index``."""
+
+    index: int
+    sysid: int
+    api_local_port: int
+    api_remote_port: int
+    gcs_local_port: int | None
+    gcs_remote_port: int | None
+
+    @property
+    def mavsdk_url(self) -> str:
+        """What a MAVSDK client passes to ``add_any_connection``."""
+        return f"udpin://0.0.0.0:{self.api_remote_port}"
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleStatus:
+    """What the autopilot of one vehicle believes, for tests and monitoring."""
+
+    index: int
+    sysid: int
+    alive: bool
+    armed: bool
+    mode: FlightMode
+    landed: bool
+    failsafe: bool
+    flow_ok: bool
+    gps_ok: bool
+    battery_percent: float
+    status_texts: tuple[str, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class EmulatorStats:
+    """Loop figures since start (wall seconds unless stated)."""
+
+    steps: int
+    sim_time_s: float
+    wall_time_s: float
+    max_lag_s: float
+    """Largest simulated-time backlog seen in realtime mode (how far the loop fell behind)."""
+    late_wakeups: int
+    """Realtime wake-ups that found more than one step due."""
+    rx_packets: int
+    rx_bad: int
+    tx_packets: int
+    handler_errors: int
+
+
+class Truth:
+    """Read-only views of the true vehicle states, in the world NED frame of the origin.
+
+    Every property returns a fresh read-only numpy view (no copy): copy what you keep beyond the
+    current step. Shapes: ``(n, 3)`` for vectors, ``(n,)`` for scalars.
+    """
+
+    def __init__(self, emulator: Emulator) -> None:
+        self._emulator = emulator
+
+    @property
+    def time_s(self) -> float:
+        return self._emulator.time_s
+
+    @property
+    def n(self) -> int:
+        return self._emulator._physics_or_raise().n
+
+    def _view(self, array: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        view = array.view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def position_ned_m(self) -> npt.NDArray[np.float64]:
+        return self._view(self._emulator._physics_or_raise().position_ned_m)
+
+    @property
+    def velocity_ned_m_s(self) -> npt.NDArray[np.float64]:
+        return self._view(self._emulator._physics_or_raise().velocity_ned_m_s)
+
+    @property
+    def acceleration_ned_m_s2(self) -> npt.NDArray[np.float64]:
+        return self._view(self._emulator._physics_or_raise().acceleration_ned_m_s2)
+
+    @property
+    def yaw_rad(self) -> npt.NDArray[np.float64]:
+        return self._view(self._emulator._physics_or_raise().yaw_rad)
+
+    @property
+    def roll_rad(self) -> npt.NDArray[np.float64]:
+        return self._view(self._emulator._physics_or_raise().roll_rad)
+
+    @property
+    def pitch_rad(self) -> npt.NDArray[np.float64]:
+        return self._view(self._emulator._physics_or_raise().pitch_rad)
+
+    @property
+    def odometry_origin_ned_m(self) -> npt.NDArray[np.float64]:
+        """Where each vehicle's LOCAL_POSITION_NED frame has its origin (world NED)."""
+        return self._view(self._emulator._odometry_or_raise().origin_ned_m)
+
+    @property
+    def odometry_drift_ned_m(self) -> npt.NDArray[np.float64]:
+        """Current drift of each vehicle's odometry (world NED metres)."""
+        return self._view(self._emulator._odometry_or_raise().drift_ned_m)
+
+    @property
+    def alive(self) -> npt.NDArray[np.bool_]:
+        return np.array([ap.alive for ap in self._emulator._autopilots], dtype=bool)
+
+    @property
+    def armed(self) -> npt.NDArray[np.bool_]:
+        return np.array([ap.armed for ap in self._emulator._autopilots], dtype=bool)
+
+    def global_position(self, index: int) -> tuple[float, float, float]:
+        """(latitude deg, longitude deg, altitude AMSL m) of vehicle ``index``."""
+        emulator = self._emulator
+        n, e, d = (float(v) for v in emulator._physics_or_raise().position_ned_m[index])
+        lat, lon = emulator.projection.to_global(n, e)
+        return lat, lon, emulator.config.home.altitude_amsl_m - d
+
+
+StepListener = Callable[[float, Truth], None]
+
+
+class Emulator:
+    """N emulated PX4 vehicles; use as ``async with Emulator(config) as emulator:``.
+
+    ``clock`` defaults to one built from ``config.clock``; pass a shared one to run other
+    participants in lockstep with the vehicles. ``tlog_dir`` overrides ``config.tlog_dir``.
+    """
+
+    def __init__(
+        self,
+        config: EmulatorConfig | None = None,
+        *,
+        clock: Clock | None = None,
+        tlog_dir: Path | None = None,
+    ) -> None:
+        self.config = config if config is not None else EmulatorConfig()
+        self.clock = clock if clock is not None else Clock.from_config(self.config.clock)
+        self.tlog_dir = tlog_dir if tlog_dir is not None else self.config.tlog_dir
+        home = self.config.home
+        self.projection = MapProjection(home.latitude_deg, home.longitude_deg)
+        self.truth = Truth(self)
+        self.events: list[tuple[float, int, str]] = []
+        """(time_s, vehicle index, what happened) for faults and failsafes."""
+        self._physics: ph.MulticopterPhysics | None = None
+        self._odometry: Odometry | None = None
+        self._snapshot = Snapshot()
+        self._autopilots: list[Px4Autopilot] = []
+        self._links: list[list[VehicleLink]] = []
+        self._all_links: list[VehicleLink] = []
+        self._tlogs: list[TlogWriter] = []
+        self._listeners: list[StepListener] = []
+        self._schedule: list[tuple[float, int, str, Callable[[], None]]] = []
+        self._schedule_ids = itertools.count()
+        self._steps = 0
+        self._dt_s = 1.0 / self.config.physics.rate_hz
+        self._task_group: asyncio.TaskGroup | None = None
+        self._run_task: asyncio.Task[None] | None = None
+        self._progress = asyncio.Event()
+        self._epoch_start_us = 0
+        self._wall_start_s = 0.0
+        self._max_lag_s = 0.0
+        self._late_wakeups = 0
+        self._entered = False
+
+    # ================================================================ lifecycle
+    async def __aenter__(self) -> Emulator:
+        if self._entered:
+            raise EmulatorStateError("this Emulator has already been started; create a new one")
+        self._entered = True
+        self._build_world()
+        try:
+            self._open_tlogs()
+            await self._bind_all()
+        except BaseException:
+            self._close_io()
+            raise
+        self.clock.start()
+        self._wall_start_s = time.monotonic()
+        self._epoch_start_us = int(time.time() * 1e6)
+        self._task_group = asyncio.TaskGroup()
+        await self._task_group.__aenter__()
+        self._run_task = self._task_group.create_task(self._run(), name="sitl-physics")
+        logger.info(
+            "SITL ready: %d vehicle(s), clock %s x%g; MAVSDK URLs %s",
+            self.config.vehicles,
+            self.clock.mode,
+            self.clock.speed,
+            ", ".join(ep.mavsdk_url for ep in self.endpoints[:3])
+            + (" ..." if self.config.vehicles > 3 else ""),
+        )
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        task_group = self._task_group
+        try:
+            if self._run_task is not None:
+                self._run_task.cancel()
+            if task_group is not None:
+                await task_group.__aexit__(exc_type, exc, tb)
+        finally:
+            self._close_io()
+            logger.info("SITL stopped at %.2f s simulated", self.time_s)
+
+    def _close_io(self) -> None:
+        for link in self._all_links:
+            link.close()
+        for tlog in self._tlogs:
+            tlog.close()
+
+    def _build_world(self) -> None:
+        config = self.config
+        n = config.vehicles
+        start = np.zeros((n, 3))
+        yaw = np.zeros(n)
+        placement = config.placement
+        for i in range(n):
+            if i < len(placement.positions):
+                p = placement.positions[i]
+                start[i] = (p.north_m, p.east_m, 0.0)
+                yaw[i] = math.radians(p.yaw_deg)
+            else:
+                k = i - len(placement.positions)
+                row, col = divmod(k, placement.grid_columns)
+                start[i] = (row * placement.grid_spacing_m, col * placement.grid_spacing_m, 0.0)
+        wind_cfg = config.wind
+        wind = ph.Wind(
+            n,
+            (wind_cfg.north_m_s, wind_cfg.east_m_s, 0.0),
+            wind_cfg.gust_std_m_s,
+            wind_cfg.gust_time_constant_s,
+            rng=np.random.default_rng([config.seed, 0x317D]),
+        )
+        self._physics = ph.MulticopterPhysics(
+            start,
+            yaw,
+            time_constant_s=config.physics.velocity_time_constant_s,
+            position_gain_1_s=config.physics.position_gain_1_s,
+            wind=wind if wind.active else None,
+            wind_rejection_time_s=wind_cfg.rejection_time_s,
+            drag_1_s=wind_cfg.drag_1_s,
+        )
+        odo = config.odometry
+        self._odometry = Odometry(
+            start,
+            position_noise_std_m=odo.position_noise_std_m,
+            velocity_noise_std_m_s=odo.velocity_noise_std_m_s,
+            drift_bias_std_m_s=odo.drift_bias_std_m_s,
+            drift_random_walk_m_s_per_sqrt_s=odo.drift_random_walk_m_s_per_sqrt_s,
+            seed=config.seed,
+        )
+        self._snapshot.refresh(self._physics, self._odometry)
+        self._autopilots = [
+            Px4Autopilot(
+                i,
+                physics=self._physics,
+                odometry=self._odometry,
+                snapshot=self._snapshot,
+                projection=self.projection,
+                ground_amsl_m=config.home.altitude_amsl_m,
+                param_overrides=config.params,
+                preflight_ready_after_s=config.preflight_ready_after_s,
+                battery_drain_percent_per_min=config.battery_drain_percent_per_min,
+                unix_epoch_start_us=int(time.time() * 1e6),
+            )
+            for i in range(n)
+        ]
+        for ap in self._autopilots:
+            ap.on_statustext = self._statustext_observer(ap.index)
+        for fault in config.faults:
+            self._schedule_fault(fault)
+
+    def _statustext_observer(self, index: int) -> Callable[[float, int, str], None]:
+        def observe(time_s: float, severity: int, text: str) -> None:
+            if text.startswith("Failsafe") or "lost" in text:
+                self.events.append((time_s, index, text))
+
+        return observe
+
+    def _open_tlogs(self) -> None:
+        if self.tlog_dir is None:
+            return
+        for ap in self._autopilots:
+            tlog = TlogWriter(Path(self.tlog_dir) / f"vehicle_{ap.sysid:03d}.tlog").open()
+            self._tlogs.append(tlog)
+
+    async def _bind_all(self) -> None:
+        loop = asyncio.get_running_loop()
+        config = self.config
+        ports = config.ports
+        phase_step = self._dt_s
+        for ap in self._autopilots:
+            i = ap.index
+            tlog = self._tlogs[i] if self._tlogs else None
+            # Spread the vehicles' telemetry over the steps of a 0.1 s period.
+            phase = (i % max(round(0.1 / phase_step), 1)) * phase_step
+            specs = [
+                (
+                    "api",
+                    ports.api_local_port(i),
+                    (ports.remote_host, ports.api_remote_port(i)),
+                    config.telemetry.api,
+                    "ports.api_local_base (--api-local-port-base)",
+                )
+            ]
+            if ports.gcs_enabled:
+                specs.append(
+                    (
+                        "gcs",
+                        ports.gcs_local_port(i),
+                        (ports.remote_host, ports.gcs_remote_port),
+                        config.telemetry.gcs,
+                        "ports.gcs_local_base (--gcs-port-base)",
+                    )
+                )
+            links: list[VehicleLink] = []
+            for name, local_port, remote, rates, setting in specs:
+                link = VehicleLink(
+                    name,
+                    sysid=ap.sysid,
+                    local_port=local_port,
+                    remote_address=remote,
+                    rates=rates,
+                    deliver=self._deliver_to(ap),
+                    stream_phase_s=phase,
+                    tlog=tlog,
+                    now_us=self._tlog_time_us,
+                )
+                try:
+                    await loop.create_datagram_endpoint(
+                        lambda link=link: link, local_addr=(ports.bind_host, local_port)
+                    )
+                except OSError as exc:
+                    if exc.errno in (errno.EADDRINUSE, errno.EACCES):
+                        raise PortInUseError(local_port, setting, i, exc.strerror or "") from exc
+                    raise
+                links.append(link)
+                self._all_links.append(link)
+            self._links.append(links)
+            ap.links = list(links)
+
+    def _deliver_to(self, ap: Px4Autopilot) -> Callable[..., None]:
+        def deliver(msg: object, link: VehicleLink) -> None:
+            ap.handle_message(msg, link, self.time_s)  # type: ignore[arg-type]
+
+        return deliver
+
+    def _tlog_time_us(self) -> int:
+        return self._epoch_start_us + int(self.time_s * 1e6)
+
+    # ================================================================ running
+    @property
+    def time_s(self) -> float:
+        """Simulated time of the last completed step."""
+        return self._steps * self._dt_s
+
+    @property
+    def dt_s(self) -> float:
+        return self._dt_s
+
+    async def _run(self) -> None:
+        clock = self.clock
+        dt = self._dt_s
+        lockstep = clock.mode == "lockstep"
+        while True:
+            allowed = clock.allowed_time_s()
+            due = math.floor((allowed - self.time_s) / dt + 1e-9)
+            if due <= 0:
+                await clock.wait_until_allowed_beyond(self.time_s + dt - 1e-9)
+                if lockstep:
+                    # Let datagrams sent before the release reach their handlers first, so the
+                    # step that follows sees them (deterministic lockstep over loopback).
+                    await asyncio.sleep(0)
+                    await asyncio.sleep(0)
+                continue
+            if lockstep:
+                batch = min(due, _LOCKSTEP_BATCH_STEPS)
+            else:
+                batch = due
+                if due > 1:
+                    self._late_wakeups += 1
+                    self._max_lag_s = max(self._max_lag_s, (due - 1) * dt)
+            for _ in range(batch):
+                self._step(dt)
+            self._progress.set()
+            self._progress = asyncio.Event()
+            await asyncio.sleep(0)
+
+    def _step(self, dt: float) -> None:
+        physics = self._physics
+        odometry = self._odometry
+        assert physics is not None and odometry is not None
+        now = self.time_s
+        schedule = self._schedule
+        while schedule and schedule[0][0] <= now + 1e-9:
+            _, _, _, action = heapq.heappop(schedule)
+            action()
+        for ap in self._autopilots:
+            ap.update(now)
+        physics.step(dt)
+        odometry.step(dt)
+        self._steps += 1
+        now = self.time_s
+        self._snapshot.refresh(physics, odometry)
+        self.clock.advance_to(now)
+        for listener in self._listeners:
+            listener(now, self.truth)
+        for ap, links in zip(self._autopilots, self._links, strict=True):
+            if not ap.alive:
+                continue
+            build = ap.telemetry.build
+            for link in links:
+                if now < link.streams.next_due_s:
+                    continue
+                for msg_id in link.streams.due(now):
+                    msg = build(msg_id, now)
+                    if msg is not None:
+                        link.send(msg)
+        for link in self._all_links:
+            if link.pending:
+                link.flush()
+
+    async def wait_for(
+        self, predicate: Callable[[], bool], *, timeout_s: float, what: str = "a condition"
+    ) -> None:
+        """Wait (wall ``timeout_s``) until ``predicate()`` holds after a physics step.
+
+        Raises :class:`sitl.errors.SitlTimeoutError` naming ``what``.
+        """
+        self._require_running()
+        try:
+            async with asyncio.timeout(timeout_s):
+                while not predicate():
+                    await self._progress.wait()
+        except TimeoutError:
+            raise SitlTimeoutError(what, timeout_s) from None
+
+    async def run_for(self, duration_s: float, *, timeout_s: float = 60.0) -> None:
+        """Wait until ``duration_s`` more simulated seconds have been stepped."""
+        end = self.time_s + duration_s
+        await self.wait_for(
+            lambda: self.time_s >= end - 1e-9,
+            timeout_s=timeout_s,
+            what=f"simulated time {end:.2f} s",
+        )
+
+    def _require_running(self) -> None:
+        if self._run_task is None:
+            raise EmulatorStateError("the emulator is not running; use 'async with Emulator()'")
+
+    # ================================================================ world hooks
+    def add_step_listener(self, listener: StepListener) -> Callable[[], None]:
+        """Call ``listener(time_s, truth)`` after every physics step; returns a remover.
+
+        Listeners run inside the physics loop: keep them quick and synchronous. An exception
+        stops the emulator (it surfaces when the ``async with`` block exits).
+        """
+        self._listeners.append(listener)
+
+        def remove() -> None:
+            with contextlib.suppress(ValueError):
+                self._listeners.remove(listener)
+
+        return remove
+
+    @property
+    def endpoints(self) -> list[VehicleEndpoints]:
+        ports = self.config.ports
+        gcs = ports.gcs_enabled
+        return [
+            VehicleEndpoints(
+                i,
+                i + 1,
+                ports.api_local_port(i),
+                ports.api_remote_port(i),
+                ports.gcs_local_port(i) if gcs else None,
+                ports.gcs_remote_port if gcs else None,
+            )
+            for i in range(self.config.vehicles)
+        ]
+
+    def vehicle_status(self, index: int) -> VehicleStatus:
+        ap = self._autopilot(index)
+        return VehicleStatus(
+            index,
+            ap.sysid,
+            ap.alive,
+            ap.armed,
+            ap.mode,
+            ap.landed,
+            ap.failsafe_active,
+            ap.flow_ok,
+            ap.gps_ok,
+            ap.battery_remaining_pct,
+            tuple(text for _, text in ap.status_log),
+        )
+
+    def autopilot(self, index: int) -> Px4Autopilot:
+        """The state machine of vehicle ``index`` (for inspection; drive it over MAVLink)."""
+        return self._autopilot(index)
+
+    def stats(self) -> EmulatorStats:
+        links = self._all_links
+        return EmulatorStats(
+            self._steps,
+            self.time_s,
+            time.monotonic() - self._wall_start_s if self._wall_start_s else 0.0,
+            self._max_lag_s,
+            self._late_wakeups,
+            sum(link.rx_packets for link in links),
+            sum(link.rx_bad for link in links),
+            sum(link.tx_packets for link in links),
+            sum(link.handler_errors for link in links),
+        )
+
+    def _autopilot(self, index: int) -> Px4Autopilot:
+        if not self._autopilots:
+            raise EmulatorStateError("the emulator has not been started")
+        if not 0 <= index < len(self._autopilots):
+            raise EmulatorStateError(
+                f"no vehicle with index {index}; valid: 0..{len(self._autopilots) - 1}"
+            )
+        return self._autopilots[index]
+
+    def _physics_or_raise(self) -> ph.MulticopterPhysics:
+        if self._physics is None:
+            raise EmulatorStateError("the emulator has not been started")
+        return self._physics
+
+    def _odometry_or_raise(self) -> Odometry:
+        if self._odometry is None:
+            raise EmulatorStateError("the emulator has not been started")
+        return self._odometry
+
+    # ================================================================ faults
+    def kill_vehicle(self, index: int, at_s: float | None = None) -> None:
+        """Vehicle ``index`` dies (stops sending and answering, motors off) now or at ``at_s``."""
+        ap = self._autopilot(index)
+
+        def kill() -> None:
+            ap.kill(self.time_s)
+            for link in self._links[index] if self._links else []:
+                link.alive = False
+            self.events.append((self.time_s, index, "killed"))
+
+        self._at(at_s, kill, f"kill vehicle {index}")
+
+    def drop_link(
+        self,
+        index: int,
+        link: LinkName = "all",
+        at_s: float | None = None,
+        duration_s: float | None = None,
+    ) -> None:
+        """Vehicle ``index``'s ``link`` carries nothing from ``at_s`` (default now) for
+        ``duration_s`` (default: for good)."""
+        self._autopilot(index)
+        if link not in ("api", "gcs", "all"):
+            raise ValueError(f"unknown link {link!r}; use 'api', 'gcs' or 'all'")
+
+        def set_up(up: bool) -> Callable[[], None]:
+            def apply() -> None:
+                for vehicle_link in self._links[index]:
+                    if link in ("all", vehicle_link.name):
+                        vehicle_link.up = up
+                self.events.append(
+                    (self.time_s, index, f"{link} link {'restored' if up else 'dropped'}")
+                )
+
+            return apply
+
+        start = self.time_s if at_s is None else at_s
+        self._at(at_s, set_up(False), f"drop {link} link of vehicle {index}")
+        if duration_s is not None:
+            self._at(start + duration_s, set_up(True), f"restore {link} link of vehicle {index}")
+
+    def fail_sensor(
+        self,
+        index: int,
+        sensor: SensorName,
+        at_s: float | None = None,
+        duration_s: float | None = None,
+    ) -> None:
+        """Sensor ``"flow"`` or ``"gps"`` of vehicle ``index`` stops from ``at_s`` (default now)
+        for ``duration_s`` (default: for good)."""
+        ap = self._autopilot(index)
+        if sensor not in ("flow", "gps"):
+            raise ValueError(f"unknown sensor {sensor!r}; use 'flow' or 'gps'")
+
+        def set_ok(ok: bool) -> Callable[[], None]:
+            def apply() -> None:
+                ap.set_sensor(sensor, ok, self.time_s)
+                self.events.append(
+                    (self.time_s, index, f"{sensor} {'restored' if ok else 'failed'}")
+                )
+
+            return apply
+
+        start = self.time_s if at_s is None else at_s
+        self._at(at_s, set_ok(False), f"fail {sensor} of vehicle {index}")
+        if duration_s is not None:
+            self._at(start + duration_s, set_ok(True), f"restore {sensor} of vehicle {index}")
+
+    def _schedule_fault(self, fault: KillFault | LinkDropFault | SensorFault) -> None:
+        if isinstance(fault, KillFault):
+            self.kill_vehicle(fault.vehicle_index, fault.at_s)
+        elif isinstance(fault, LinkDropFault):
+            self.drop_link(fault.vehicle_index, fault.link, fault.at_s, fault.duration_s)
+        else:
+            self.fail_sensor(fault.vehicle_index, fault.sensor, fault.at_s, fault.duration_s)
+
+    def _at(self, at_s: float | None, action: Callable[[], None], what: str) -> None:
+        if at_s is None or (self._run_task is not None and at_s <= self.time_s):
+            action()
+            logger.info("fault at %.2f s: %s", self.time_s, what)
+            return
+
+        def logged() -> None:
+            logger.info("fault at %.2f s: %s", self.time_s, what)
+            action()
+
+        heapq.heappush(self._schedule, (at_s, next(self._schedule_ids), what, logged))

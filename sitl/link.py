@@ -1,0 +1,151 @@
+"""One MAVLink-over-UDP link of one vehicle (the API link or the GCS link).
+
+:class:`VehicleLink` is an asyncio ``DatagramProtocol``: it decodes every datagram with its own
+pymavlink parser, hands decoded messages to the vehicle synchronously, and batches what the
+vehicle sends into datagrams (several packets per datagram, as PX4 does) that :meth:`flush`
+sends. Like PX4 it sends to a configured address until the first valid MAVLink packet arrives
+and answers that sender from then on.
+
+Malformed input is counted and dropped; an exception in the vehicle's handler is logged and
+counted (``handler_errors``) but never stops the link.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from sitl.config import StreamRates
+from sitl.telemetry import StreamScheduler
+from sitl.tlog import TlogWriter
+
+logger = logging.getLogger(__name__)
+
+#: Bytes per datagram before a batch is sent (below a 1500-byte Ethernet MTU).
+MAX_DATAGRAM_BYTES = 1400
+
+Address = tuple[str, int]
+
+
+class VehicleLink(asyncio.DatagramProtocol):
+    """A vehicle's UDP endpoint: ``name`` is ``"api"`` or ``"gcs"``.
+
+    ``deliver(msg, link)`` receives every valid decoded message; ``now_us()`` gives the tlog
+    timestamp. ``streams`` holds this link's telemetry schedule.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        sysid: int,
+        local_port: int,
+        remote_address: Address,
+        rates: StreamRates,
+        deliver: Callable[[mavlink.MAVLink_message, VehicleLink], None],
+        stream_phase_s: float = 0.0,
+        tlog: TlogWriter | None = None,
+        now_us: Callable[[], int] = lambda: 0,
+    ) -> None:
+        self.name = name
+        self.sysid = sysid
+        self.local_port = local_port
+        self.remote_address = remote_address
+        self.partner: Address | None = None
+        self.streams = StreamScheduler(rates, stream_phase_s)
+        self._deliver = deliver
+        self._tlog = tlog
+        self._now_us = now_us
+        self._encoder = mavlink.MAVLink(self, srcSystem=sysid, srcComponent=1)
+        self._parser = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=1)
+        self._parser.robust_parsing = True
+        self._transport: asyncio.DatagramTransport | None = None
+        self._buffer = bytearray()
+        #: False while a fault drops this link: nothing in, nothing out.
+        self.up = True
+        #: False once the vehicle is dead.
+        self.alive = True
+        self.rx_packets = 0
+        self.rx_bad = 0
+        self.tx_packets = 0
+        self.handler_errors = 0
+
+    # ------------------------------------------------------------ receiving
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._transport = transport  # type: ignore[assignment]
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._transport = None
+
+    def error_received(self, exc: Exception) -> None:
+        # ICMP port unreachable while no client listens: normal for a GCS link.
+        logger.debug("vehicle %d %s link: %s", self.sysid, self.name, exc)
+
+    def datagram_received(self, data: bytes, addr: Address) -> None:
+        if not (self.up and self.alive):
+            return
+        parser = self._parser
+        try:
+            messages = parser.parse_buffer(data) or []
+        except Exception:  # malformed input must never reach the event loop
+            messages = []
+            self.rx_bad += 1
+        # A datagram holds whole packets: leftovers are garbage, do not let them eat the next.
+        parser.buf = bytearray()
+        parser.buf_index = 0
+        parser.expected_length = mavlink.HEADER_LEN_V1 + 2
+        for msg in messages:
+            if msg.get_msgId() < 0:  # BAD_DATA
+                self.rx_bad += 1
+                continue
+            self.rx_packets += 1
+            if self.partner is None:
+                self.partner = (addr[0], addr[1])
+                logger.info(
+                    "vehicle %d %s link: client at %s:%d", self.sysid, self.name, *self.partner
+                )
+            if self._tlog is not None:
+                self._tlog.write(self._now_us(), msg.get_msgbuf())
+            try:
+                self._deliver(msg, self)
+            except Exception:
+                self.handler_errors += 1
+                logger.exception(
+                    "vehicle %d %s link: error handling %s", self.sysid, self.name, msg.get_type()
+                )
+        self.flush()
+
+    # -------------------------------------------------------------- sending
+    def send(self, msg: mavlink.MAVLink_message) -> None:
+        """Queue ``msg`` for the next :meth:`flush` (encoded with this link's sequence)."""
+        if self.up and self.alive:
+            self._encoder.send(msg)
+
+    def write(self, packet: bytes) -> None:
+        """pymavlink's encoder writes packed messages here."""
+        if len(self._buffer) + len(packet) > MAX_DATAGRAM_BYTES:
+            self.flush()
+        self._buffer += packet
+        self.tx_packets += 1
+        if self._tlog is not None:
+            self._tlog.write(self._now_us(), packet)
+
+    @property
+    def pending(self) -> bool:
+        return bool(self._buffer)
+
+    def flush(self) -> None:
+        """Send the queued packets as one datagram."""
+        if not self._buffer:
+            return
+        transport = self._transport
+        if transport is not None:
+            transport.sendto(bytes(self._buffer), self.partner or self.remote_address)
+        self._buffer.clear()
+
+    def close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()

@@ -1,0 +1,276 @@
+"""Kinematic multicopter model for many vehicles at once: plain synchronous ``step(dt)``.
+
+All state is numpy arrays over vehicles, in a shared world NED frame (metres, origin at the
+configured home, ground at down = 0). Nothing here knows about MAVLink, modes or time keeping;
+the autopilot state machine writes setpoints into the arrays and the emulator calls
+:meth:`MulticopterPhysics.step`.
+
+Control modes per vehicle (``control_mode``):
+
+``MOTORS_OFF``
+    disarmed or dead: no thrust; in the air the vehicle falls, on the ground it stays.
+``VELOCITY``
+    tracks ``velocity_setpoint_ned_m_s``.
+``POSITION``
+    flies to ``position_setpoint_ned_m`` (velocity command from a P-gain, bounded by
+    ``cruise_speed_m_s``, the vertical limits and a braking profile sqrt(2 a d)), plus
+    ``velocity_feedforward_ned_m_s``.
+``ACCELERATION``
+    commands ``acceleration_setpoint_ned_m_s2`` directly (attitude setpoints map to this).
+
+In every mode the velocity command is limited to the speed limits, the velocity follows it with
+a first-order lag (``time_constant_s``) and acceleration limits. Wind pushes a flying vehicle by
+``drag_1_s`` x (wind - what the controller has learnt of it); the learnt part follows the wind
+with ``wind_rejection_time_s``. Roll and pitch are the tilt that produces the horizontal
+acceleration; yaw follows ``yaw_rate_setpoint_rad_s`` if finite, else turns towards
+``yaw_setpoint_rad`` (if finite) at ``max_yaw_rate_rad_s``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+GRAVITY_M_S2 = 9.80665
+
+MOTORS_OFF = 0
+VELOCITY = 1
+POSITION = 2
+ACCELERATION = 3
+
+FloatArray = npt.NDArray[np.float64]
+
+
+class Wind:
+    """Mean wind plus per-vehicle Ornstein-Uhlenbeck gusts (horizontal), seeded.
+
+    ``velocity_ned_m_s`` has shape (n, 3); :meth:`step` advances the gusts.
+    """
+
+    def __init__(
+        self,
+        n: int,
+        mean_ned_m_s: npt.ArrayLike = (0.0, 0.0, 0.0),
+        gust_std_m_s: float = 0.0,
+        gust_time_constant_s: float = 3.0,
+        rng: np.random.Generator | None = None,
+    ) -> None:
+        self.mean_ned_m_s = np.asarray(mean_ned_m_s, dtype=float).reshape(3)
+        self.gust_std_m_s = float(gust_std_m_s)
+        self.gust_time_constant_s = float(gust_time_constant_s)
+        self._rng = rng if rng is not None else np.random.default_rng(0)
+        self.gust_ned_m_s = np.zeros((n, 3))
+        if self.gust_std_m_s > 0:
+            self.gust_ned_m_s[:, :2] = self._rng.normal(0.0, self.gust_std_m_s, size=(n, 2))
+        self.velocity_ned_m_s = self.mean_ned_m_s + self.gust_ned_m_s
+
+    @property
+    def active(self) -> bool:
+        return self.gust_std_m_s > 0 or bool(np.any(self.mean_ned_m_s))
+
+    def step(self, dt: float) -> None:
+        if self.gust_std_m_s > 0:
+            # Exact discretisation of the OU process keeps the variance right for any dt.
+            decay = np.exp(-dt / self.gust_time_constant_s)
+            noise_std = self.gust_std_m_s * np.sqrt(1.0 - decay * decay)
+            n = self.gust_ned_m_s.shape[0]
+            self.gust_ned_m_s[:, :2] *= decay
+            self.gust_ned_m_s[:, :2] += self._rng.normal(0.0, noise_std, size=(n, 2))
+        np.add(self.mean_ned_m_s, self.gust_ned_m_s, out=self.velocity_ned_m_s)
+
+
+class MulticopterPhysics:
+    """State and setpoints of ``n`` kinematic multicopters.
+
+    Arrays (all float64 unless noted):
+
+    - ``position_ned_m`` (n, 3), ``velocity_ned_m_s`` (n, 3), ``acceleration_ned_m_s2`` (n, 3)
+    - ``yaw_rad`` (n,), ``roll_rad`` (n,), ``pitch_rad`` (n,), ``yaw_rate_rad_s`` (n,)
+    - setpoints: ``control_mode`` (n,) int8, ``velocity_setpoint_ned_m_s`` (n, 3),
+      ``position_setpoint_ned_m`` (n, 3), ``velocity_feedforward_ned_m_s`` (n, 3),
+      ``acceleration_setpoint_ned_m_s2`` (n, 3), ``yaw_setpoint_rad`` (n,) NaN = keep,
+      ``yaw_rate_setpoint_rad_s`` (n,) NaN = none
+    - limits: ``max_horizontal_speed_m_s``, ``max_up_speed_m_s``, ``max_down_speed_m_s``,
+      ``cruise_speed_m_s`` (position mode horizontal speed), ``max_horizontal_accel_m_s2``,
+      ``max_up_accel_m_s2``, ``max_down_accel_m_s2``, ``max_yaw_rate_rad_s`` (all (n,))
+    """
+
+    def __init__(
+        self,
+        initial_position_ned_m: npt.ArrayLike,
+        initial_yaw_rad: npt.ArrayLike | None = None,
+        *,
+        time_constant_s: float = 0.15,
+        position_gain_1_s: float = 1.0,
+        wind: Wind | None = None,
+        wind_rejection_time_s: float = 1.5,
+        drag_1_s: float = 0.3,
+    ) -> None:
+        pos = np.array(initial_position_ned_m, dtype=float)
+        if pos.ndim != 2 or pos.shape[1] != 3:
+            raise ValueError(f"initial positions must have shape (n, 3), got {pos.shape}")
+        n = pos.shape[0]
+        self.n = n
+        self.position_ned_m: FloatArray = pos
+        self.velocity_ned_m_s: FloatArray = np.zeros((n, 3))
+        self.acceleration_ned_m_s2: FloatArray = np.zeros((n, 3))
+        yaw = np.zeros(n) if initial_yaw_rad is None else np.array(initial_yaw_rad, dtype=float)
+        self.yaw_rad: FloatArray = yaw.reshape(n)
+        self.roll_rad: FloatArray = np.zeros(n)
+        self.pitch_rad: FloatArray = np.zeros(n)
+        self.yaw_rate_rad_s: FloatArray = np.zeros(n)
+
+        self.control_mode = np.full(n, MOTORS_OFF, dtype=np.int8)
+        self.velocity_setpoint_ned_m_s: FloatArray = np.zeros((n, 3))
+        self.position_setpoint_ned_m: FloatArray = pos.copy()
+        self.velocity_feedforward_ned_m_s: FloatArray = np.zeros((n, 3))
+        self.acceleration_setpoint_ned_m_s2: FloatArray = np.zeros((n, 3))
+        self.yaw_setpoint_rad: FloatArray = np.full(n, np.nan)
+        self.yaw_rate_setpoint_rad_s: FloatArray = np.full(n, np.nan)
+
+        self.max_horizontal_speed_m_s: FloatArray = np.full(n, 12.0)
+        self.max_up_speed_m_s: FloatArray = np.full(n, 3.0)
+        self.max_down_speed_m_s: FloatArray = np.full(n, 1.5)
+        self.cruise_speed_m_s: FloatArray = np.full(n, 5.0)
+        self.max_horizontal_accel_m_s2: FloatArray = np.full(n, 3.0)
+        self.max_up_accel_m_s2: FloatArray = np.full(n, 4.0)
+        self.max_down_accel_m_s2: FloatArray = np.full(n, 3.0)
+        self.max_yaw_rate_rad_s: FloatArray = np.full(n, np.deg2rad(45.0))
+
+        self.time_constant_s = float(time_constant_s)
+        self.position_gain_1_s = float(position_gain_1_s)
+        self.wind = wind
+        self.wind_rejection_time_s = float(wind_rejection_time_s)
+        self.drag_1_s = float(drag_1_s)
+        self.wind_learnt_ned_m_s: FloatArray = np.zeros((n, 3))
+        if wind is not None:
+            self.wind_learnt_ned_m_s[:] = wind.velocity_ned_m_s
+
+    # ------------------------------------------------------------------ queries
+    def on_ground(self) -> npt.NDArray[np.bool_]:
+        """(n,) bool: touching the ground (down >= -1 cm)."""
+        return self.position_ned_m[:, 2] >= -0.01
+
+    # --------------------------------------------------------------------- step
+    def step(self, dt: float) -> None:
+        """Advance every vehicle by ``dt`` seconds."""
+        if dt <= 0:
+            raise ValueError(f"dt must be > 0, got {dt!r}")
+        mode = self.control_mode
+        pos = self.position_ned_m
+        vel = self.velocity_ned_m_s
+
+        # 1. Velocity command per control mode.
+        v_cmd = np.where((mode == VELOCITY)[:, None], self.velocity_setpoint_ned_m_s, vel)
+        positional = mode == POSITION
+        if positional.any():
+            v_cmd[positional] = self._position_controller(positional)
+        v_cmd = self._limit_velocity(v_cmd)
+
+        # 2. Acceleration: first-order lag towards the command, then the limits.
+        accel = (v_cmd - vel) / max(self.time_constant_s, dt)
+        accelerating = mode == ACCELERATION
+        if accelerating.any():
+            accel[accelerating] = self.acceleration_setpoint_ned_m_s2[accelerating]
+        accel = self._limit_acceleration(accel)
+        off = mode == MOTORS_OFF
+        if off.any():
+            accel[off] = (0.0, 0.0, GRAVITY_M_S2)
+
+        # 3. Wind pushes flying vehicles by the part the controller has not learnt yet.
+        wind = self.wind
+        if wind is not None and wind.active:
+            wind.step(dt)
+            learn = dt / (self.wind_rejection_time_s + dt)
+            self.wind_learnt_ned_m_s += learn * (wind.velocity_ned_m_s - self.wind_learnt_ned_m_s)
+            push = self.drag_1_s * (wind.velocity_ned_m_s - self.wind_learnt_ned_m_s)
+            push[:, 2] = 0.0
+            airborne = ~self.on_ground()
+            accel[airborne] += push[airborne]
+
+        # 4. Integrate (semi-implicit Euler) and keep everything above the ground.
+        vel += accel * dt
+        pos += vel * dt
+        grounded = pos[:, 2] >= 0.0
+        if grounded.any():
+            pos[grounded, 2] = 0.0
+            vel[grounded, 2] = np.minimum(vel[grounded, 2], 0.0)
+            # Skids do not slide: on the ground only a climb command frees the vehicle.
+            stuck = grounded & ~((mode != MOTORS_OFF) & (v_cmd[:, 2] < -0.05))
+            stuck |= grounded & (mode == ACCELERATION) & (accel[:, 2] >= 0.0)
+            vel[stuck] = 0.0
+            accel[stuck] = 0.0
+        self.acceleration_ned_m_s2 = accel
+
+        self._attitude(accel, dt)
+
+    # ---------------------------------------------------------------- internals
+    def _position_controller(self, mask: npt.NDArray[np.bool_]) -> FloatArray:
+        error = self.position_setpoint_ned_m[mask] - self.position_ned_m[mask]
+        gain = self.position_gain_1_s
+        # Horizontal: P command, capped by cruise speed and by the speed from which the vehicle
+        # can still brake to a stop at the target.
+        err_xy = error[:, :2]
+        dist_xy = np.hypot(err_xy[:, 0], err_xy[:, 1])
+        brake_xy = np.sqrt(2.0 * self.max_horizontal_accel_m_s2[mask] * dist_xy)
+        speed_xy = np.minimum(gain * dist_xy, np.minimum(self.cruise_speed_m_s[mask], brake_xy))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(dist_xy > 1e-9, speed_xy / dist_xy, 0.0)
+        v = np.empty_like(error)
+        v[:, :2] = err_xy * scale[:, None]
+        # Vertical: down positive; climb limited by up speed, descent by down speed.
+        err_z = error[:, 2]
+        brake_up = np.sqrt(2.0 * self.max_down_accel_m_s2[mask] * np.abs(err_z))
+        brake_down = np.sqrt(2.0 * self.max_up_accel_m_s2[mask] * np.abs(err_z))
+        vz = gain * err_z
+        vz = np.where(err_z < 0, -np.minimum(-vz, brake_up), np.minimum(vz, brake_down))
+        v[:, 2] = vz
+        return v + self.velocity_feedforward_ned_m_s[mask]
+
+    def _limit_velocity(self, v: FloatArray) -> FloatArray:
+        speed_xy = np.hypot(v[:, 0], v[:, 1])
+        limit = self.max_horizontal_speed_m_s
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(speed_xy > limit, limit / speed_xy, 1.0)
+        v[:, 0] *= scale
+        v[:, 1] *= scale
+        np.clip(v[:, 2], -self.max_up_speed_m_s, self.max_down_speed_m_s, out=v[:, 2])
+        return v
+
+    def _limit_acceleration(self, a: FloatArray) -> FloatArray:
+        acc_xy = np.hypot(a[:, 0], a[:, 1])
+        limit = self.max_horizontal_accel_m_s2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(acc_xy > limit, limit / acc_xy, 1.0)
+        a[:, 0] *= scale
+        a[:, 1] *= scale
+        np.clip(a[:, 2], -self.max_up_accel_m_s2, self.max_down_accel_m_s2, out=a[:, 2])
+        return a
+
+    def _attitude(self, accel: FloatArray, dt: float) -> None:
+        yaw = self.yaw_rad
+        rate_cmd = self.yaw_rate_setpoint_rad_s
+        has_rate = np.isfinite(rate_cmd)
+        yaw_sp = self.yaw_setpoint_rad
+        error = _wrap(np.where(np.isfinite(yaw_sp), yaw_sp, yaw) - yaw)
+        # Turn towards the yaw setpoint: P-gain 2/s, capped at the yaw rate limit.
+        rate = np.where(has_rate, rate_cmd, 2.0 * error)
+        max_rate = self.max_yaw_rate_rad_s
+        rate = np.clip(rate, -max_rate, max_rate)
+        # Do not overshoot the yaw setpoint within one step.
+        rate = np.where(~has_rate & (np.abs(rate * dt) > np.abs(error)), error / dt, rate)
+        flying = self.control_mode != MOTORS_OFF
+        rate = np.where(flying & ~self.on_ground(), rate, 0.0)
+        self.yaw_rate_rad_s = rate
+        self.yaw_rad = _wrap(yaw + rate * dt)
+        cos_y = np.cos(self.yaw_rad)
+        sin_y = np.sin(self.yaw_rad)
+        forward = accel[:, 0] * cos_y + accel[:, 1] * sin_y
+        right = -accel[:, 0] * sin_y + accel[:, 1] * cos_y
+        self.pitch_rad = np.where(flying, -np.arctan2(forward, GRAVITY_M_S2), 0.0)
+        self.roll_rad = np.where(flying, np.arctan2(right, GRAVITY_M_S2), 0.0)
+
+
+def _wrap(angle_rad: FloatArray) -> FloatArray:
+    """Wrap to [-pi, pi)."""
+    return (angle_rad + np.pi) % (2.0 * np.pi) - np.pi
