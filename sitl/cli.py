@@ -1,0 +1,178 @@
+"""Command line: ``sitl --vehicles N`` runs N emulated PX4 vehicles until Ctrl-C/SIGTERM.
+
+Examples::
+
+    sitl --vehicles 4                         # PX4 SITL ports: MAVSDK udpin://0.0.0.0:14540..14543
+    sitl --vehicles 10 --speed 5 --tlog-dir runs/tlogs
+    sitl --config emulator.yaml --api-port-base 24540   # beside a real PX4 SITL
+
+``--config`` takes a YAML file holding :class:`sitl.config.EmulatorConfig` fields, or a scenario
+file with an ``emulator:`` section; command line options override it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import ValidationError
+
+from sitl.config import EmulatorConfig
+from sitl.emulator import Emulator
+from sitl.errors import SitlError
+
+logger = logging.getLogger("sitl")
+
+#: api_local_base - api_remote_base in PX4 SITL (14580 - 14540).
+_API_LOCAL_OFFSET = 40
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="sitl",
+        description="Run N lightweight PX4-like vehicles that MAVSDK, QGroundControl and "
+        "MAVProxy talk to as to PX4 SITL.",
+    )
+    parser.add_argument("--vehicles", "-n", type=int, help="number of vehicles (default 1)")
+    parser.add_argument("--speed", type=float, help="simulated seconds per wall second")
+    parser.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="lockstep clock: run as fast as possible (no participants from the command line)",
+    )
+    parser.add_argument(
+        "--api-port-base",
+        type=int,
+        help="client port of vehicle 0's API link (MAVSDK listens on base+i; default 14540); "
+        "the vehicles bind base+40+i unless --api-local-port-base is given",
+    )
+    parser.add_argument(
+        "--api-local-port-base", type=int, help="vehicle 0's API bind port (default 14580)"
+    )
+    parser.add_argument(
+        "--gcs-port-base", type=int, help="vehicle 0's GCS-link bind port (default 18570)"
+    )
+    parser.add_argument(
+        "--gcs-remote-port", type=int, help="port the GCS links send to (default 14550)"
+    )
+    parser.add_argument("--no-gcs", action="store_true", help="do not open the GCS links")
+    parser.add_argument(
+        "--px4-compat-ports",
+        action="store_true",
+        help="like PX4 SITL, vehicles with index > 9 all send to api-port-base + 9",
+    )
+    parser.add_argument("--config", type=Path, help="emulator settings (YAML)")
+    parser.add_argument("--tlog-dir", type=Path, help="record vehicle_<sysid>.tlog files here")
+    parser.add_argument("--seed", type=int, help="random seed (wind, odometry noise)")
+    parser.add_argument(
+        "--log-level",
+        default="INFO",
+        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+        help="logging level (default INFO)",
+    )
+    return parser
+
+
+def load_config(args: argparse.Namespace) -> EmulatorConfig:
+    """The configuration from ``--config`` plus command line overrides (ValidationError if bad)."""
+    data: dict[str, Any] = {}
+    if args.config is not None:
+        loaded = yaml.safe_load(args.config.read_text()) or {}
+        if not isinstance(loaded, dict):
+            raise ValueError(f"{args.config}: expected a mapping at the top level")
+        data = loaded.get("emulator", loaded) if "emulator" in loaded else loaded
+        data = dict(data)
+    if args.vehicles is not None:
+        data["vehicles"] = args.vehicles
+    if args.seed is not None:
+        data["seed"] = args.seed
+    if args.tlog_dir is not None:
+        data["tlog_dir"] = str(args.tlog_dir)
+    clock = dict(data.get("clock") or {})
+    if args.speed is not None:
+        clock["speed"] = args.speed
+    if args.lockstep:
+        clock["mode"] = "lockstep"
+    data["clock"] = clock
+    ports = dict(data.get("ports") or {})
+    if args.api_port_base is not None:
+        ports["api_remote_base"] = args.api_port_base
+        ports.setdefault("api_local_base", args.api_port_base + _API_LOCAL_OFFSET)
+    if args.api_local_port_base is not None:
+        ports["api_local_base"] = args.api_local_port_base
+    if args.gcs_port_base is not None:
+        ports["gcs_local_base"] = args.gcs_port_base
+    if args.gcs_remote_port is not None:
+        ports["gcs_remote_port"] = args.gcs_remote_port
+    if args.no_gcs:
+        ports["gcs_enabled"] = False
+    if args.px4_compat_ports:
+        ports["px4_compat_ports"] = True
+    data["ports"] = ports
+    return EmulatorConfig.model_validate(data)
+
+
+async def run(config: EmulatorConfig) -> None:
+    """Run the emulator until SIGINT or SIGTERM."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError):
+            loop.add_signal_handler(sig, stop.set)
+    async with Emulator(config) as emulator:
+        print(
+            f"sitl: {config.vehicles} vehicle(s) ready, clock {config.clock.mode} "
+            f"x{config.clock.speed:g}"
+        )
+        for ep in emulator.endpoints:
+            gcs = (
+                f", GCS link :{ep.gcs_local_port} -> :{ep.gcs_remote_port}"
+                if ep.gcs_local_port
+                else ""
+            )
+            print(f"  sysid {ep.sysid}: MAVSDK {ep.mavsdk_url} (vehicle :{ep.api_local_port}){gcs}")
+        if config.tlog_dir is not None:
+            print(f"  recording tlogs in {config.tlog_dir}")
+        sys.stdout.flush()
+        await stop.wait()
+        print("sitl: stopping")
+    stats = emulator.stats()
+    print(
+        f"sitl: stopped after {stats.sim_time_s:.1f} s simulated in {stats.wall_time_s:.1f} s; "
+        f"{stats.rx_packets} packets in, {stats.tx_packets} out"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=getattr(logging, args.log_level),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        config = load_config(args)
+    except ValidationError as exc:
+        print(f"sitl: invalid settings:\n{exc}", file=sys.stderr)
+        return 2
+    except (OSError, ValueError, yaml.YAMLError) as exc:
+        print(f"sitl: cannot read settings: {exc}", file=sys.stderr)
+        return 2
+    try:
+        asyncio.run(run(config))
+    except SitlError as exc:
+        print(f"sitl: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        pass
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
