@@ -1,0 +1,130 @@
+"""Vehicle-to-vehicle message bus: one interface, an in-process and an MQTT implementation.
+
+Each vehicle controller publishes its per-step message and subscribes to its neighbours'
+through a ``Bus``; sensor drivers publish ranges and target observations; a ground station
+publishes mission commands. ``open_bus(settings)`` builds the bus the scenario asks for::
+
+    async with open_bus(settings.bus, client_id="vehicle-2") as bus:
+        ...
+
+Modules: ``topics`` (layout and MQTT matching), ``messages`` (payloads), ``base`` (the
+interface and subscriptions), ``inprocess`` and ``mqtt`` (implementations), ``staleness``
+(silence watchdog), ``clock`` (real and manual clocks), ``settings`` (typed config),
+``errors`` (exception tree).
+"""
+
+from __future__ import annotations
+
+import random
+
+from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
+from mission_runner.bus.clock import Clock, ManualClock, MonotonicClock
+from mission_runner.bus.errors import (
+    BusConnectionError,
+    BusError,
+    BusTimeoutError,
+    MessageDecodeError,
+    MessageValueError,
+    TopicError,
+)
+from mission_runner.bus.inprocess import InProcessBus, LinkModel
+from mission_runner.bus.messages import (
+    MESSAGE_TYPES,
+    ControlCommand,
+    Message,
+    MissionControl,
+    RangeMessage,
+    StepMessage,
+    TargetObservation,
+    VehicleStatus,
+)
+from mission_runner.bus.mqtt import Backoff, LastWill, MqttBus, lost_vehicle_will
+from mission_runner.bus.settings import BusSettings, LinkSettings, MqttSettings, TlsSettings
+from mission_runner.bus.staleness import SilenceWatchdog
+from mission_runner.bus.topics import (
+    ParsedTopic,
+    TopicKind,
+    Topics,
+    topic_matches,
+    validate_pattern,
+    validate_topic,
+)
+
+__all__ = [
+    "DEFAULT_QUEUE_SIZE",
+    "MESSAGE_TYPES",
+    "Backoff",
+    "Bus",
+    "BusConnectionError",
+    "BusError",
+    "BusSettings",
+    "BusTimeoutError",
+    "Clock",
+    "ControlCommand",
+    "InProcessBus",
+    "LastWill",
+    "LinkModel",
+    "LinkSettings",
+    "ManualClock",
+    "Message",
+    "MessageDecodeError",
+    "MessageValueError",
+    "MissionControl",
+    "MonotonicClock",
+    "MqttBus",
+    "MqttSettings",
+    "ParsedTopic",
+    "RangeMessage",
+    "SilenceWatchdog",
+    "StepMessage",
+    "Subscription",
+    "TargetObservation",
+    "TlsSettings",
+    "TopicError",
+    "TopicKind",
+    "Topics",
+    "VehicleStatus",
+    "lost_vehicle_will",
+    "open_bus",
+    "topic_matches",
+    "validate_pattern",
+    "validate_topic",
+]
+
+
+def open_bus(
+    settings: BusSettings,
+    *,
+    client_id: str | None = None,
+    will: LastWill | None = None,
+    clock: Clock | None = None,
+    rng: random.Random | None = None,
+) -> Bus:
+    """The bus ``settings`` describe, not yet entered: use it as ``async with``.
+
+    ``client_id`` overrides ``settings.mqtt.client_id`` (give each vehicle its own);
+    ``will`` is the MQTT last will (see ``lost_vehicle_will``). ``clock`` and ``rng`` are
+    for tests. The in-process bus ignores ``client_id``, ``will`` and ``rng``.
+    """
+    if settings.kind == "inprocess":
+        link = settings.link.link_model() if settings.link is not None else None
+        return InProcessBus(link=link, clock=clock, queue_size=settings.queue_size)
+    mqtt = settings.mqtt
+    return MqttBus(
+        mqtt.host,
+        mqtt.port,
+        client_id=client_id or mqtt.client_id,
+        username=mqtt.username,
+        password=mqtt.password.get_secret_value() if mqtt.password is not None else None,
+        tls=mqtt.tls,
+        keepalive_s=mqtt.keepalive_s,
+        connect_timeout_s=mqtt.connect_timeout_s,
+        subscribe_timeout_s=mqtt.subscribe_timeout_s,
+        reconnect_initial_s=mqtt.reconnect_initial_s,
+        reconnect_max_s=mqtt.reconnect_max_s,
+        qos=mqtt.qos,
+        will=will,
+        queue_size=settings.queue_size,
+        clock=clock,
+        rng=rng,
+    )

@@ -53,6 +53,7 @@ class BusConnectionError(BusError):
     def __init__(self, endpoint: str, reason: str, hint: str = "") -> None:
         self.endpoint = endpoint
         self.reason = reason
+        self.hint = hint
         message = f"bus {endpoint}: {reason}"
         if hint:
             message += f"; {hint}"
