@@ -22,7 +22,7 @@ import ssl
 from pathlib import Path
 from typing import Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 
 from mission_runner.bus.base import DEFAULT_QUEUE_SIZE
 from mission_runner.bus.inprocess import LinkModel
@@ -251,11 +251,12 @@ class BusSettings(BaseModel):
         "network. Used when kind is 'inprocess'.",
     )
 
-    @model_validator(mode="after")
-    def _prefix_is_valid(self) -> Self:
-        if self.topic_prefix is not None:
-            Topics(self.topic_prefix)  # TopicError is a ValueError: pydantic reports it
-        return self
+    @field_validator("topic_prefix")
+    @classmethod
+    def _prefix_is_valid(cls, prefix: str | None) -> str | None:
+        if prefix is not None:
+            Topics(prefix)  # TopicError is a ValueError: pydantic reports it at the field
+        return prefix
 
     def topics(self, mission_id: str) -> Topics:
         """The mission's topics: under ``topic_prefix``, or ``enclosing/<mission_id>``."""

@@ -1,0 +1,154 @@
+"""Bus settings, the open_bus factory and the reconnect backoff (no broker needed)."""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+import yaml
+from pydantic import BaseModel, ValidationError
+
+from mission_runner.bus import (
+    Backoff,
+    BusSettings,
+    InProcessBus,
+    LinkModel,
+    LinkSettings,
+    MqttBus,
+    MqttSettings,
+    TlsSettings,
+    open_bus,
+)
+
+MODELS: list[type[BaseModel]] = [BusSettings, MqttSettings, TlsSettings, LinkSettings]
+
+
+@pytest.mark.parametrize("model", MODELS, ids=lambda model: model.__name__)
+def test_every_field_has_a_title_and_a_description(model: type[BaseModel]) -> None:
+    for name, field in model.model_fields.items():
+        assert field.title, f"{model.__name__}.{name} has no title"
+        assert field.description, f"{model.__name__}.{name} has no description"
+
+
+def test_defaults_are_an_in_process_bus_under_the_mission_prefix() -> None:
+    settings = BusSettings()
+    assert settings.kind == "inprocess"
+    assert settings.topics("demo").prefix == "enclosing/demo"
+    assert isinstance(open_bus(settings), InProcessBus)
+
+
+def test_a_scenario_yaml_section_validates() -> None:
+    section = yaml.safe_load(
+        """
+        kind: mqtt
+        topic_prefix: field/test-3
+        mqtt:
+          host: 192.168.1.10
+          port: 8883
+          username: vehicle
+          password: change-me
+          qos: 1
+          tls:
+            ca_file: /etc/mission_runner/ca.crt
+        """
+    )
+    settings = BusSettings.model_validate(section)
+    assert settings.topics("ignored").prefix == "field/test-3"
+    assert settings.mqtt.tls is not None
+    assert str(settings.mqtt.tls.ca_file) == "/etc/mission_runner/ca.crt"
+    assert "change-me" not in repr(settings)  # secrets stay out of logs
+
+
+@pytest.mark.parametrize(
+    ("section", "location"),
+    [
+        ({"kind": "zeromq"}, ("kind",)),
+        ({"mqtt": {"port": 0}}, ("mqtt", "port")),
+        ({"mqtt": {"hots": "x"}}, ("mqtt", "hots")),
+        ({"mqtt": {"qos": 3}}, ("mqtt", "qos")),
+        ({"mqtt": {"reconnect_initial_s": 2.0, "reconnect_max_s": 1.0}}, ("mqtt",)),
+        ({"mqtt": {"password": "x"}}, ("mqtt",)),
+        ({"mqtt": {"tls": {"key_file": "k.pem"}}}, ("mqtt", "tls")),
+        ({"topic_prefix": "a/+/b"}, ("topic_prefix",)),
+        ({"link": {"loss_probability": 1.5}}, ("link", "loss_probability")),
+        ({"queue_size": 0}, ("queue_size",)),
+        ({"unknown": 1}, ("unknown",)),
+    ],
+)
+def test_invalid_settings_name_the_offending_path(
+    section: dict[str, object], location: tuple[str, ...]
+) -> None:
+    with pytest.raises(ValidationError) as raised:
+        BusSettings.model_validate(section)
+    assert raised.value.errors()[0]["loc"] == location
+
+
+def test_open_bus_passes_mqtt_settings_through() -> None:
+    settings = BusSettings(
+        kind="mqtt",
+        queue_size=32,
+        mqtt=MqttSettings(
+            host="broker.local",
+            port=1884,
+            client_id="from-config",
+            username="vehicle",
+            password="s3cret",
+            qos=1,
+            keepalive_s=7,
+        ),
+    )
+    bus = open_bus(settings)
+    assert isinstance(bus, MqttBus)
+    assert (bus.endpoint, bus.client_id, bus.qos, bus.keepalive_s, bus.queue_size) == (
+        "broker.local:1884",
+        "from-config",
+        1,
+        7,
+        32,
+    )
+    assert open_bus(settings, client_id="vehicle-4").client_id == "vehicle-4"  # type: ignore[attr-defined]
+
+
+def test_generated_client_ids_differ() -> None:
+    settings = BusSettings(kind="mqtt")
+    first, second = open_bus(settings), open_bus(settings)
+    assert isinstance(first, MqttBus) and isinstance(second, MqttBus)
+    assert first.client_id != second.client_id
+
+
+def test_open_bus_builds_the_link_model_for_the_in_process_bus() -> None:
+    settings = BusSettings(link=LinkSettings(latency_s=0.05, loss_probability=0.1, seed=4))
+    bus = open_bus(settings)
+    assert isinstance(bus, InProcessBus)
+    assert bus.link == LinkModel(latency_s=0.05, loss_probability=0.1, seed=4)
+
+
+class TestBackoff:
+    def test_doubles_up_to_the_cap_with_jitter_in_the_upper_half(self) -> None:
+        backoff = Backoff(0.1, 1.0, random.Random(1))
+        ceilings = [0.1, 0.2, 0.4, 0.8, 1.0, 1.0, 1.0]
+        for ceiling in ceilings:
+            delay = backoff.next_delay_s()
+            assert 0.5 * ceiling <= delay <= ceiling
+        assert backoff.attempts == len(ceilings)
+
+    def test_reset_starts_over(self) -> None:
+        backoff = Backoff(0.1, 10.0, random.Random(1))
+        for _ in range(5):
+            backoff.next_delay_s()
+        backoff.reset()
+        assert backoff.next_delay_s() <= 0.1
+
+    def test_jitter_spreads_vehicles_that_lost_the_broker_together(self) -> None:
+        delays = {Backoff(1.0, 1.0, random.Random(seed)).next_delay_s() for seed in range(8)}
+        assert len(delays) == 8
+
+    def test_many_attempts_do_not_overflow(self) -> None:
+        backoff = Backoff(0.1, 5.0, random.Random(1))
+        for _ in range(10_000):
+            assert backoff.next_delay_s() <= 5.0
+
+    @pytest.mark.parametrize(("initial_s", "max_s"), [(0.0, 1.0), (2.0, 1.0), (-1.0, 1.0)])
+    def test_bounds_are_checked(self, initial_s: float, max_s: float) -> None:
+        with pytest.raises(ValueError, match="initial_s"):
+            Backoff(initial_s, max_s, random.Random())
