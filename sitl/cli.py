@@ -30,9 +30,6 @@ from sitl.errors import SitlError
 
 logger = logging.getLogger("sitl")
 
-#: api_local_base - api_remote_base in PX4 SITL (14580 - 14540).
-_API_LOCAL_OFFSET = 40
-
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -50,8 +47,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--api-port-base",
         type=int,
-        help="client port of vehicle 0's API link (MAVSDK listens on base+i; default 14540); "
-        "the vehicles bind base+40+i unless --api-local-port-base is given",
+        help="client port of vehicle 0's API link (MAVSDK listens on base+i, skipping the GCS "
+        "port; default 14540); the vehicles bind base+40+i (or the ports right after the "
+        "client ports for more than 39 vehicles) unless --api-local-port-base is given",
     )
     parser.add_argument(
         "--api-local-port-base", type=int, help="vehicle 0's API bind port (default 14580)"
@@ -104,7 +102,6 @@ def load_config(args: argparse.Namespace) -> EmulatorConfig:
     ports = dict(data.get("ports") or {})
     if args.api_port_base is not None:
         ports["api_remote_base"] = args.api_port_base
-        ports.setdefault("api_local_base", args.api_port_base + _API_LOCAL_OFFSET)
     if args.api_local_port_base is not None:
         ports["api_local_base"] = args.api_local_port_base
     if args.gcs_port_base is not None:

@@ -28,8 +28,14 @@ class _Model(BaseModel):
 
 
 class PortsConfig(_Model):
-    """UDP port layout; defaults follow PX4 SITL (instance i: API 14580+i -> 14540+i, GCS
-    18570+i -> 14550)."""
+    """UDP port layout. For up to 10 vehicles the defaults are PX4 SITL's (instance i: API link
+    binds 14580+i and sends to 14540+i, GCS link binds 18570+i and sends to 14550).
+
+    Beyond 10 vehicles PX4 sends every API link to 14549; here (unless ``px4_compat_ports``)
+    every vehicle keeps its own client port, counting up from 14540 and skipping the GCS port:
+    vehicle 10 uses 14551, vehicle 49 uses 14590. The vehicles' own API ports then move past
+    the client ports if 14580+i would collide with them.
+    """
 
     bind_host: str = Field(
         "0.0.0.0",
@@ -42,20 +48,23 @@ class PortsConfig(_Model):
         description="Address telemetry goes to until a client has sent a valid MAVLink packet; "
         "after that the vehicle answers the first client it heard from, like PX4.",
     )
-    api_local_base: int = Field(
-        14580,
+    api_local_base: int | None = Field(
+        None,
         ge=1,
         le=65535,
         title="API link local port base",
-        description="Vehicle i binds api_local_base + i for its API/offboard link (PX4: 14580).",
+        description="Vehicle i binds api_local_base + i for its API/offboard link. None: "
+        "api_remote_base + 40 (PX4: 14580), or the first port after the client ports if "
+        "that would overlap them (more than 39 vehicles).",
     )
     api_remote_base: int = Field(
         14540,
         ge=1,
         le=65535,
         title="API link client port base",
-        description="Vehicle i sends API telemetry to api_remote_base + i; a MAVSDK client "
-        "listens there with udpin://0.0.0.0:<port> (PX4: 14540).",
+        description="Vehicle i sends API telemetry to api_remote_base + i (skipping "
+        "gcs_remote_port); a MAVSDK client listens there with udpin://0.0.0.0:<port> "
+        "(PX4: 14540).",
     )
     px4_compat_ports: bool = Field(
         False,
@@ -86,11 +95,26 @@ class PortsConfig(_Model):
 
     def api_remote_port(self, index: int) -> int:
         """Client port of vehicle ``index``'s API link."""
-        offset = min(index, 9) if self.px4_compat_ports else index
-        return self.api_remote_base + offset
+        if self.px4_compat_ports:
+            return self.api_remote_base + min(index, 9)
+        port = self.api_remote_base + index
+        # A GCS listens on gcs_remote_port: an API client cannot share it.
+        if self.api_remote_base <= self.gcs_remote_port <= port:
+            port += 1
+        return port
 
-    def api_local_port(self, index: int) -> int:
-        return self.api_local_base + index
+    def resolved_api_local_base(self, vehicles: int) -> int:
+        """First API bind port for ``vehicles`` vehicles (see ``api_local_base``)."""
+        if self.api_local_base is not None:
+            return self.api_local_base
+        base = self.api_remote_base + 40
+        last_client = self.api_remote_port(vehicles - 1)
+        if base <= last_client and self.api_remote_base < base + vehicles:
+            base = last_client + 1
+        return base
+
+    def api_local_port(self, index: int, vehicles: int) -> int:
+        return self.resolved_api_local_base(vehicles) + index
 
     def gcs_local_port(self, index: int) -> int:
         return self.gcs_local_base + index
@@ -458,16 +482,22 @@ class EmulatorConfig(_Model):
                     f"fault on vehicle_index {fault.vehicle_index} but only {n} vehicle(s) exist"
                 )
         ports = self.ports
+        local = ports.resolved_api_local_base(n)
         ranges = {
-            "ports.api_local_base": (ports.api_local_base, ports.api_local_base + n - 1),
+            "ports.api_local_base": (local, local + n - 1),
             "ports.api_remote_base": (ports.api_remote_base, ports.api_remote_port(n - 1)),
         }
         if ports.gcs_enabled:
             ranges["ports.gcs_local_base"] = (ports.gcs_local_base, ports.gcs_local_base + n - 1)
-            ranges["ports.gcs_remote_port"] = (ports.gcs_remote_port, ports.gcs_remote_port)
         for name, (lo, hi) in ranges.items():
             if hi > 65535:
                 raise ValueError(f"{name}: ports {lo}..{hi} for {n} vehicles exceed 65535")
+        if ports.gcs_enabled:
+            gcs = ports.gcs_remote_port
+            for name in ("ports.api_local_base", "ports.gcs_local_base"):
+                lo, hi = ranges[name]
+                if lo <= gcs <= hi:
+                    raise ValueError(f"{name} ({lo}..{hi}) contains ports.gcs_remote_port {gcs}")
         names = list(ranges)
         for i, a in enumerate(names):
             for b in names[i + 1 :]:

@@ -363,7 +363,7 @@ class Emulator:
             specs = [
                 (
                     "api",
-                    ports.api_local_port(i),
+                    ports.api_local_port(i, config.vehicles),
                     (ports.remote_host, ports.api_remote_port(i)),
                     config.telemetry.api,
                     "ports.api_local_base (--api-local-port-base)",
@@ -537,7 +537,7 @@ class Emulator:
             VehicleEndpoints(
                 i,
                 i + 1,
-                ports.api_local_port(i),
+                ports.api_local_port(i, self.config.vehicles),
                 ports.api_remote_port(i),
                 ports.gcs_local_port(i) if gcs else None,
                 ports.gcs_remote_port if gcs else None,

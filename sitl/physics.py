@@ -188,18 +188,22 @@ class MulticopterPhysics:
             airborne = ~self.on_ground()
             accel[airborne] += push[airborne]
 
-        # 4. Integrate (semi-implicit Euler) and keep everything above the ground.
+        # 4. Skids do not slide: a vehicle resting on the ground stays put unless told to climb.
+        resting = pos[:, 2] >= 0.0
+        if resting.any():
+            climbing = (mode != MOTORS_OFF) & (v_cmd[:, 2] < -0.05)
+            climbing |= (mode == ACCELERATION) & (accel[:, 2] < 0.0)
+            held = resting & ~climbing
+            vel[held] = 0.0
+            accel[held] = 0.0
+
+        # 5. Integrate (semi-implicit Euler) and keep everything above the ground.
         vel += accel * dt
         pos += vel * dt
         grounded = pos[:, 2] >= 0.0
         if grounded.any():
             pos[grounded, 2] = 0.0
             vel[grounded, 2] = np.minimum(vel[grounded, 2], 0.0)
-            # Skids do not slide: on the ground only a climb command frees the vehicle.
-            stuck = grounded & ~((mode != MOTORS_OFF) & (v_cmd[:, 2] < -0.05))
-            stuck |= grounded & (mode == ACCELERATION) & (accel[:, 2] >= 0.0)
-            vel[stuck] = 0.0
-            accel[stuck] = 0.0
         self.acceleration_ned_m_s2 = accel
 
         self._attitude(accel, dt)
