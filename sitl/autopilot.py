@@ -102,6 +102,7 @@ _MAX_ACCEL_M_S2 = 100.0
 _HOVER_THRUST = 0.5
 
 _LANDED_AFTER_S = 0.5
+_TAKEOFF_HEIGHT_M = 0.1
 _RTL_ARRIVED_M = 1.0
 
 
@@ -1316,10 +1317,15 @@ class Px4Autopilot:
         if on_ground:
             if self._ground_since_s is None:
                 self._ground_since_s = now_s
-            landed = now_s - self._ground_since_s >= _LANDED_AFTER_S or not self.armed
         else:
             self._ground_since_s = None
-            landed = False
+        if self.landed:
+            # Hysteresis: airborne only once clearly off the ground.
+            landed = pos[2] > -_TAKEOFF_HEIGHT_M or not self.armed
+        else:
+            landed = not self.armed and on_ground
+            if self._ground_since_s is not None:
+                landed = landed or now_s - self._ground_since_s >= _LANDED_AFTER_S
         if landed != self.landed:
             self.landed = landed
             if landed:

@@ -1,0 +1,68 @@
+"""Telemetry schedule per link and message contents."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from sitl.config import StreamRates
+from sitl.telemetry import StreamScheduler, euler_to_quaternion, quaternion_to_euler
+from tests.sitl.helpers import Bench
+
+
+def test_streams_fire_at_their_rates() -> None:
+    scheduler = StreamScheduler(StreamRates())
+    counts: dict[int, int] = {}
+    for step in range(500):  # 10 s at 50 Hz
+        for msg_id in scheduler.due(step * 0.02):
+            counts[msg_id] = counts.get(msg_id, 0) + 1
+    assert counts[0] == 10  # HEARTBEAT 1 Hz
+    assert counts[33] == 100  # GLOBAL_POSITION_INT 10 Hz
+    assert counts[245] == 50  # EXTENDED_SYS_STATE 5 Hz
+
+
+def test_a_pause_does_not_cause_a_burst() -> None:
+    scheduler = StreamScheduler(StreamRates())
+    scheduler.due(0.0)
+    assert scheduler.due(10.0).count(33) == 1
+    assert 33 not in scheduler.due(10.05)
+    assert 33 in scheduler.due(10.1)
+
+
+def test_interval_changes() -> None:
+    scheduler = StreamScheduler(StreamRates(attitude_hz=0))
+    assert scheduler.period_s(30) is None
+    assert scheduler.set_interval(30, 20_000, now_s=1.0)
+    assert 30 in scheduler.due(1.0)
+    assert not scheduler.set_interval(148, 1_000_000, now_s=1.0)  # AUTOPILOT_VERSION
+    assert not scheduler.set_interval(9999, 1_000_000, now_s=1.0)
+    assert scheduler.interval_us(30) == 20_000
+
+
+def test_health_bits_for_mavsdk() -> None:
+    bench = Bench(ready_after_s=1.0)
+    early = bench.ap.telemetry.sys_status(0.5)
+    assert not early.onboard_control_sensors_health & 0x10000000
+    late = bench.ap.telemetry.sys_status(1.0)
+    for bit in (0x1, 0x2, 0x4, 0x20, 0x10000000):  # gyro, accel, mag, GPS, pre-arm
+        assert late.onboard_control_sensors_present & bit
+        assert late.onboard_control_sensors_health & bit
+
+
+def test_global_position_comes_from_the_true_position_around_home() -> None:
+    bench = Bench(2)
+    msg = bench.autopilots[1].telemetry.global_position_int(0.0)
+    lat, lon = bench.projection.to_global(0.0, 5.0)
+    assert msg.lat == round(lat * 1e7) and msg.lon == round(lon * 1e7)
+    assert msg.alt == 488_000 and msg.relative_alt == 0
+    home = bench.autopilots[1].telemetry.home_position(0.0)
+    assert (home.latitude, home.longitude) == (msg.lat, msg.lon)
+    assert (home.x, home.y, home.z) == (0.0, 0.0, 0.0)  # home is the odometry origin
+
+
+@pytest.mark.parametrize("angles", [(0.1, -0.2, 2.5), (0.0, 0.0, -3.0), (-0.5, 0.4, 0.0)])
+def test_quaternion_roundtrip(angles: tuple[float, float, float]) -> None:
+    q = euler_to_quaternion(*angles)
+    assert math.fsum(v * v for v in q) == pytest.approx(1.0)
+    assert quaternion_to_euler(*q) == pytest.approx(angles)
