@@ -234,7 +234,7 @@ class Emulator:
             self._open_tlogs()
             await self._bind_all()
         except BaseException:
-            self._close_io()
+            await self._close_io()
             raise
         self.clock.start()
         self._wall_start_s = time.monotonic()
@@ -265,14 +265,17 @@ class Emulator:
             if task_group is not None:
                 await task_group.__aexit__(exc_type, exc, tb)
         finally:
-            self._close_io()
+            await self._close_io()
             logger.info("SITL stopped at %.2f s simulated", self.time_s)
 
-    def _close_io(self) -> None:
+    async def _close_io(self) -> None:
         for link in self._all_links:
             link.close()
         for tlog in self._tlogs:
             tlog.close()
+        # Transports close their sockets on the next loop iteration: let that happen so the
+        # ports are free when we return.
+        await asyncio.sleep(0)
 
     def _build_world(self) -> None:
         config = self.config
@@ -430,7 +433,10 @@ class Emulator:
         lockstep = clock.mode == "lockstep"
         while True:
             allowed = clock.allowed_time_s()
-            due = math.floor((allowed - self.time_s) / dt + 1e-9)
+            if allowed == math.inf:
+                due = _LOCKSTEP_BATCH_STEPS
+            else:
+                due = math.floor((allowed - self.time_s) / dt + 1e-9)
             if due <= 0:
                 await clock.wait_until_allowed_beyond(self.time_s + dt - 1e-9)
                 if lockstep:
