@@ -226,6 +226,7 @@ class MqttBus(Bus):
         self._closed = False
         self._task_group: asyncio.TaskGroup | None = None
         self._runner: asyncio.Task[None] | None = None
+        self._connected_since_s: float | None = None
 
     def __repr__(self) -> str:
         state = "connected" if self._connected else "disconnected"
@@ -379,6 +380,7 @@ class MqttBus(Bus):
 
     async def _keep_connected(self) -> None:
         while True:
+            self._connected_since_s = None
             try:
                 await self._session(self._new_client())
                 reason = "the broker closed the connection"
@@ -398,6 +400,14 @@ class MqttBus(Bus):
                     return
             self.last_error = reason
             self.failed_attempts += 1
+            if (
+                self._connected_since_s is not None
+                and self.clock.now() - self._connected_since_s >= self._backoff.max_s
+            ):
+                # Only a connection that held for a while resets the backoff: a broker that
+                # accepts and drops at once (e.g. another client took over this client id)
+                # must not be hammered every reconnect_initial_s.
+                self._backoff.reset()
             delay_s = self._backoff.next_delay_s()
             logger.warning(
                 "MQTT broker %s unavailable (%s); reconnecting in %.2f s (attempt %d)",
@@ -458,7 +468,7 @@ class MqttBus(Bus):
                         pattern,
                     )
         self.connect_count += 1
-        self._backoff.reset()
+        self._connected_since_s = self.clock.now()
         self._connected = True
         await self._notify()
         logger.info(
