@@ -198,11 +198,13 @@ async def test_duplicate_client_ids_back_off_instead_of_hammering_the_broker(
     # Two buses with one client id make the broker drop whichever connected first, over
     # and over. Connections that drop at once must not reset the backoff.
     options = {"reconnect_initial_s": 0.01, "reconnect_max_s": 0.5}
-    async with make_bus(mosquitto, "twin", **options) as first:
-        async with make_bus(mosquitto, "twin", **options) as second:
-            # An observation window, not synchronisation: count reconnects over 1 s.
-            await asyncio.sleep(1.0)
-            reconnects = first.connect_count + second.connect_count
+    async with (
+        make_bus(mosquitto, "twin", **options) as first,
+        make_bus(mosquitto, "twin", **options) as second,
+    ):
+        # An observation window, not synchronisation: count reconnects over 1 s.
+        await asyncio.sleep(1.0)
+        reconnects = first.connect_count + second.connect_count
     # Without backoff growth: ~100 reconnects in that second. With it: about a dozen.
     assert 2 <= reconnects < 40
 
