@@ -2,10 +2,31 @@
 
 Each vehicle controller publishes its per-step message and subscribes to its neighbours'
 through a ``Bus``; sensor drivers publish ranges and target observations; a ground station
-publishes mission commands. ``open_bus(settings)`` builds the bus the scenario asks for::
+publishes mission commands. ``open_bus(settings)`` builds the bus the scenario asks for.
+A controller's step loop (tests/bus/test_usage.py runs this pattern)::
 
-    async with open_bus(settings.bus, client_id="vehicle-2") as bus:
-        ...
+    topics = settings.bus.topics(mission_id)
+    watchdog = SilenceWatchdog(timeout_s=3 * T_s, now=clock.now)
+    async with (
+        open_bus(settings.bus, client_id=f"vehicle-{i}",
+                 will=lost_vehicle_will(topics, i, time_s=clock.now())) as bus,
+        bus.subscribe(topics.all_steps()) as neighbours,
+    ):
+        for k in itertools.count():
+            own = StepMessage(i, k, clock.now(), theta_i, odometry_north_m, odometry_east_m)
+            with contextlib.suppress(BusConnectionError):  # a lost message costs freshness only
+                await bus.publish_message(topics.step(i), own, timeout=T_s / 4)
+            await clock.sleep(until_collection_deadline_s)
+            step_k = {}
+            for _, message in neighbours.drain_messages(StepMessage):
+                if message.vehicle_id != i:
+                    watchdog.feed(message.vehicle_id)
+                    if message.step == k:
+                        step_k[message.vehicle_id] = message
+            if watchdog.is_silent():
+                ...  # nobody fresh: hold position, do not follow the algorithm
+            live_neighbours = watchdog.fresh_sources()  # n for the oscillators
+            ...  # use step_k; a neighbour missing from it is late or lost this step
 
 Modules: ``topics`` (layout and MQTT matching), ``messages`` (payloads), ``base`` (the
 interface and subscriptions), ``inprocess`` and ``mqtt`` (implementations), ``staleness``

@@ -107,6 +107,20 @@ class Subscription:
             return None
         return self._items.popleft()
 
+    def drain_messages(self, message_type: type[M]) -> list[tuple[str, M]]:
+        """Every queued message decoded as ``message_type``, oldest first. Never waits.
+
+        For a controller that collects what arrived by a step's deadline. Payloads that do
+        not decode are logged, counted in ``decode_errors`` and skipped.
+        """
+        drained: list[tuple[str, M]] = []
+        while self._items:
+            topic, payload = self._items.popleft()
+            decoded = self._decode(message_type, topic, payload)
+            if decoded is not None:
+                drained.append((topic, decoded))
+        return drained
+
     async def _next(self) -> tuple[str, bytes] | None:
         """The oldest message, waiting as long as needed; None once closed and drained."""
         while not self._items:

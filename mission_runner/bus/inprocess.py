@@ -40,8 +40,9 @@ class LinkModel:
     Each delivery of a message to a matching subscription is dropped with probability
     ``loss_probability``, otherwise delivered ``latency_s + U(0, jitter_s)`` seconds after
     publishing, on the bus's clock. Draws come from ``random.Random(seed)`` in publish order,
-    so a run is reproducible. Unless ``reorder`` is True, a subscription receives messages
-    in publish order (as over one TCP connection): a message never overtakes an earlier one.
+    so a run is reproducible. Unless ``reorder`` is True, a message never overtakes an
+    earlier one on the same topic to the same subscription (MQTT keeps a publisher's order
+    per topic); messages of different topics, i.e. of different vehicles, may overtake.
     """
 
     latency_s: float = 0.0
@@ -96,7 +97,8 @@ class InProcessBus(Bus):
         # Delayed deliveries: (due time, publish sequence, subscription, topic, payload).
         self._pending: list[tuple[float, int, Subscription, str, bytes]] = []
         self._sequence = itertools.count()
-        self._last_due: dict[Subscription, float] = {}
+        # Due time of the latest delivery per (subscription, topic), to keep their order.
+        self._last_due: dict[tuple[Subscription, str], float] = {}
         self._scheduled = asyncio.Event()
         self._sleeper: asyncio.Task[None] | None = None
         self._sleeping_until = math.inf
@@ -182,8 +184,9 @@ class InProcessBus(Bus):
             return
         due_s = self.clock.now() + link.latency_s + jitter_s
         if not link.reorder:
-            due_s = max(due_s, self._last_due.get(subscription, -math.inf))
-            self._last_due[subscription] = due_s
+            key = (subscription, topic)
+            due_s = max(due_s, self._last_due.get(key, -math.inf))
+            self._last_due[key] = due_s
         heapq.heappush(self._pending, (due_s, next(self._sequence), subscription, topic, payload))
         self._scheduled.set()
         if due_s < self._sleeping_until and self._sleeper is not None:
@@ -196,8 +199,6 @@ class InProcessBus(Bus):
             while self._pending and self._pending[0][0] <= now_s:
                 _, _, subscription, topic, payload = heapq.heappop(self._pending)
                 subscription.offer(topic, payload)
-                if subscription.closed:
-                    self._last_due.pop(subscription, None)
             if not self._pending:
                 self._scheduled.clear()
                 await self._scheduled.wait()
@@ -235,7 +236,8 @@ class InProcessBus(Bus):
             subscription.close()
             with contextlib.suppress(ValueError):
                 self._subscriptions.remove(subscription)
-            self._last_due.pop(subscription, None)
+            for key in [key for key in self._last_due if key[0] is subscription]:
+                del self._last_due[key]
 
     def subscribe(
         self, pattern: str, *, queue_size: int | None = None, timeout: float | None = None
