@@ -8,6 +8,10 @@ is disconnected, ``publish`` waits at most its ``timeout`` and then raises
 ``BusConnectionError``; nothing is queued for later, because a vehicle's step message is
 worthless once the next step has started.
 
+Entering the bus waits for the first connection (``connect_timeout_s``) and raises
+``BusConnectionError`` if there is none; refused credentials fail at once, since retrying
+cannot fix them. Later outages are ridden out in the background.
+
 A controller watches ``connected``/``wait_connected`` and ``last_message_s`` (or feeds a
 ``SilenceWatchdog``) to notice silence and hold. A ``LastWill`` on the vehicle's status
 topic tells the others when a vehicle drops off without saying goodbye.
