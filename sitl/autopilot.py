@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -102,6 +103,7 @@ _MAX_ACCEL_M_S2 = 100.0
 _HOVER_THRUST = 0.5
 
 _LANDED_AFTER_S = 0.5
+STATUS_LOG_LENGTH = 256
 _TAKEOFF_HEIGHT_M = 0.1
 _RTL_ARRIVED_M = 1.0
 
@@ -208,8 +210,8 @@ class Px4Autopilot:
             on_set_current=self._mission_set_current,
             send_current=self._broadcast_mission_current,
         )
-        #: Events for observers (e.g. tests, a world module): (time_s, text) per STATUSTEXT.
-        self.status_log: list[tuple[float, str]] = []
+        #: The latest STATUSTEXTs as (time_s, text), for observers (tests, a world module).
+        self.status_log: deque[tuple[float, str]] = deque(maxlen=STATUS_LOG_LENGTH)
         self.on_statustext: Callable[[float, int, str], None] | None = None
 
         self.alive = True

@@ -99,6 +99,7 @@ class EmulatorStats:
     """Largest simulated-time backlog seen in realtime mode (how far the loop fell behind)."""
     late_wakeups: int
     """Realtime wake-ups that found more than one step due."""
+    rx_datagrams: int
     rx_packets: int
     rx_bad: int
     tx_packets: int
@@ -579,6 +580,7 @@ class Emulator:
             time.monotonic() - self._wall_start_s if self._wall_start_s else 0.0,
             self._max_lag_s,
             self._late_wakeups,
+            sum(link.rx_datagrams for link in links),
             sum(link.rx_packets for link in links),
             sum(link.rx_bad for link in links),
             sum(link.tx_packets for link in links),

@@ -68,6 +68,7 @@ class VehicleLink(asyncio.DatagramProtocol):
         self.up = True
         #: False once the vehicle is dead.
         self.alive = True
+        self.rx_datagrams = 0
         self.rx_packets = 0
         self.rx_bad = 0
         self.tx_packets = 0
@@ -85,6 +86,7 @@ class VehicleLink(asyncio.DatagramProtocol):
         logger.debug("vehicle %d %s link: %s", self.sysid, self.name, exc)
 
     def datagram_received(self, data: bytes, addr: Address) -> None:
+        self.rx_datagrams += 1
         if not (self.up and self.alive):
             return
         parser = self._parser
