@@ -17,6 +17,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from .bus.settings import BusSettings
 from .errors import ConfigError
 from .expressions import ExpressionError, compile_expression
 
@@ -228,6 +229,17 @@ class VehicleConfig(Model):
     speed_limit_m_s: PositiveFloat = Field(
         10.0, title="U_i", description="Horizontal speed bound of the vehicle [m/s]."
     )
+    altitude_m: PositiveFloat | None = Field(
+        None,
+        title="Altitude",
+        description="Flying only: height above home it holds [m] (default: flight.altitude_m).",
+    )
+    url: str | None = Field(
+        None,
+        title="Connection",
+        description="Flying real vehicles only: MAVSDK URL, e.g. udpin://0.0.0.0:14540 or "
+        "serial:///dev/ttyACM0:57600. Unset: the bundled emulator.",
+    )
 
 
 class SensorConfig(Model):
@@ -255,12 +267,21 @@ class SensorConfig(Model):
 class EventConfig(Model):
     """Something that happens to a vehicle at a step (or a time)."""
 
-    kind: Literal["vehicle_lost", "vehicle_joins"] = Field(
-        title="Kind", description="vehicle_lost: stops for good; vehicle_joins: absent until then."
+    kind: Literal["vehicle_lost", "vehicle_joins", "link_lost", "sensor_lost"] = Field(
+        title="Kind",
+        description="vehicle_lost: dies for good; vehicle_joins: absent until then (simulate "
+        "only); link_lost: its MAVLink link drops (flying only); sensor_lost: a sensor stops "
+        "(flying only).",
     )
     vehicle: int = Field(title="Vehicle", description="Vehicle id.")
     at_step: Annotated[int, Field(ge=0)] | None = Field(None, title="Step", description="k.")
-    at_s: NonNegativeFloat | None = Field(None, title="Time", description="Time [s].")
+    at_s: NonNegativeFloat | None = Field(None, title="Time", description="Time after k = 0 [s].")
+    duration_s: PositiveFloat | None = Field(
+        None, title="Duration", description="link_lost / sensor_lost: how long (default: for good)."
+    )
+    sensor: Literal["uwb", "flow", "tracker"] | None = Field(
+        None, title="Sensor", description="sensor_lost: which sensor stops."
+    )
 
     def step(self, step_s):
         """The step index at which the event takes effect."""
@@ -312,6 +333,57 @@ class Expectation(Model):
     min: float | None = Field(None, title="Minimum", description="Metric must be >= this.")
 
 
+class FlightConfig(Model):
+    """How ``mission-runner run`` flies the scenario (ignored by ``simulate``)."""
+
+    altitude_m: PositiveFloat = Field(
+        5.0, title="Altitude", description="Default height above home every vehicle holds [m]."
+    )
+    end_action: Literal["land", "hold"] = Field(
+        "land", title="At the end", description="What vehicles do when the mission ends."
+    )
+    clock: Literal["lockstep", "realtime"] = Field(
+        "lockstep",
+        title="Clock",
+        description="Emulator time: lockstep (as fast as the controllers go, deterministic "
+        "timing) or realtime (optionally sped up by speed).",
+    )
+    speed: PositiveFloat = Field(1.0, title="Speed", description="Real-time speed factor.")
+    start_delay_s: NonNegativeFloat = Field(
+        1.0, title="Start delay", description="Hover time between OFFBOARD and k = 0 [s]."
+    )
+    step_deadline_s: PositiveFloat = Field(
+        0.04,
+        title="Step deadline",
+        description="How long after t_k a vehicle waits for the step's messages and ranges [s].",
+    )
+    silence_timeout_s: PositiveFloat = Field(
+        1.0,
+        title="Silence timeout",
+        description="No fresh neighbour data for this long: stop following the law and hold [s].",
+    )
+    member_timeout_steps: Annotated[int, Field(ge=1)] = Field(
+        8,
+        title="Member timeout",
+        description="A neighbour unheard for this many steps leaves the formation (n shrinks).",
+    )
+    max_vertical_speed_m_s: PositiveFloat = Field(
+        1.0, title="Vertical speed", description="Bound of the altitude-hold velocity [m/s]."
+    )
+    velocity_lead_s: NonNegativeFloat = Field(
+        0.0,
+        title="Velocity lead",
+        description="Command u + lead * du/dt to offset the vehicle's velocity response time and "
+        "the command delay [s] (0: the paper's pure velocity command).",
+    )
+    emulator: dict = Field(
+        {},
+        title="Emulator",
+        description="Settings passed to the bundled emulator (sitl.config.EmulatorConfig: "
+        "physics, wind, odometry, telemetry, ports, params, tlog_dir).",
+    )
+
+
 class Scenario(Model):
     """A whole mission."""
 
@@ -330,6 +402,15 @@ class Scenario(Model):
     events: list[EventConfig] = Field([], title="Events", description="Losses and joins.")
     batch: BatchConfig = Field(BatchConfig(), title="Batch", description="For --runs N.")
     metrics: MetricsConfig = Field(MetricsConfig(), title="Metrics", description="Tolerances.")
+    flight: FlightConfig = Field(
+        FlightConfig(), title="Flight", description="How mission-runner run flies it."
+    )
+    bus: BusSettings = Field(
+        BusSettings(),
+        title="Bus",
+        description="Vehicle message bus: in-process by default, or kind: mqtt with host, port, "
+        "credentials and TLS.",
+    )
     expect: dict[MetricName, Expectation] = Field(
         {}, title="Expectations", description="Pass/fail bounds on summary metrics."
     )
@@ -459,6 +540,8 @@ def _rule_problems(scenario):
             problems.append((where, f"happens after the last step ({scenario.timing.steps})"))
         if event.kind == "vehicle_joins":
             joined_later.add(event.vehicle)
+        if (event.kind == "sensor_lost") != (event.sensor is not None):
+            problems.append((f"{where}.sensor", "give sensor for sensor_lost, and only there"))
     sensing_from_start = [
         vehicle.id
         for vehicle in scenario.vehicles
@@ -467,7 +550,45 @@ def _rule_problems(scenario):
     if ids and any(v.senses_target for v in scenario.vehicles) and not sensing_from_start:
         problems.append(("vehicles", "a vehicle sensing the target must be present from k = 0"))
     problems += _shape_problems(scenario)
+    problems += _emulator_problems(scenario)
     return problems
+
+
+def emulator_config(scenario, **overrides):
+    """The bundled emulator's config for this scenario (sitl.config.EmulatorConfig)."""
+    from sitl.config import EmulatorConfig  # noqa: PLC0415 - the simulator does not need sitl
+
+    data = {**scenario.flight.emulator, **overrides}
+    data.setdefault("vehicles", len(scenario.vehicles))
+    data.setdefault("seed", scenario.seed)
+    data.setdefault(
+        "placement",
+        {
+            "positions": [
+                {"north_m": v.initial_position_m[0], "east_m": v.initial_position_m[1]}
+                for v in scenario.vehicles
+            ]
+        },
+    )
+    return EmulatorConfig.model_validate(data)
+
+
+def _emulator_problems(scenario):
+    """Check ``flight.emulator`` at load time; the vehicle count is checked when flying (a
+    simulate-only scenario may have more vehicles than one emulator process holds)."""
+    if not scenario.flight.emulator:
+        return []
+    try:
+        emulator_config(scenario, vehicles=1, placement={})
+    except ValidationError as error:
+        return [
+            (yaml_path(("flight", "emulator", *location)), message)
+            for location, message in (
+                (_clean_location(item["loc"], scenario.flight.emulator), item["msg"])
+                for item in error.errors(include_url=False)
+            )
+        ]
+    return []
 
 
 def _shape_problems(scenario):

@@ -115,6 +115,12 @@ def simulate(scenario, runs=1, on_step=None):
     """Run ``scenario`` ``runs`` times (vectorised). ``on_step(k, total)`` reports progress."""
     if runs < 1:
         raise SimulationError(f"runs must be >= 1, got {runs}")
+    flying_only = sorted({e.kind for e in scenario.events} & {"link_lost", "sensor_lost"})
+    if flying_only:
+        raise SimulationError(
+            f"events {flying_only} need real links and sensors: fly the scenario with "
+            "'mission-runner run' (the numeric model has neither)"
+        )
     step_s, steps = scenario.timing.step_s, scenario.timing.steps
     sensors = scenario.sensors
     n = len(scenario.vehicles)
@@ -225,7 +231,7 @@ def simulate(scenario, runs=1, on_step=None):
     out["separation_m"][:, steps] = _closest_pair(
         np.sqrt(np.sum(gaps * gaps, axis=-1)), out["live"][:, steps]
     )
-    return _scored(scenario, times, target[: steps + 1], out)
+    return score(scenario, times, target[: steps + 1], out)
 
 
 def _closest_pair(distance, live):
@@ -234,7 +240,9 @@ def _closest_pair(distance, live):
     return np.where(pair, distance, np.inf).min(axis=(-1, -2))
 
 
-def _scored(scenario, times, target, out):
+def score(scenario, times, target, out):
+    """A :class:`SimulationResult` from recorded series (simulated or flown): adds the tracking
+    error (centroid of live vehicles to target) and the phase-spacing error."""
     positions, live = out["positions_m"], out["live"]
     centroid = np.sum(np.where(live[..., None], positions, 0.0), axis=-2) / np.maximum(
         live.sum(axis=-1, keepdims=True), 1

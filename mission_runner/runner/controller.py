@@ -1,0 +1,372 @@
+"""One vehicle's offboard controller: the enclosing law on a real (or emulated) vehicle.
+
+The controller owns nothing but its loop; the vehicle link, the bus and the clock are injected, so
+unit tests run it against fakes and scenario tests against the emulator through MAVSDK.
+
+Each step k (t_k = start + kT on the mission clock):
+
+1. wait for t_k; sample the own odometry at exactly t_k (interpolated between telemetry samples);
+   integrate the target's observed velocity into its odometry if this vehicle senses it;
+2. publish the step message (phase theta_i(k), odometry, target relay);
+3. wait until every member's step-k message and this vehicle's step-k ranges are in, or the step
+   deadline passes; a neighbour that is late or lost drops out of this step only;
+4. run the law (:class:`mission_runner.enclosing.VehicleEnclosing`), clamp the velocity to the
+   vehicle's limits, add the altitude-hold term and send the setpoint.
+
+It uses only its own measurements and its neighbours' messages, never ground truth. If nothing
+fresh is heard from any neighbour for ``silence_timeout_s``, or its own odometry stops, it stops
+following the law and holds (zero velocity), resuming when data is fresh again.
+"""
+
+import asyncio
+import contextlib
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..bus import (
+    RangeMessage,
+    StepMessage,
+    TargetObservation,
+    VehicleStatus,
+)
+from ..enclosing import NeighbourReport, TargetReport, VehicleEnclosing
+from .inbox import StepInbox
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """Timing and limits of one controller.
+
+    step_deadline_s: how long after t_k (mission clock) the step's inputs are awaited before the
+    law runs without the missing ones. wall_deadline_s: the same in wall seconds, for lockstep
+    runs whose mission clock stands still while controllers wait. release_s: in lockstep, how far
+    past t_k the world may run while the controller samples (at least one telemetry period).
+    """
+
+    step_s: float
+    step_deadline_s: float = 0.04
+    wall_deadline_s: float = 0.5
+    release_s: float = 0.03
+    odometry_timeout_s: float = 1.0
+    silence_timeout_s: float = 1.0
+    member_timeout_steps: int = 8
+    max_horizontal_speed_m_s: float = 10.0
+    max_vertical_speed_m_s: float = 1.0
+    altitude_gain_per_s: float = 1.0
+    velocity_lead_s: float = 0.0
+
+
+@dataclass
+class StepRecord:
+    """What the controller did at one step (for logs and progress views)."""
+
+    step: int
+    time_s: float
+    state: str
+    velocity_ned_m_s: tuple
+    consensus_m_s: tuple
+    phase_rad: float
+    neighbours_used: tuple
+    estimates_m: dict
+
+
+class VehicleController:
+    """The enclosing loop of vehicle ``vehicle_id``.
+
+    law: its :class:`VehicleEnclosing`. link: the vehicle (see :class:`VehicleLinkProtocol` in
+    :mod:`.links`). bus + topics: the message bus. clock: the mission clock (``now_s()``,
+    ``sleep_until(t)``, ``release(t)``). shape(k): the affine shape matrix at step k.
+    altitude_m: the altitude this vehicle holds (up, metres above home).
+    """
+
+    def __init__(
+        self,
+        *,
+        vehicle_id,
+        vehicle_ids,
+        law,
+        senses_target,
+        link,
+        bus,
+        topics,
+        clock,
+        settings,
+        shape,
+        altitude_m,
+        on_step=None,
+    ):
+        self.vehicle_id = vehicle_id
+        self.law: VehicleEnclosing = law
+        self.senses_target = senses_target
+        self.link = link
+        self.bus = bus
+        self.topics = topics
+        self.clock = clock
+        self.settings = settings
+        self.shape = shape
+        self.altitude_m = altitude_m
+        self.on_step = on_step
+        self.state = "waiting"
+        self.start_s = None
+        self.inbox = StepInbox(
+            vehicle_id,
+            vehicle_ids,
+            senses_target=senses_target,
+            step_of=self._step_of,
+            member_timeout_steps=settings.member_timeout_steps,
+        )
+        self._target_odometry = np.zeros(2)
+        self._last_target = None
+        self._last_fresh_s = None
+        self._previous_command = None
+        self.records = []
+
+    def _step_of(self, time_s):
+        if self.start_s is None:
+            return None
+        k = round((time_s - self.start_s) / self.settings.step_s)
+        t_k = self.start_s + k * self.settings.step_s
+        return k if k >= 0 and abs(time_s - t_k) <= self.settings.step_s / 4 else None
+
+    async def hover_until(self, start):
+        """Hold altitude with zero horizontal velocity on the step grid until the mission's
+        k = 0 (``start``: a future of the start time). Streams setpoints, so OFFBOARD may be
+        entered meanwhile, and releases the clock step by step (lockstep)."""
+        step_s = self.settings.step_s
+        t = math.ceil(self.clock.now_s() / step_s) * step_s
+        self.state = "hovering"
+        while not (start.done() and t >= start.result()):
+            self.clock.release(t + self.settings.release_s)
+            await self.clock.sleep_until(t)
+            sample = self.link.odometry.latest
+            vertical = self._altitude_hold(
+                None if sample is None else (sample.north_m, sample.east_m, sample.down_m)
+            )
+            await self.link.set_velocity_ned(0.0, 0.0, vertical)
+            t += step_s
+        return start.result()
+
+    async def run(self, start_s, steps):
+        """Fly ``steps`` steps starting at mission time ``start_s``. Returns the records."""
+        self.start_s = start_s
+        self._last_fresh_s = start_s
+        async with contextlib.AsyncExitStack() as stack:
+            subscriptions = [
+                await stack.enter_async_context(self.bus.subscribe(self.topics.all_steps())),
+                await stack.enter_async_context(
+                    self.bus.subscribe(self.topics.all_ranges(self.vehicle_id))
+                ),
+                await stack.enter_async_context(
+                    self.bus.subscribe(self.topics.target(self.vehicle_id))
+                ),
+            ]
+            async with asyncio.TaskGroup() as group:
+                pump = group.create_task(
+                    self._pump(subscriptions), name=f"vehicle-{self.vehicle_id}-inbox"
+                )
+                try:
+                    for k in range(steps):
+                        await self._step(k)
+                finally:
+                    pump.cancel()
+        return self.records
+
+    async def _pump(self, subscriptions):
+        """Feed the inbox from the bus subscriptions (decode errors are dropped, not fatal)."""
+        handlers = {
+            StepMessage: self.inbox.add_step,
+            RangeMessage: self.inbox.add_range,
+            TargetObservation: self.inbox.add_target,
+        }
+
+        async def drain(subscription, message_type):
+            async for _, message in subscription.messages(message_type):
+                handlers[message_type](message)
+
+        async with asyncio.TaskGroup() as group:
+            for subscription, message_type in zip(
+                subscriptions, (StepMessage, RangeMessage, TargetObservation), strict=True
+            ):
+                group.create_task(
+                    drain(subscription, message_type),
+                    name=f"vehicle-{self.vehicle_id}-{message_type.__name__}",
+                )
+
+    async def _step(self, k):
+        settings = self.settings
+        t_k = self.start_s + k * settings.step_s
+        self.clock.release(t_k + settings.release_s)
+        await self.clock.sleep_until(t_k)
+        odometry = await self._odometry_at(t_k)
+        phase = self.law.phase_rad
+        message = StepMessage(
+            self.vehicle_id,
+            k,
+            t_k,
+            phase,
+            *(odometry[:2] if odometry is not None else (math.nan, math.nan)),
+        )
+        observation = None
+        if odometry is not None:
+            # The target observation of step k is usually in by now; wait briefly if not.
+            observation = await self._target_observation(k)
+            message = self._with_target(message, observation)
+            await self._publish(self.topics.step(self.vehicle_id), message)
+        await self._wait_inputs(k, t_k)
+        data = self.inbox.take(k)
+        now = self.clock.now_s()
+        if data.neighbours:
+            self._last_fresh_s = now
+        stale = odometry is None or now - self._last_fresh_s > settings.silence_timeout_s
+        if stale:
+            velocity = (0.0, 0.0)
+            self.state = "holding"
+            used, estimates, consensus = (), {}, (0.0, 0.0)
+            # Keep the oscillator turning so the phase stays meaningful when data returns.
+            self.law.step(
+                own_odometry_m=(math.nan, math.nan),
+                neighbours={},
+                ranges_m={},
+                target=None,
+                members=[self.vehicle_id],
+                shape_now=self.shape(k),
+                shape_next=self.shape(k + 1),
+            )
+        else:
+            self.state = "following"
+            command = self.law.step(
+                own_odometry_m=odometry[:2],
+                neighbours={
+                    peer: NeighbourReport(m.phase_rad, (m.odometry_north_m, m.odometry_east_m))
+                    for peer, m in data.neighbours.items()
+                },
+                ranges_m=self._horizontal_ranges(data, odometry),
+                target=self._target_report(data, observation),
+                members=data.members,
+                shape_now=self.shape(k),
+                shape_next=self.shape(k + 1),
+            )
+            velocity = self._clamp(self._lead(command.velocity_m_s))
+            used, estimates = command.neighbours_used, command.estimates_m
+            consensus = tuple(float(c) for c in command.consensus_m_s)
+        vertical = self._altitude_hold(odometry)
+        await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
+        record = StepRecord(
+            k, t_k, self.state, (*velocity, vertical), consensus, phase, used, estimates
+        )
+        self.records.append(record)
+        await self._publish_status(k, t_k)
+        if self.on_step is not None:
+            self.on_step(self.vehicle_id, record)
+
+    async def _odometry_at(self, t_k):
+        """Own odometry (north, east, down) at t_k, or None if telemetry stopped."""
+        track = self.link.odometry
+        try:
+            async with asyncio.timeout(self.settings.odometry_timeout_s):
+                while (sample := track.at(t_k)) is None:
+                    await self.link.odometry_updated()
+        except TimeoutError:
+            logger.warning("vehicle %s: no odometry around t=%.3f s", self.vehicle_id, t_k)
+            return None
+        return sample
+
+    async def _target_observation(self, k):
+        if not self.senses_target:
+            return None
+        await self.inbox.wait_for(
+            lambda: self.inbox.pending_target(k) is not None, self.settings.wall_deadline_s
+        )
+        return self.inbox.pending_target(k)
+
+    def _with_target(self, message, observation):
+        """Integrate the observed target velocity (trapezoid) and relay it."""
+        if observation is None:
+            return message
+        velocity = np.array([observation.velocity_north_m_s, observation.velocity_east_m_s])
+        if self._last_target is not None:
+            self._target_odometry = (
+                self._target_odometry + 0.5 * (self._last_target + velocity) * self.settings.step_s
+            )
+        self._last_target = velocity
+        return StepMessage(
+            message.vehicle_id,
+            message.step,
+            message.time_s,
+            message.phase_rad,
+            message.odometry_north_m,
+            message.odometry_east_m,
+            target_odometry_north_m=float(self._target_odometry[0]),
+            target_odometry_east_m=float(self._target_odometry[1]),
+            target_velocity_north_m_s=float(velocity[0]),
+            target_velocity_east_m_s=float(velocity[1]),
+        )
+
+    async def _wait_inputs(self, k, t_k):
+        deadline = t_k + self.settings.step_deadline_s
+        remaining = deadline - self.clock.now_s()
+        if remaining > 0 or self.clock.lockstep:
+            wait = self.settings.wall_deadline_s if self.clock.lockstep else remaining
+            await self.inbox.wait_complete(k, max(wait, 0.0))
+
+    def _horizontal_ranges(self, data, odometry):
+        """UWB ranges are 3-D; the law is planar. Project with both vehicles' altitudes."""
+        ranges = {}
+        for peer, range_m in data.ranges_m.items():
+            if peer == 0:
+                continue
+            ranges[peer] = range_m
+        if data.target is not None:
+            ranges[0] = data.target.range_m
+        return ranges
+
+    def _target_report(self, data, observation):
+        if observation is not None:
+            velocity = (observation.velocity_north_m_s, observation.velocity_east_m_s)
+            return TargetReport(tuple(self._target_odometry), velocity)
+        for message in data.neighbours.values():
+            if message.has_target:
+                velocity = (message.target_velocity_north_m_s, message.target_velocity_east_m_s)
+                return TargetReport((math.nan, math.nan), velocity)
+        return None
+
+    def _lead(self, velocity):
+        """u + lead * du/dt: offsets the vehicle's velocity-loop lag and the command delay, so
+        the displacement over the step is the one the law asked for."""
+        velocity = np.asarray(velocity, dtype=float)
+        previous, self._previous_command = self._previous_command, velocity
+        if previous is None or self.settings.velocity_lead_s == 0:
+            return velocity
+        return (
+            velocity + self.settings.velocity_lead_s * (velocity - previous) / self.settings.step_s
+        )
+
+    def _clamp(self, velocity):
+        limit = self.settings.max_horizontal_speed_m_s
+        speed = float(np.hypot(*velocity))
+        scale = 1.0 if speed <= limit else limit / speed
+        return (float(velocity[0] * scale), float(velocity[1] * scale))
+
+    def _altitude_hold(self, odometry):
+        if odometry is None:
+            return 0.0
+        error = -self.altitude_m - odometry[2]  # NED: down is positive
+        limit = self.settings.max_vertical_speed_m_s
+        return float(np.clip(self.settings.altitude_gain_per_s * error, -limit, limit))
+
+    async def _publish(self, topic, message):
+        from ..bus import BusError  # noqa: PLC0415
+
+        try:
+            await self.bus.publish_message(topic, message, timeout=self.settings.step_s / 2)
+        except BusError as error:
+            logger.warning("vehicle %s: could not publish %s: %s", self.vehicle_id, topic, error)
+
+    async def _publish_status(self, k, t_k):
+        status = VehicleStatus(self.vehicle_id, t_k, self.state, k, self.state == "following", "")
+        await self._publish(self.topics.status(self.vehicle_id), status)

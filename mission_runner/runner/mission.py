@@ -1,0 +1,260 @@
+"""Fly a scenario: the bundled emulator (or real vehicles), the bus, the world's sensors and one
+controller per vehicle, from take-off to landing.
+
+Sequence: start the emulator and the world; connect every vehicle through one MAVSDK instance;
+take off (each to its own altitude); every controller joins the mission clock and hovers on the
+step grid, streaming setpoints, while OFFBOARD is entered; k = 0 is set on the grid
+``flight.start_delay_s`` later; the controllers fly ``timing.steps`` steps; then every vehicle
+still alive lands (or holds). Scenario events are scheduled relative to k = 0.
+
+Ground truth (the world's samples at every t_k) is used only to score the flight afterwards, into
+the same :class:`mission_runner.sim.simulator.SimulationResult` the numeric simulator produces.
+"""
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..bus import open_bus
+from ..config import emulator_config
+from ..enclosing import VehicleEnclosing
+from ..scenario import shape_matrices
+from ..sim.simulator import algorithm_params, score
+from .clock import EmulatorClock
+from .controller import ControllerSettings, VehicleController
+from .errors import RunnerError
+from .links import MavsdkVehicle, connected_vehicles
+
+logger = logging.getLogger(__name__)
+
+PHYSICS_RATE_MIN_HZ = 200.0
+
+
+@dataclass
+class FlightOutcome:
+    """A flown mission: the scored result, every controller's records, timings."""
+
+    result: object
+    records: dict
+    start_s: float
+    wall_time_s: float
+    mission_wall_time_s: float
+    emulator_stats: object
+
+
+def physics_rate_hz(step_s):
+    """A physics rate >= 200 Hz whose step divides T, so sensors sample exactly at t_k."""
+    return math.ceil(PHYSICS_RATE_MIN_HZ * step_s) / step_s
+
+
+async def fly(scenario, *, emulator_overrides=None, on_step=None):
+    """Fly ``scenario`` on the bundled emulator. Returns a :class:`FlightOutcome`."""
+    from sitl.emulator import Emulator  # noqa: PLC0415 - real-vehicle runs do not need it
+    from sitl.world import World  # noqa: PLC0415
+
+    if any(vehicle.url for vehicle in scenario.vehicles):
+        raise RunnerError("vehicles with a url fly on real PX4: use 'mission-runner vehicle'")
+    started = time.perf_counter()
+    flight, step_s = scenario.flight, scenario.timing.step_s
+    ids = [vehicle.id for vehicle in scenario.vehicles]
+    overrides = {
+        "clock": {"mode": flight.clock, "speed": flight.speed},
+        "physics": {
+            **scenario.flight.emulator.get("physics", {}),
+            "rate_hz": physics_rate_hz(step_s),
+        },
+        **(emulator_overrides or {}),
+    }
+    config = emulator_config(scenario, **overrides)
+    topics = scenario.bus.topics(scenario.name)
+    async with contextlib.AsyncExitStack() as stack:
+        emulator = await stack.enter_async_context(Emulator(config))
+        bus = await stack.enter_async_context(open_bus(scenario.bus, client_id="mission"))
+        world = await stack.enter_async_context(
+            World(
+                emulator,
+                bus=bus,
+                topics=topics,
+                vehicle_ids=ids,
+                senses_target=[v.senses_target for v in scenario.vehicles],
+                target_path=scenario.target.path,
+                target_altitude_m=scenario.target.altitude_m,
+                sensors=scenario.sensors,
+                step_s=step_s,
+                seed=scenario.seed,
+            )
+        )
+        sysids = [endpoint.sysid for endpoint in emulator.endpoints]
+        systems = await stack.enter_async_context(
+            connected_vehicles([e.mavsdk_url for e in emulator.endpoints], sysids)
+        )
+        vehicles = [
+            await stack.enter_async_context(
+                MavsdkVehicle(systems[sysid], sysid, sample_time_s=lambda ms: ms / 1000.0)
+            )
+            for sysid in sysids
+        ]
+        altitudes = [v.altitude_m or flight.altitude_m for v in scenario.vehicles]
+        async with asyncio.TaskGroup() as group:
+            for vehicle, altitude in zip(vehicles, altitudes, strict=True):
+                group.create_task(vehicle.take_off(altitude), name=f"takeoff-{vehicle.system_id}")
+
+        controllers = _controllers(scenario, vehicles, altitudes, bus, topics, emulator, on_step)
+        start = asyncio.get_running_loop().create_future()
+        mission_started = None
+        async with contextlib.AsyncExitStack() as clocks:
+            for controller in controllers:
+                await clocks.enter_async_context(controller.clock)
+            async with asyncio.TaskGroup() as group:
+                flying = [
+                    group.create_task(
+                        _fly_one(controller, start, scenario.timing.steps),
+                        name=f"controller-{controller.vehicle_id}",
+                    )
+                    for controller in controllers
+                ]
+                async with asyncio.TaskGroup() as entering:
+                    for vehicle in vehicles:
+                        entering.create_task(
+                            vehicle.start_offboard(), name=f"offboard-{vehicle.system_id}"
+                        )
+                start_s = math.ceil((emulator.time_s + flight.start_delay_s) / step_s) * step_s
+                world.start(start_s)
+                _schedule_events(scenario, emulator, world, start_s)
+                mission_started = time.perf_counter()
+                start.set_result(start_s)
+            records = {
+                c.vehicle_id: task.result() for c, task in zip(controllers, flying, strict=True)
+            }
+        mission_wall = time.perf_counter() - mission_started
+        async with asyncio.TaskGroup() as group:
+            for vehicle, alive in zip(vehicles, emulator.truth.alive, strict=True):
+                if alive:
+                    group.create_task(
+                        vehicle.finish(flight.end_action), name=f"finish-{vehicle.system_id}"
+                    )
+        stats = emulator.stats()
+        result = _scored(scenario, world.samples, records, controllers)
+    return FlightOutcome(
+        result, records, start_s, time.perf_counter() - started, mission_wall, stats
+    )
+
+
+async def _fly_one(controller, start, steps):
+    start_s = await controller.hover_until(start)
+    return await controller.run(start_s, steps)
+
+
+def _controllers(scenario, vehicles, altitudes, bus, topics, emulator, on_step):  # noqa: PLR0917
+    params = algorithm_params(scenario)
+    step_s = scenario.timing.step_s
+    ids = [vehicle.id for vehicle in scenario.vehicles]
+    steps = scenario.timing.steps
+    shapes = shape_matrices(scenario.algorithm.shape, (np.arange(steps + 2)) * step_s)
+    settings = ControllerSettings(
+        step_s=step_s,
+        step_deadline_s=scenario.flight.step_deadline_s,
+        silence_timeout_s=scenario.flight.silence_timeout_s,
+        member_timeout_steps=scenario.flight.member_timeout_steps,
+        max_vertical_speed_m_s=scenario.flight.max_vertical_speed_m_s,
+        velocity_lead_s=scenario.flight.velocity_lead_s,
+    )
+    controllers = []
+    for config, vehicle, altitude in zip(scenario.vehicles, vehicles, altitudes, strict=True):
+        law = VehicleEnclosing(
+            params,
+            config.id,
+            ids,
+            config.initial_phase_rad,
+            config.omega_rad_s or scenario.algorithm.omega_rad_s,
+        )
+        controllers.append(
+            VehicleController(
+                vehicle_id=config.id,
+                vehicle_ids=ids,
+                law=law,
+                senses_target=config.senses_target,
+                link=vehicle,
+                bus=bus,
+                topics=topics,
+                clock=EmulatorClock(emulator.clock, f"vehicle-{config.id}"),
+                settings=ControllerSettings(
+                    **{**settings.__dict__, "max_horizontal_speed_m_s": config.speed_limit_m_s}
+                ),
+                shape=lambda k, shapes=shapes: shapes[min(k, len(shapes) - 1)],
+                altitude_m=altitude,
+                on_step=on_step,
+            )
+        )
+    return controllers
+
+
+def _schedule_events(scenario, emulator, world, start_s):
+    index_of = {vehicle.id: index for index, vehicle in enumerate(scenario.vehicles)}
+    step_s = scenario.timing.step_s
+    for event in scenario.events:
+        index = index_of[event.vehicle]
+        at_s = start_s + event.step(step_s) * step_s
+        if event.kind == "vehicle_lost":
+            emulator.kill_vehicle(index, at_s=at_s)
+        elif event.kind == "link_lost":
+            emulator.drop_link(index, "all", at_s=at_s, duration_s=event.duration_s)
+        elif event.kind == "sensor_lost" and event.sensor == "flow":
+            emulator.fail_sensor(index, "flow", at_s=at_s, duration_s=event.duration_s)
+        elif event.kind == "sensor_lost":
+            world.fail_sensor(index, event.sensor, at_s=at_s, duration_s=event.duration_s)
+        else:
+            raise RunnerError(f"event {event.kind} cannot be flown (simulate it instead)")
+
+
+def _scored(scenario, samples, records, controllers):
+    """Score a flight from the world's truth samples and the controllers' records."""
+    steps = scenario.timing.steps
+    samples = samples[: steps + 1]
+    ids = [vehicle.id for vehicle in scenario.vehicles]
+    n, count = len(ids), len(samples)
+    positions = np.stack([s.positions_m for s in samples])[None]
+    live = np.stack([s.alive for s in samples])[None]
+    target = np.stack([s.target_m for s in samples])
+    phases = np.full((1, count, n), np.nan)
+    commands = np.zeros((1, max(count - 1, 0), n, 2))
+    consensus = np.zeros((1, max(count - 1, 0)))
+    localization = np.zeros((1, max(count - 1, 0)))
+    truth_by_step = {s.step: s for s in samples}
+    for column, vehicle_id in enumerate(ids):
+        for record in records.get(vehicle_id, []):
+            k = record.step
+            if k >= count:
+                continue
+            phases[0, k, column] = record.phase_rad
+            if k < count - 1:
+                commands[0, k, column] = record.velocity_ned_m_s[:2]
+                consensus[0, k] = max(consensus[0, k], float(np.hypot(*record.consensus_m_s)))
+                truth = truth_by_step[k]
+                for peer, estimate in record.estimates_m.items():
+                    other = truth.target_m if peer == 0 else truth.positions_m[ids.index(peer)]
+                    error = np.hypot(*(estimate - (truth.positions_m[column] - other)))
+                    localization[0, k] = max(localization[0, k], error)
+    for column, controller in enumerate(controllers):
+        if count == steps + 1 and np.isnan(phases[0, steps, column]):
+            phases[0, steps, column] = controller.law.phase_rad
+    phases = np.where(live, phases, np.nan)
+    gaps = positions[..., :, None, :] - positions[..., None, :, :]
+    distance = np.sqrt(np.sum(gaps * gaps, axis=-1))
+    pair = live[..., :, None] & live[..., None, :] & ~np.eye(n, dtype=bool)
+    out = {
+        "positions_m": positions,
+        "phases_rad": phases,
+        "commands_m_s": commands,
+        "live": live,
+        "localization_error_m": localization,
+        "consensus_speed_m_s": consensus,
+        "separation_m": np.where(pair, distance, np.inf).min(axis=(-1, -2)),
+    }
+    times = np.array([s.time_s for s in samples]) - samples[0].time_s
+    return score(scenario, times, target, out)

@@ -1,0 +1,177 @@
+"""The world around the emulated vehicles: a moving target, UWB ranging and a target tracker.
+
+Published where real drivers on companion computers would publish them - on the project's bus
+(see :mod:`mission_runner.bus.topics`), never through ground truth:
+
+- ``vehicle/<id>/range/<peer>``: :class:`RangeMessage`, the 3-D distance between two live vehicles
+  sampled at every step boundary t_k = start + kT (``step = k``), with Gaussian noise, dropouts and
+  a maximum range from the scenario's ``sensors:``;
+- ``vehicle/<id>/target``: :class:`TargetObservation` for vehicles that sense the target, its
+  horizontal range and velocity (what a radar or vision tracker gives), at the same instants.
+
+The target is not a MAVLink vehicle: it follows the scenario's path, standing at its start point
+until the mission starts. Sampling runs synchronously inside the emulator's physics step (its step
+listener), so in lockstep the measurements belong to exactly the simulated instant they are stamped
+with; a task owned by :class:`World` moves them onto the bus.
+"""
+
+import asyncio
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from mission_runner.bus import BusError, RangeMessage, TargetObservation
+from mission_runner.scenario import target_positions
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TruthSample:
+    """Ground truth at t_k, kept for scoring a flight (never given to a controller).
+
+    target_m ``(2,)``, positions_m ``(N, 2)`` north/east, alive ``(N,)``.
+    """
+
+    step: int
+    time_s: float
+    target_m: np.ndarray
+    positions_m: np.ndarray
+    alive: np.ndarray
+
+
+class World:
+    """Target + UWB + tracker for an :class:`sitl.emulator.Emulator`. Use as ``async with``.
+
+    vehicle_ids: the scenario id of emulator vehicle index i is ``vehicle_ids[i]``.
+    senses_target: ``(N,)`` bool. sensors: the scenario's ``SensorConfig``. The first vehicle
+    position the emulator places is the scenario's frame origin, so ``target_path`` shares it.
+    """
+
+    def __init__(
+        self,
+        emulator,
+        *,
+        bus,
+        topics,
+        vehicle_ids,
+        senses_target,
+        target_path,
+        target_altitude_m,
+        sensors,
+        step_s,
+        seed=0,
+    ):
+        self.emulator = emulator
+        self.bus = bus
+        self.topics = topics
+        self.vehicle_ids = list(vehicle_ids)
+        self.senses_target = np.asarray(senses_target, dtype=bool)
+        self.target_path = target_path
+        self.target_altitude_m = target_altitude_m
+        self.sensors = sensors
+        self.step_s = step_s
+        self.start_s = None
+        self._next_step = 0
+        self._rng = np.random.default_rng([seed, 7])
+        self._down = {}  # (vehicle index, sensor) -> (from_s, until_s)
+        self._queue = asyncio.Queue()
+        self._remove_listener = None
+        self._task = None
+        self.published = 0
+        self.samples = []  # TruthSample per step, for scoring only
+
+    async def __aenter__(self):
+        self._remove_listener = self.emulator.add_step_listener(self._on_step)
+        self._task = asyncio.get_running_loop().create_task(self._publish(), name="world-publisher")
+        return self
+
+    async def __aexit__(self, *exc_info):
+        self._remove_listener()
+        self._task.cancel()
+        await asyncio.gather(self._task, return_exceptions=True)
+
+    def start(self, start_s):
+        """The mission's k = 0 is at ``start_s``: the target starts moving, ranging begins."""
+        self.start_s = start_s
+        self._next_step = 0
+
+    def fail_sensor(self, index, sensor, at_s, duration_s=None):
+        """Vehicle ``index``'s ``"uwb"`` (no ranges from or to it) or ``"tracker"`` (no target
+        observations) stops at ``at_s`` for ``duration_s`` seconds (default: for good)."""
+        if sensor not in ("uwb", "tracker"):
+            raise ValueError(f"unknown world sensor {sensor!r}; use 'uwb' or 'tracker'")
+        self._down[index, sensor] = (at_s, math.inf if duration_s is None else at_s + duration_s)
+
+    def target_position(self, time_s):
+        """The target's true ``[north, east]`` at mission time ``time_s``."""
+        elapsed = 0.0 if self.start_s is None else max(0.0, time_s - self.start_s)
+        return target_positions(self.target_path, np.array([elapsed]))[0]
+
+    def target_velocity(self, time_s, delta_s=1e-3):
+        if self.start_s is None or time_s < self.start_s:
+            return np.zeros(2)
+        return (self.target_position(time_s + delta_s) - self.target_position(time_s)) / delta_s
+
+    def _working(self, index, sensor, time_s):
+        window = self._down.get((index, sensor))
+        return window is None or not (window[0] <= time_s < window[1])
+
+    def _on_step(self, time_s, truth):
+        if self.start_s is None:
+            return
+        half_dt = 0.5 * self.emulator.dt_s
+        t_k = self.start_s + self._next_step * self.step_s
+        if time_s < t_k - half_dt:
+            return
+        self._sample(self._next_step, t_k, truth)
+        self._next_step += 1
+
+    def _sample(self, k, t_k, truth):
+        sensors = self.sensors
+        position = np.array(truth.position_ned_m, dtype=float)
+        alive = np.array(truth.alive) & np.array(
+            [self._working(i, "uwb", t_k) for i in range(len(self.vehicle_ids))]
+        )
+        target = self.target_position(t_k)
+        self.samples.append(
+            TruthSample(k, t_k, target.copy(), position[:, :2].copy(), np.array(truth.alive))
+        )
+        n = len(self.vehicle_ids)
+        gaps = position[:, None, :] - position[None, :, :]
+        ranges = np.sqrt(np.sum(gaps * gaps, axis=-1))
+        if sensors.range_noise_std_m > 0:
+            ranges = ranges + self._rng.normal(scale=sensors.range_noise_std_m, size=ranges.shape)
+        kept = alive[:, None] & alive[None, :] & ~np.eye(n, dtype=bool)
+        if sensors.range_dropout_probability > 0:
+            kept &= self._rng.uniform(size=ranges.shape) >= sensors.range_dropout_probability
+        if sensors.range_max_m is not None:
+            kept &= ranges <= sensors.range_max_m
+        for i, j in zip(*np.nonzero(kept), strict=True):
+            message = RangeMessage(
+                self.vehicle_ids[i], self.vehicle_ids[j], t_k, float(abs(ranges[i, j])), step=k
+            )
+            self._queue.put_nowait(
+                (self.topics.range(self.vehicle_ids[i], self.vehicle_ids[j]), message)
+            )
+        velocity = self.target_velocity(t_k)
+        tracking = [self._working(i, "tracker", t_k) for i in range(len(self.vehicle_ids))]
+        for i in np.flatnonzero(self.senses_target & np.array(truth.alive) & tracking):
+            horizontal = float(np.hypot(*(position[i, :2] - target)))
+            if sensors.range_noise_std_m > 0:
+                horizontal = abs(horizontal + self._rng.normal(scale=sensors.range_noise_std_m))
+            observation = TargetObservation(
+                self.vehicle_ids[i], t_k, horizontal, float(velocity[0]), float(velocity[1])
+            )
+            self._queue.put_nowait((self.topics.target(self.vehicle_ids[i]), observation))
+
+    async def _publish(self):
+        while True:
+            topic, message = await self._queue.get()
+            try:
+                await self.bus.publish_message(topic, message, timeout=self.step_s)
+                self.published += 1
+            except BusError as error:
+                logger.warning("world: could not publish %s: %s", topic, error)
