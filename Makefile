@@ -3,9 +3,10 @@ PYTHON ?= python3
 
 .PHONY: demo install test lint bench
 
-## Set up and run the paper's tracking scenario (summary + figures in out/paper_tracking/).
+## Set up and fly the paper's tracking scenario on four emulated PX4 vehicles through MAVSDK
+## (summary, figures and MAVLink logs in out/paper_tracking_flyable/).
 demo: install
-	mission-runner simulate configs/paper_tracking.yaml --out out/paper_tracking
+	mission-runner run configs/paper_tracking_flyable.yaml --out out/paper_tracking_flyable
 
 install:
 	$(PYTHON) -m pip install --quiet -e ".[test]"

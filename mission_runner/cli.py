@@ -1,6 +1,7 @@
 """``mission-runner``: the command line.
 
     mission-runner simulate CONFIG [--out DIR] [--runs N] [--no-figures] [--quiet]
+    mission-runner run CONFIG [--out DIR] [--realtime [--speed F]] [--no-figures] [--quiet]
 
 Exit codes: 0 success (and every ``expect:`` bound met), 1 an expectation failed, 2 bad input
 (the message names the problem and, for configs, the YAML path).
@@ -55,6 +56,21 @@ def _parser():
     simulate.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     simulate.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
     simulate.set_defaults(handler=_simulate)
+
+    run = commands.add_parser(
+        "run", help="fly a scenario: emulated PX4 vehicles through MAVSDK, in lockstep by default"
+    )
+    run.add_argument("config", type=Path, help="scenario YAML file")
+    run.add_argument(
+        "--out", type=Path, default=None, help="output folder (default: out/<scenario name>-run)"
+    )
+    run.add_argument(
+        "--realtime", action="store_true", help="real-time clock instead of the scenario's"
+    )
+    run.add_argument("--speed", type=float, default=None, help="real-time speed factor")
+    run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    run.add_argument("--quiet", action="store_true", help="no progress view, no summary")
+    run.set_defaults(handler=_run)
     return parser
 
 
@@ -93,6 +109,70 @@ def _simulate(arguments):
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
 
 
+def _run(arguments):
+    import asyncio  # noqa: PLC0415
+
+    from .config import validate_scenario  # noqa: PLC0415
+    from .outputs import write_results  # noqa: PLC0415
+    from .runner.mission import fly  # noqa: PLC0415
+
+    scenario = load_scenario(arguments.config)
+    if arguments.realtime or arguments.speed is not None:
+        data = scenario.model_dump(mode="json")
+        data["flight"]["clock"] = "realtime"
+        data["flight"]["speed"] = arguments.speed or 1.0
+        scenario = validate_scenario(data, str(arguments.config))
+    out_dir = arguments.out or Path("out") / f"{scenario.name}-run"
+    tlogs = out_dir / "tlogs"
+    tlogs.mkdir(parents=True, exist_ok=True)
+    view = None if arguments.quiet else _FlightView(scenario)
+    outcome = asyncio.run(
+        fly(scenario, emulator_overrides={"tlog_dir": str(tlogs)}, on_progress=view)
+    )
+    if view is not None:
+        view.close()
+    document = write_results(
+        outcome.result,
+        out_dir,
+        config_path=arguments.config,
+        wall_time_s=outcome.wall_time_s,
+        figures=not arguments.no_figures,
+    )
+    if not arguments.quiet:
+        print(_summary_text(document, out_dir))
+        mission_s = scenario.timing.steps * scenario.timing.step_s
+        print(
+            f"flown: {mission_s:g} s of mission in {outcome.mission_wall_time_s:.2f} s wall "
+            f"({mission_s / outcome.mission_wall_time_s:.1f}x real time); MAVLink logs in {tlogs}/"
+        )
+    return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
+
+
+class _FlightView:
+    """Live view of a flight: a line per second of mission time (or a bar on a terminal)."""
+
+    def __init__(self, scenario):
+        self._every = max(1, round(1.0 / scenario.timing.step_s))
+        self._bar = _Progress(scenario.timing.steps, False, scenario.name)
+
+    def __call__(self, progress):
+        self._bar.update_to(progress.step + 1, progress.steps)
+        if progress.step % self._every and progress.step != progress.steps - 1:
+            return
+        states = " ".join(f"v{i}:{state}" for i, state in progress.states.items())
+        line = (
+            f"k={progress.step:4d}  {states}  tracking {progress.tracking_error_m:7.3f} m  "
+            f"estimates {progress.localization_error_m:7.4f} m"
+        )
+        if self._bar.active:
+            self._bar.write(line)
+        else:
+            print(line, flush=True)
+
+    def close(self):
+        self._bar.close()
+
+
 class _Progress:
     """A tqdm bar on stderr when it is a terminal; nothing otherwise."""
 
@@ -103,9 +183,16 @@ class _Progress:
 
             self._bar = tqdm(total=total, desc=label, unit="step", leave=False)
 
+    @property
+    def active(self):
+        return self._bar is not None
+
     def update_to(self, done, total):
         if self._bar is not None:
             self._bar.update(done - self._bar.n)
+
+    def write(self, line):
+        self._bar.write(line)
 
     def close(self):
         if self._bar is not None:

@@ -29,6 +29,30 @@ from .odometry import OdometrySample, OdometryTrack
 logger = logging.getLogger(__name__)
 
 ODOMETRY_RATE_HZ = 50.0
+_mavsdk_logging_routed = False
+
+
+def route_mavsdk_logs():
+    """Send MAVSDK's own log lines to the ``mavsdk`` Python logger instead of stdout."""
+    global _mavsdk_logging_routed  # noqa: PLW0603 - MAVSDK's log hook is process-wide
+    if _mavsdk_logging_routed:
+        return
+    from mavsdk.logging import LogLevel, log_subscribe  # noqa: PLC0415
+
+    mavsdk_logger = logging.getLogger("mavsdk")
+    levels = {
+        LogLevel.DEBUG: logging.DEBUG,
+        LogLevel.INFO: logging.DEBUG,
+        LogLevel.WARN: logging.WARNING,
+        LogLevel.ERROR: logging.ERROR,
+    }
+
+    def forward(level, message, _file, _line):
+        mavsdk_logger.log(levels.get(level, logging.INFO), "%s", message)
+        return True
+
+    log_subscribe(forward)
+    _mavsdk_logging_routed = True
 
 
 @contextlib.asynccontextmanager
@@ -38,6 +62,7 @@ async def connected_vehicles(urls, system_ids, *, timeout_s=20.0):
     Yields ``{system_id: mavsdk System}``. URLs are MAVSDK's: ``udpin://0.0.0.0:14540``,
     ``serial:///dev/ttyACM0:57600``.
     """
+    route_mavsdk_logs()
     config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
     async with Mavsdk(config) as mavsdk:
         for url in urls:

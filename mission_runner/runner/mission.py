@@ -35,6 +35,63 @@ logger = logging.getLogger(__name__)
 PHYSICS_RATE_MIN_HZ = 200.0
 
 
+@dataclass(frozen=True)
+class Progress:
+    """One step of a flight as a progress view shows it (truth-based errors: emulator only)."""
+
+    step: int
+    steps: int
+    time_s: float
+    states: dict
+    tracking_error_m: float
+    localization_error_m: float
+
+
+class _ProgressAggregator:
+    """Turns the controllers' per-vehicle step records into one :class:`Progress` per step."""
+
+    def __init__(self, scenario, world, emulator, callback):
+        self.ids = [vehicle.id for vehicle in scenario.vehicles]
+        self.steps = scenario.timing.steps
+        self.world, self.emulator, self.callback = world, emulator, callback
+        self.pending = {}
+
+    def __call__(self, vehicle_id, record):
+        step = self.pending.setdefault(record.step, {})
+        step[vehicle_id] = record
+        alive = {i for i, a in zip(self.ids, self.emulator.truth.alive, strict=True) if a}
+        if not alive <= step.keys():
+            return
+        records = self.pending.pop(record.step)
+        sample = next((s for s in reversed(self.world.samples) if s.step == record.step), None)
+        tracking = localization = float("nan")
+        if sample is not None and sample.alive.any():
+            centroid = sample.positions_m[sample.alive].mean(axis=0)
+            tracking = float(np.hypot(*(centroid - sample.target_m)))
+            localization = _worst_estimate(self.ids, records, sample)
+        self.callback(
+            Progress(
+                record.step,
+                self.steps,
+                record.time_s,
+                {i: r.state for i, r in sorted(records.items())},
+                tracking,
+                localization,
+            )
+        )
+
+
+def _worst_estimate(ids, records, sample):
+    """max |phat_ij - p_ij| over the estimates in ``records`` against truth ``sample``."""
+    worst = 0.0
+    for vehicle_id, record in records.items():
+        own = sample.positions_m[ids.index(vehicle_id)]
+        for peer, estimate in record.estimates_m.items():
+            other = sample.target_m if peer == 0 else sample.positions_m[ids.index(peer)]
+            worst = max(worst, float(np.hypot(*(estimate - (own - other)))))
+    return worst
+
+
 @dataclass
 class FlightOutcome:
     """A flown mission: the scored result, every controller's records, timings."""
@@ -52,8 +109,12 @@ def physics_rate_hz(step_s):
     return math.ceil(PHYSICS_RATE_MIN_HZ * step_s) / step_s
 
 
-async def fly(scenario, *, emulator_overrides=None, on_step=None):
-    """Fly ``scenario`` on the bundled emulator. Returns a :class:`FlightOutcome`."""
+async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=None):
+    """Fly ``scenario`` on the bundled emulator. Returns a :class:`FlightOutcome`.
+
+    on_step(vehicle_id, record) sees every controller step; on_progress(Progress) every step of
+    the whole swarm.
+    """
     from sitl.emulator import Emulator  # noqa: PLC0415 - real-vehicle runs do not need it
     from sitl.world import World  # noqa: PLC0415
 
@@ -104,7 +165,17 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None):
             for vehicle, altitude in zip(vehicles, altitudes, strict=True):
                 group.create_task(vehicle.take_off(altitude), name=f"takeoff-{vehicle.system_id}")
 
-        controllers = _controllers(scenario, vehicles, altitudes, bus, topics, emulator, on_step)
+        callbacks = [on_step] if on_step else []
+        if on_progress is not None:
+            callbacks.append(_ProgressAggregator(scenario, world, emulator, on_progress))
+
+        def step_callback(vehicle_id, record):
+            for callback in callbacks:
+                callback(vehicle_id, record)
+
+        controllers = _controllers(
+            scenario, vehicles, altitudes, bus, topics, emulator, step_callback
+        )
         start = asyncio.get_running_loop().create_future()
         mission_started = None
         async with contextlib.AsyncExitStack() as clocks:
@@ -235,11 +306,8 @@ def _scored(scenario, samples, records, controllers):
             if k < count - 1:
                 commands[0, k, column] = record.velocity_ned_m_s[:2]
                 consensus[0, k] = max(consensus[0, k], float(np.hypot(*record.consensus_m_s)))
-                truth = truth_by_step[k]
-                for peer, estimate in record.estimates_m.items():
-                    other = truth.target_m if peer == 0 else truth.positions_m[ids.index(peer)]
-                    error = np.hypot(*(estimate - (truth.positions_m[column] - other)))
-                    localization[0, k] = max(localization[0, k], error)
+                worst = _worst_estimate(ids, {vehicle_id: record}, truth_by_step[k])
+                localization[0, k] = max(localization[0, k], worst)
     for column, controller in enumerate(controllers):
         if count == steps + 1 and np.isnan(phases[0, steps, column]):
             phases[0, steps, column] = controller.law.phase_rad
