@@ -323,7 +323,11 @@ METRICS = (
     "min_separation_m",
     "final_live_vehicles",
 )
-MetricName = Literal[METRICS]
+FLIGHT_METRICS = (
+    "vehicles_disarmed_at_end",
+    "vehicles_in_formation_at_end",
+)
+MetricName = Literal[METRICS + FLIGHT_METRICS]
 
 
 class Expectation(Model):

@@ -53,6 +53,7 @@ class ControllerSettings:
     wall_deadline_s: float = 0.5
     release_s: float = 0.03
     odometry_timeout_s: float = 1.0
+    lost_after_missed_steps: int = 3
     silence_timeout_s: float = 1.0
     member_timeout_steps: int = 8
     max_horizontal_speed_m_s: float = 10.0
@@ -124,6 +125,7 @@ class VehicleController:
         self._last_target = None
         self._last_fresh_s = None
         self._previous_command = None
+        self._missed_odometry = 0
         self.records = []
 
     def _step_of(self, time_s):
@@ -172,6 +174,13 @@ class VehicleController:
                 try:
                     for k in range(steps):
                         await self._step(k)
+                        if self._missed_odometry >= self.settings.lost_after_missed_steps:
+                            # Dead vehicle or dead link: stop driving it; PX4's offboard-loss
+                            # failsafe holds or lands it, and the others re-balance without it.
+                            self.state = "lost"
+                            logger.warning("vehicle %s: lost at step %d", self.vehicle_id, k)
+                            await self._publish_status(k, self.start_s + k * self.settings.step_s)
+                            break
                 finally:
                     pump.cancel()
         return self.records
@@ -204,19 +213,18 @@ class VehicleController:
         await self.clock.sleep_until(t_k)
         odometry = await self._odometry_at(t_k)
         phase = self.law.phase_rad
-        message = StepMessage(
-            self.vehicle_id,
-            k,
-            t_k,
-            phase,
-            *(odometry[:2] if odometry is not None else (math.nan, math.nan)),
-        )
         observation = None
         if odometry is not None:
+            self._missed_odometry = 0
             # The target observation of step k is usually in by now; wait briefly if not.
             observation = await self._target_observation(k)
-            message = self._with_target(message, observation)
+            message = self._with_target(
+                StepMessage(self.vehicle_id, k, t_k, phase, odometry[0], odometry[1]),
+                observation,
+            )
             await self._publish(self.topics.step(self.vehicle_id), message)
+        else:
+            self._missed_odometry += 1
         await self._wait_inputs(k, t_k)
         data = self.inbox.take(k)
         now = self.clock.now_s()

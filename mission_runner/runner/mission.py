@@ -178,47 +178,46 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
         )
         start = asyncio.get_running_loop().create_future()
         mission_started = None
-        async with contextlib.AsyncExitStack() as clocks:
-            for controller in controllers:
-                await clocks.enter_async_context(controller.clock)
-            async with asyncio.TaskGroup() as group:
-                flying = [
-                    group.create_task(
-                        _fly_one(controller, start, scenario.timing.steps),
-                        name=f"controller-{controller.vehicle_id}",
+        async with asyncio.TaskGroup() as group:
+            flying = [
+                group.create_task(
+                    _fly_one(controller, start, scenario.timing.steps),
+                    name=f"controller-{controller.vehicle_id}",
+                )
+                for controller in controllers
+            ]
+            async with asyncio.TaskGroup() as entering:
+                for vehicle in vehicles:
+                    entering.create_task(
+                        vehicle.start_offboard(), name=f"offboard-{vehicle.system_id}"
                     )
-                    for controller in controllers
-                ]
-                async with asyncio.TaskGroup() as entering:
-                    for vehicle in vehicles:
-                        entering.create_task(
-                            vehicle.start_offboard(), name=f"offboard-{vehicle.system_id}"
-                        )
-                start_s = math.ceil((emulator.time_s + flight.start_delay_s) / step_s) * step_s
-                world.start(start_s)
-                _schedule_events(scenario, emulator, world, start_s)
-                mission_started = time.perf_counter()
-                start.set_result(start_s)
-            records = {
-                c.vehicle_id: task.result() for c, task in zip(controllers, flying, strict=True)
-            }
+            start_s = math.ceil((emulator.time_s + flight.start_delay_s) / step_s) * step_s
+            world.start(start_s)
+            _schedule_events(scenario, emulator, world, start_s)
+            mission_started = time.perf_counter()
+            start.set_result(start_s)
+        records = {c.vehicle_id: task.result() for c, task in zip(controllers, flying, strict=True)}
         mission_wall = time.perf_counter() - mission_started
         async with asyncio.TaskGroup() as group:
-            for vehicle, alive in zip(vehicles, emulator.truth.alive, strict=True):
-                if alive:
+            for vehicle, controller in zip(vehicles, controllers, strict=True):
+                if controller.state != "lost":
                     group.create_task(
                         vehicle.finish(flight.end_action), name=f"finish-{vehicle.system_id}"
                     )
         stats = emulator.stats()
-        result = _scored(scenario, world.samples, records, controllers)
+        disarmed = int(np.sum(~np.asarray(emulator.truth.armed)))
+        result = _scored(scenario, world.samples, records, controllers, disarmed)
     return FlightOutcome(
         result, records, start_s, time.perf_counter() - started, mission_wall, stats
     )
 
 
 async def _fly_one(controller, start, steps):
-    start_s = await controller.hover_until(start)
-    return await controller.run(start_s, steps)
+    """One controller from hover to the end; it leaves the mission clock as soon as it is done,
+    so a lost vehicle never holds the others' lockstep time."""
+    async with controller.clock:
+        start_s = await controller.hover_until(start)
+        return await controller.run(start_s, steps)
 
 
 def _controllers(scenario, vehicles, altitudes, bus, topics, emulator, on_step):  # noqa: PLR0917
@@ -283,14 +282,19 @@ def _schedule_events(scenario, emulator, world, start_s):
             raise RunnerError(f"event {event.kind} cannot be flown (simulate it instead)")
 
 
-def _scored(scenario, samples, records, controllers):
-    """Score a flight from the world's truth samples and the controllers' records."""
+def _scored(scenario, samples, records, controllers, disarmed):
+    """Score a flight from the world's truth samples and the controllers' records.
+
+    A vehicle counts in the formation at step k when it is alive and its controller followed
+    the law at k (not holding on stale data, not failed safe).
+    """
     steps = scenario.timing.steps
     samples = samples[: steps + 1]
     ids = [vehicle.id for vehicle in scenario.vehicles]
     n, count = len(ids), len(samples)
     positions = np.stack([s.positions_m for s in samples])[None]
     live = np.stack([s.alive for s in samples])[None]
+    following = np.zeros_like(live)
     target = np.stack([s.target_m for s in samples])
     phases = np.full((1, count, n), np.nan)
     commands = np.zeros((1, max(count - 1, 0), n, 2))
@@ -303,6 +307,7 @@ def _scored(scenario, samples, records, controllers):
             if k >= count:
                 continue
             phases[0, k, column] = record.phase_rad
+            following[0, k, column] = record.state == "following"
             if k < count - 1:
                 commands[0, k, column] = record.velocity_ned_m_s[:2]
                 consensus[0, k] = max(consensus[0, k], float(np.hypot(*record.consensus_m_s)))
@@ -311,6 +316,8 @@ def _scored(scenario, samples, records, controllers):
     for column, controller in enumerate(controllers):
         if count == steps + 1 and np.isnan(phases[0, steps, column]):
             phases[0, steps, column] = controller.law.phase_rad
+            following[0, steps, column] = following[0, steps - 1, column]
+    live &= following
     phases = np.where(live, phases, np.nan)
     gaps = positions[..., :, None, :] - positions[..., None, :, :]
     distance = np.sqrt(np.sum(gaps * gaps, axis=-1))
@@ -325,4 +332,8 @@ def _scored(scenario, samples, records, controllers):
         "separation_m": np.where(pair, distance, np.inf).min(axis=(-1, -2)),
     }
     times = np.array([s.time_s for s in samples]) - samples[0].time_s
-    return score(scenario, times, target, out)
+    extra = {
+        "vehicles_disarmed_at_end": np.array([disarmed]),
+        "vehicles_in_formation_at_end": np.array([int(live[0, -1].sum())]),
+    }
+    return score(scenario, times, target, out, extra)

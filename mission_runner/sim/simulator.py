@@ -7,7 +7,7 @@ flying vehicle runs. Runs are batched on a leading axis: ``runs=N`` simulates N 
 at once. Ground truth is used here only to make measurements and to score the run.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -40,6 +40,7 @@ class SimulationResult:
     phase_spacing_error_rad: np.ndarray
     consensus_speed_m_s: np.ndarray
     separation_m: np.ndarray
+    extra_metrics: dict = field(default_factory=dict)
 
     @property
     def runs(self):
@@ -240,7 +241,7 @@ def _closest_pair(distance, live):
     return np.where(pair, distance, np.inf).min(axis=(-1, -2))
 
 
-def score(scenario, times, target, out):
+def score(scenario, times, target, out, extra_metrics=None):
     """A :class:`SimulationResult` from recorded series (simulated or flown): adds the tracking
     error (centroid of live vehicles to target) and the phase-spacing error."""
     positions, live = out["positions_m"], out["live"]
@@ -255,5 +256,6 @@ def score(scenario, times, target, out):
         target_m=target,
         tracking_error_m=tracking,
         phase_spacing_error_rad=spacing,
+        extra_metrics=extra_metrics or {},
         **out,
     )
