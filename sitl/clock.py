@@ -28,6 +28,11 @@ A participant's loop looks like::
 
 A participant that stops acting (crashed, hung) is dropped after ``participant_timeout_s`` wall
 seconds with a warning; leaving ``participant()`` unregisters it at once, also on errors.
+
+The driver advances in fixed steps (:meth:`Clock.set_step`, the physics step). A release that
+falls between two steps lets the world run to the last step before it, and ``sleep_until`` of
+such a time returns there: the world cannot get closer without passing the release. Releasing
+multiples of the step avoids the rounding.
 """
 
 from __future__ import annotations
@@ -101,6 +106,7 @@ class Clock:
         self._changed: asyncio.Event | None = None
         self._sleepers: list[tuple[float, int, asyncio.Future[None]]] = []
         self._sleeper_ids = itertools.count()
+        self._step_s: float | None = None
 
     @classmethod
     def from_config(cls, config: ClockConfig, **kwargs: object) -> Clock:
@@ -117,6 +123,19 @@ class Clock:
         """Fix wall time zero; called by the emulator when it starts (later calls are no-ops)."""
         if self._wall_start_s is None:
             self._wall_start_s = self._wall_time()
+
+    def set_step(self, step_s: float) -> None:
+        """Driver only: simulated time advances in steps of ``step_s`` seconds."""
+        if not step_s > 0:
+            raise ClockError(f"step must be > 0, got {step_s!r}")
+        self._step_s = step_s
+
+    def _reachable(self, time_s: float) -> float:
+        """The last step time at or before ``time_s`` (``time_s`` itself without steps)."""
+        step = self._step_s
+        if step is None or not math.isfinite(time_s):
+            return time_s
+        return math.floor(time_s / step + 1e-9) * step
 
     @property
     def started(self) -> bool:
@@ -203,10 +222,11 @@ class Clock:
                 if remaining <= 0:
                     return
                 await asyncio.sleep(remaining / self.speed)
-        if self._lockstep_now_s >= time_s:
+        wake_s = self._reachable(time_s) - 1e-9
+        if self._lockstep_now_s >= wake_s:
             return
         future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        heapq.heappush(self._sleepers, (time_s, next(self._sleeper_ids), future))
+        heapq.heappush(self._sleepers, (wake_s, next(self._sleeper_ids), future))
         await future
 
     async def sleep(self, duration_s: float) -> None:

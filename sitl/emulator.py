@@ -52,6 +52,8 @@ LinkName = Literal["api", "gcs", "all"]
 SensorName = Literal["flow", "gps"]
 
 _LOCKSTEP_BATCH_STEPS = 10
+#: Steps run back to back before datagrams get a turn, when real time has run ahead.
+_CATCH_UP_BATCH_STEPS = 25
 
 
 @dataclass(frozen=True, slots=True)
@@ -237,6 +239,8 @@ class Emulator:
         except BaseException:
             await self._close_io()
             raise
+        self.clock.set_step(self._dt_s)
+        self._warn_about_client_timers()
         self.clock.start()
         self._wall_start_s = time.monotonic()
         self._epoch_start_us = int(time.time() * 1e6)
@@ -339,6 +343,32 @@ class Emulator:
             ap.on_statustext = self._statustext_observer(ap.index)
         for fault in config.faults:
             self._schedule_fault(fault)
+
+    def _warn_about_client_timers(self) -> None:
+        """MAVSDK's timers are wall-clock; at high speed factors PX4's timeouts (simulated
+        seconds) can fire between two of its messages."""
+        clock = self.clock
+        if clock.mode != "realtime" or not self._autopilots:
+            return
+        params = self._autopilots[0].params
+        # MAVSDK resends offboard setpoints every 50 ms of wall time; allow 5x for scheduling.
+        if clock.speed * 0.25 >= params["COM_OF_LOSS_T"]:
+            logger.warning(
+                "speed x%g: 0.25 wall s between offboard setpoints are %.2f simulated s, more "
+                "than COM_OF_LOSS_T = %.2f s; offboard may fail safe spuriously",
+                clock.speed,
+                clock.speed * 0.25,
+                params["COM_OF_LOSS_T"],
+            )
+        # MAVSDK sends its heartbeat once per wall second.
+        if params["NAV_DLL_ACT"] != 0 and clock.speed * 1.5 >= params["COM_DL_LOSS_T"]:
+            logger.warning(
+                "speed x%g: client heartbeats arrive %.1f simulated s apart, close to "
+                "COM_DL_LOSS_T = %d s; the data-link-loss failsafe may fire spuriously",
+                clock.speed,
+                clock.speed,
+                params["COM_DL_LOSS_T"],
+            )
 
     def _statustext_observer(self, index: int) -> Callable[[float, int, str], None]:
         def observe(time_s: float, severity: int, text: str) -> None:
@@ -449,7 +479,7 @@ class Emulator:
             if lockstep:
                 batch = min(due, _LOCKSTEP_BATCH_STEPS)
             else:
-                batch = due
+                batch = min(due, _CATCH_UP_BATCH_STEPS)
                 if due > 1:
                     self._late_wakeups += 1
                     self._max_lag_s = max(self._max_lag_s, (due - 1) * dt)

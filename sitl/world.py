@@ -42,6 +42,12 @@ class TruthSample:
     alive: np.ndarray
 
 
+def _step_of(message, world):
+    if getattr(message, "step", None) is not None:
+        return message.step
+    return round((message.time_s - world.start_s) / world.step_s)
+
+
 class World:
     """Target + UWB + tracker for an :class:`sitl.emulator.Emulator`. Use as ``async with``.
 
@@ -170,6 +176,8 @@ class World:
     async def _publish(self):
         while True:
             topic, message = await self._queue.get()
+            if self._next_step - _step_of(message, self) > 2:
+                continue  # the bus was down: a stale measurement is worse than none
             try:
                 await self.bus.publish_message(topic, message, timeout=self.step_s)
                 self.published += 1

@@ -157,6 +157,7 @@ class Bench:
         vn: float,
         ve: float,
         vd: float,
+        *,
         yaw: float = 0.0,
         vehicle: int = 0,
         target: int | None = None,

@@ -426,3 +426,34 @@ def test_odometry_starts_at_the_power_on_point_and_drifts() -> None:
     bench.run(100)
     x, y, _, *_ = bench.autopilots[1].odometry_sample()
     assert math.hypot(x, y) > 0.05  # standing still, but the estimate has wandered
+
+
+def test_attitude_setpoints_become_an_acceleration() -> None:
+    bench = Bench()
+    airborne(bench)
+    pitch_forward = [math.cos(-0.1), 0.0, math.sin(-0.1), 0.0]  # nose down 0.2 rad, heading north
+    msg = mavlink.MAVLink_set_attitude_target_message(0, 1, 1, 0x7, pitch_forward, 0, 0, 0, 0.5)
+    bench.deliver(msg)
+    climb = bench.physics.velocity_ned_m_s[0, 2]
+    assert bench.set_mode(OFFBOARD) == ACCEPTED
+    for _ in range(10):
+        bench.deliver(msg)
+        bench.run(0.1)
+    velocity = bench.physics.velocity_ned_m_s[0]
+    assert velocity[0] == pytest.approx(9.81 * math.tan(0.2), rel=0.05)  # a = g tan(pitch), 1 s
+    assert velocity[2] == pytest.approx(climb, abs=1e-9)  # hover thrust: no vertical accel
+
+
+def test_global_position_setpoints_fly_to_the_coordinates() -> None:
+    bench = Bench()
+    airborne(bench)
+    lat, lon = bench.projection.to_global(-8.0, 6.0)
+    msg = mavlink.MAVLink_set_position_target_global_int_message(
+        0, 1, 1, 6, 3576, round(lat * 1e7), round(lon * 1e7), 4.0, 0, 0, 0, 0, 0, 0, 0, 0
+    )
+    bench.deliver(msg)
+    assert bench.set_mode(OFFBOARD) == ACCEPTED
+    for _ in range(100):
+        bench.deliver(msg)
+        bench.run(0.1)
+    assert bench.position() == pytest.approx([-8.0, 6.0, -4.0], abs=0.05)

@@ -134,3 +134,19 @@ async def test_realtime_sleep_uses_scaled_wall_time() -> None:
     clock.start()
     await asyncio.wait_for(clock.sleep(1.0), 1.0)  # 1 simulated s = 20 ms wall
     assert clock.now_s >= 1.0
+
+
+@pytest.mark.asyncio
+async def test_a_release_between_steps_wakes_the_sleeper_at_the_last_step_before_it() -> None:
+    clock = Clock("lockstep")
+    clock.set_step(0.02)
+    clock.start()
+    clock.register("p")
+    clock.acted("p", 0.05)
+    sleeper = asyncio.create_task(clock.sleep_until(0.05), name="sleeper")
+    await asyncio.sleep(0)
+    clock.advance_to(0.02)
+    await asyncio.sleep(0)
+    assert not sleeper.done()
+    clock.advance_to(0.04)  # the next step (0.06) would pass the release
+    await asyncio.wait_for(sleeper, 1.0)

@@ -44,7 +44,7 @@ def test_the_default_layout_works_for_any_vehicle_count(vehicles: int) -> None:
 def test_explicit_overlaps_are_refused() -> None:
     with pytest.raises(ValidationError, match="overlaps"):
         EmulatorConfig(vehicles=5, ports=PortsConfig(api_local_base=14542))
-    with pytest.raises(ValidationError, match="contains ports.gcs_remote_port"):
+    with pytest.raises(ValidationError, match=r"contains ports\.gcs_remote_port"):
         EmulatorConfig(vehicles=5, ports=PortsConfig(gcs_local_base=14548))
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import math
 import socket
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,7 @@ def config(n: int = 1, **kwargs: object) -> EmulatorConfig:
     return EmulatorConfig(vehicles=n, ports=free_port_config(n), **kwargs)  # type: ignore[arg-type]
 
 
-def is_heartbeat_of(sysid: int):  # noqa: ANN201 - small predicate factory
+def is_heartbeat_of(sysid: int) -> Callable[[mavlink.MAVLink_message], bool]:
     return lambda m: m.get_type() == "HEARTBEAT" and m.get_srcSystem() == sysid
 
 
@@ -284,3 +285,16 @@ async def test_lockstep_without_participants_runs_as_fast_as_it_can() -> None:
         stats = emulator.stats()
     assert stats.sim_time_s >= 20.0
     assert stats.handler_errors == 0
+
+
+@pytest.mark.asyncio
+async def test_a_participant_off_the_step_grid_does_not_deadlock() -> None:
+    clock = Clock("lockstep", participant_timeout_s=None)
+    cfg = config(1, clock=ClockConfig(mode="lockstep"))
+    async with Emulator(cfg, clock=clock) as emulator, clock.participant("p") as me:
+        t = clock.now_s
+        for _ in range(40):  # 20 Hz releases against the 50 Hz physics step
+            t += 0.05
+            me.acted(t)
+            await asyncio.wait_for(clock.sleep_until(t), 5)
+            assert t - emulator.dt_s < emulator.time_s <= t + 1e-9
