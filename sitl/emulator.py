@@ -54,6 +54,9 @@ SensorName = Literal["flow", "gps"]
 _LOCKSTEP_BATCH_STEPS = 10
 #: Steps run back to back before datagrams get a turn, when real time has run ahead.
 _CATCH_UP_BATCH_STEPS = 25
+#: Mode logic, failsafes and timers need no more than this (PX4's commander runs slower);
+#: a faster physics rate only refines the motion.
+_AUTOPILOT_RATE_HZ = 50.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -218,6 +221,7 @@ class Emulator:
         self._schedule_ids = itertools.count()
         self._steps = 0
         self._dt_s = 1.0 / self.config.physics.rate_hz
+        self._autopilot_every = max(1, round(self.config.physics.rate_hz / _AUTOPILOT_RATE_HZ))
         self._task_group: asyncio.TaskGroup | None = None
         self._run_task: asyncio.Task[None] | None = None
         self._progress = asyncio.Event()
@@ -498,8 +502,9 @@ class Emulator:
         while schedule and schedule[0][0] <= now + 1e-9:
             _, _, _, action = heapq.heappop(schedule)
             action()
-        for ap in self._autopilots:
-            ap.update(now)
+        if self._steps % self._autopilot_every == 0:
+            for ap in self._autopilots:
+                ap.update(now)
         physics.step(dt)
         odometry.step(dt)
         self._steps += 1

@@ -204,7 +204,7 @@ class MulticopterPhysics:
         if grounded.any():
             pos[grounded, 2] = 0.0
             vel[grounded, 2] = np.minimum(vel[grounded, 2], 0.0)
-        self.acceleration_ned_m_s2 = accel
+        self.acceleration_ned_m_s2[:] = accel
 
         self._attitude(accel, dt)
 
@@ -218,8 +218,7 @@ class MulticopterPhysics:
         dist_xy = np.hypot(err_xy[:, 0], err_xy[:, 1])
         brake_xy = np.sqrt(2.0 * self.max_horizontal_accel_m_s2[mask] * dist_xy)
         speed_xy = np.minimum(gain * dist_xy, np.minimum(self.cruise_speed_m_s[mask], brake_xy))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            scale = np.where(dist_xy > 1e-9, speed_xy / dist_xy, 0.0)
+        scale = speed_xy / np.maximum(dist_xy, 1e-9)  # speed_xy <= gain * dist_xy: no blow-up
         v = np.empty_like(error)
         v[:, :2] = err_xy * scale[:, None]
         # Vertical: down positive; climb limited by up speed, descent by down speed.
@@ -232,22 +231,14 @@ class MulticopterPhysics:
         return v + self.velocity_feedforward_ned_m_s[mask]
 
     def _limit_velocity(self, v: FloatArray) -> FloatArray:
-        speed_xy = np.hypot(v[:, 0], v[:, 1])
         limit = self.max_horizontal_speed_m_s
-        with np.errstate(invalid="ignore", divide="ignore"):
-            scale = np.where(speed_xy > limit, limit / speed_xy, 1.0)
-        v[:, 0] *= scale
-        v[:, 1] *= scale
+        v[:, :2] *= _shrink(np.hypot(v[:, 0], v[:, 1]), limit)[:, None]
         np.clip(v[:, 2], -self.max_up_speed_m_s, self.max_down_speed_m_s, out=v[:, 2])
         return v
 
     def _limit_acceleration(self, a: FloatArray) -> FloatArray:
-        acc_xy = np.hypot(a[:, 0], a[:, 1])
         limit = self.max_horizontal_accel_m_s2
-        with np.errstate(invalid="ignore", divide="ignore"):
-            scale = np.where(acc_xy > limit, limit / acc_xy, 1.0)
-        a[:, 0] *= scale
-        a[:, 1] *= scale
+        a[:, :2] *= _shrink(np.hypot(a[:, 0], a[:, 1]), limit)[:, None]
         np.clip(a[:, 2], -self.max_up_accel_m_s2, self.max_down_accel_m_s2, out=a[:, 2])
         return a
 
@@ -264,15 +255,22 @@ class MulticopterPhysics:
         # Do not overshoot the yaw setpoint within one step.
         rate = np.where(~has_rate & (np.abs(rate * dt) > np.abs(error)), error / dt, rate)
         flying = self.control_mode != MOTORS_OFF
-        rate = np.where(flying & ~self.on_ground(), rate, 0.0)
-        self.yaw_rate_rad_s = rate
-        self.yaw_rad = _wrap(yaw + rate * dt)
+        rate *= flying & ~self.on_ground()
+        # In place, so that references to these arrays stay valid.
+        self.yaw_rate_rad_s[:] = rate
+        self.yaw_rad[:] = _wrap(yaw + rate * dt)
         cos_y = np.cos(self.yaw_rad)
         sin_y = np.sin(self.yaw_rad)
         forward = accel[:, 0] * cos_y + accel[:, 1] * sin_y
-        right = -accel[:, 0] * sin_y + accel[:, 1] * cos_y
-        self.pitch_rad = np.where(flying, -np.arctan2(forward, GRAVITY_M_S2), 0.0)
-        self.roll_rad = np.where(flying, np.arctan2(right, GRAVITY_M_S2), 0.0)
+        right = accel[:, 1] * cos_y - accel[:, 0] * sin_y
+        # Motors off: no thrust to tilt with (accel is gravity only, so the atan2 give 0 there).
+        self.pitch_rad[:] = -np.arctan2(forward, GRAVITY_M_S2)
+        self.roll_rad[:] = np.arctan2(right, GRAVITY_M_S2)
+
+
+def _shrink(magnitude: FloatArray, limit: FloatArray) -> FloatArray:
+    """Factor that scales vectors of ``magnitude`` down to at most ``limit`` (1 below it)."""
+    return limit / np.maximum(np.maximum(magnitude, limit), 1e-12)
 
 
 def _wrap(angle_rad: FloatArray) -> FloatArray:
