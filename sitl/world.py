@@ -85,19 +85,28 @@ class World:
         self._down = {}  # (vehicle index, sensor) -> (from_s, until_s)
         self._queue = asyncio.Queue()
         self._remove_listener = None
+        self._group = None
         self._task = None
+        self._closing = False
         self.published = 0
         self.samples = []  # TruthSample per step, for scoring only
 
     async def __aenter__(self):
+        self._group = asyncio.TaskGroup()
+        await self._group.__aenter__()
         self._remove_listener = self.emulator.add_step_listener(self._on_step)
-        self._task = asyncio.get_running_loop().create_task(self._publish(), name="world-publisher")
+        self._task = self._group.create_task(self._publish(), name="world-publisher")
         return self
 
     async def __aexit__(self, *exc_info):
         self._remove_listener()
-        self._task.cancel()
-        await asyncio.gather(self._task, return_exceptions=True)
+        self._closing = True
+        # Python 3.11's asyncio.wait_for (inside the MQTT client's publish) can swallow a
+        # cancellation that races with its completion: cancel until the task is really done.
+        while not self._task.done():
+            self._task.cancel()
+            await asyncio.wait({self._task}, timeout=0.05)
+        await self._group.__aexit__(*exc_info)
 
     def start(self, start_s):
         """The mission's k = 0 is at ``start_s``: the target starts moving, ranging begins."""
@@ -174,7 +183,7 @@ class World:
             self._queue.put_nowait((self.topics.target(self.vehicle_ids[i]), observation))
 
     async def _publish(self):
-        while True:
+        while not self._closing:
             topic, message = await self._queue.get()
             if self._next_step - _step_of(message, self) > 2:
                 continue  # the bus was down: a stale measurement is worse than none

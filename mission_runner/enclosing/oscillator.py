@@ -67,8 +67,9 @@ def splay_spacing_error(phases, live):
     # Close the circle: the gap after the last live phase wraps round to the first one.
     last_index = np.maximum(n_live - 1, 0)[..., None]
     last = np.take_along_axis(ordered, last_index, axis=-1)
-    gaps = np.diff(ordered, axis=-1)
-    gaps = np.concatenate([gaps, first + 2 * np.pi - last], axis=-1)
+    with np.errstate(invalid="ignore"):  # inf - inf between absent vehicles, masked below
+        gaps = np.diff(ordered, axis=-1)
+        gaps = np.concatenate([gaps, first + 2 * np.pi - last], axis=-1)
     index = np.arange(gaps.shape[-1])
     counted = (index < n_live[..., None] - 1) | (index == gaps.shape[-1] - 1)
     ideal = 2 * np.pi / np.maximum(n_live, 1)[..., None]

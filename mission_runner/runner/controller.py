@@ -293,15 +293,18 @@ class VehicleController:
         return self.inbox.pending_target(k)
 
     def _with_target(self, message, observation):
-        """Integrate the observed target velocity (trapezoid) and relay it."""
+        """Integrate the observed target velocity (trapezoid over the time since the previous
+        observation, so a gap in observations is bridged, not lost) and relay it."""
         if observation is None:
             return message
         velocity = np.array([observation.velocity_north_m_s, observation.velocity_east_m_s])
         if self._last_target is not None:
+            last_time_s, last_velocity = self._last_target
+            elapsed = observation.time_s - last_time_s
             self._target_odometry = (
-                self._target_odometry + 0.5 * (self._last_target + velocity) * self.settings.step_s
+                self._target_odometry + 0.5 * (last_velocity + velocity) * elapsed
             )
-        self._last_target = velocity
+        self._last_target = (observation.time_s, velocity)
         return StepMessage(
             message.vehicle_id,
             message.step,

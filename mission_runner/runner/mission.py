@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..bus import open_bus
+from ..bus import lost_vehicle_will, open_bus
 from ..config import emulator_config
 from ..enclosing import VehicleEnclosing
 from ..scenario import shape_matrices
@@ -33,6 +33,7 @@ from .links import MavsdkVehicle, connected_vehicles
 logger = logging.getLogger(__name__)
 
 PHYSICS_RATE_MIN_HZ = 200.0
+LOCKSTEP_MAX_SPEED = 25.0
 
 
 @dataclass(frozen=True)
@@ -124,7 +125,13 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
     flight, step_s = scenario.flight, scenario.timing.step_s
     ids = [vehicle.id for vehicle in scenario.vehicles]
     overrides = {
-        "clock": {"mode": flight.clock, "speed": flight.speed},
+        # Capped so that take-off and landing, when no controller holds lockstep time, do not
+        # flood MAVSDK (whose timers and callback queues run on wall time) with telemetry.
+        "clock": {
+            "mode": flight.clock,
+            "speed": flight.speed,
+            "lockstep_max_speed": LOCKSTEP_MAX_SPEED,
+        },
         "physics": {
             **scenario.flight.emulator.get("physics", {}),
             "rate_hz": physics_rate_hz(step_s),
@@ -135,7 +142,9 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
     topics = scenario.bus.topics(scenario.name)
     async with contextlib.AsyncExitStack() as stack:
         emulator = await stack.enter_async_context(Emulator(config))
-        bus = await stack.enter_async_context(open_bus(scenario.bus, client_id="mission"))
+        bus = await stack.enter_async_context(
+            open_bus(scenario.bus, client_id=f"{scenario.name}-world")
+        )
         world = await stack.enter_async_context(
             World(
                 emulator,
@@ -173,8 +182,22 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
             for callback in callbacks:
                 callback(vehicle_id, record)
 
+        # Over MQTT every vehicle has its own client, as on a real swarm (one companion computer
+        # each, with its last will on its status topic); in-process they share the one bus.
+        buses = [bus] * len(ids)
+        if scenario.bus.kind == "mqtt":
+            buses = [
+                await stack.enter_async_context(
+                    open_bus(
+                        scenario.bus,
+                        client_id=f"{scenario.name}-vehicle-{vehicle_id}",
+                        will=lost_vehicle_will(topics, vehicle_id, time_s=emulator.time_s),
+                    )
+                )
+                for vehicle_id in ids
+            ]
         controllers = _controllers(
-            scenario, vehicles, altitudes, bus, topics, emulator, step_callback
+            scenario, vehicles, altitudes, buses, topics, emulator, step_callback
         )
         start = asyncio.get_running_loop().create_future()
         mission_started = None
@@ -220,7 +243,7 @@ async def _fly_one(controller, start, steps):
         return await controller.run(start_s, steps)
 
 
-def _controllers(scenario, vehicles, altitudes, bus, topics, emulator, on_step):  # noqa: PLR0917
+def _controllers(scenario, vehicles, altitudes, buses, topics, emulator, on_step):  # noqa: PLR0917
     params = algorithm_params(scenario)
     step_s = scenario.timing.step_s
     ids = [vehicle.id for vehicle in scenario.vehicles]
@@ -235,7 +258,9 @@ def _controllers(scenario, vehicles, altitudes, bus, topics, emulator, on_step):
         velocity_lead_s=scenario.flight.velocity_lead_s,
     )
     controllers = []
-    for config, vehicle, altitude in zip(scenario.vehicles, vehicles, altitudes, strict=True):
+    for config, vehicle, altitude, bus in zip(
+        scenario.vehicles, vehicles, altitudes, buses, strict=True
+    ):
         law = VehicleEnclosing(
             params,
             config.id,
