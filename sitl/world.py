@@ -108,6 +108,11 @@ class World:
             await asyncio.wait({self._task}, timeout=0.05)
         await self._group.__aexit__(*exc_info)
 
+    @property
+    def idle(self):
+        """Whether every sampled measurement has been handed to the bus."""
+        return self._queue.empty()
+
     def start(self, start_s):
         """The mission's k = 0 is at ``start_s``: the target starts moving, ranging begins."""
         self.start_s = start_s

@@ -1,0 +1,103 @@
+"""The world around emulated vehicles: UWB ranging and the target tracker on the bus."""
+
+import math
+
+import numpy as np
+import pytest
+
+from mission_runner.bus import InProcessBus, RangeMessage, TargetObservation, Topics
+from mission_runner.config import CirclePath, SensorConfig
+from sitl.config import ClockConfig, EmulatorConfig
+from sitl.emulator import Emulator
+from sitl.world import World
+from tests.sitl.helpers import free_port_config
+
+pytestmark = pytest.mark.asyncio
+
+STEP_S = 0.125
+TOPICS = Topics("enclosing/world-test")
+
+
+def emulator_config(n=3):
+    return EmulatorConfig(
+        vehicles=n,
+        ports=free_port_config(n, gcs=False),
+        clock=ClockConfig(mode="lockstep"),
+        physics={"rate_hz": 200.0},
+        placement={"positions": [{"north_m": 4.0 * i, "east_m": 0.0} for i in range(n)]},
+    )
+
+
+async def collect(sensors, *, seconds, senses=(True, False, False), faults=()):
+    """Run the world for ``seconds`` and return every range and target message published."""
+    path = CirclePath(kind="circle", center_m=[0.0, 10.0], radius_m=2.0, period_s=20.0)
+    async with (
+        Emulator(emulator_config()) as emulator,
+        InProcessBus() as bus,
+        bus.subscribe(TOPICS.all_ranges(), queue_size=100_000) as ranges,
+        bus.subscribe(TOPICS.all_targets(), queue_size=100_000) as targets,
+        World(
+            emulator,
+            bus=bus,
+            topics=TOPICS,
+            vehicle_ids=[1, 2, 3],
+            senses_target=senses,
+            target_path=path,
+            target_altitude_m=0.0,
+            sensors=sensors,
+            step_s=STEP_S,
+            seed=4,
+        ) as world,
+    ):
+        for fault in faults:
+            world.fail_sensor(*fault)
+        world.start(math.ceil(emulator.time_s / STEP_S) * STEP_S)
+        await emulator.run_for(seconds)
+        await emulator.wait_for(lambda: world.idle, timeout_s=10, what="world queue drained")
+        return (
+            [m for _, m in ranges.drain_messages(RangeMessage)],
+            [m for _, m in targets.drain_messages(TargetObservation)],
+            world,
+        )
+
+
+async def test_ranges_are_sampled_at_step_boundaries_with_the_configured_noise():
+    ranges, _, world = await collect(SensorConfig(range_noise_std_m=0.1), seconds=40)
+    start = world.start_s
+    steps = {m.step for m in ranges}
+    assert len(steps) >= 300
+    for message in ranges:
+        assert message.time_s == pytest.approx(start + message.step * STEP_S, abs=1e-9)
+    # Vehicles sit 4 m apart on the ground: the noise is the difference to the true distance.
+    errors = np.array([m.range_m - 4.0 * abs(m.vehicle_id - m.peer_id) for m in ranges])
+    assert errors.std() == pytest.approx(0.1, rel=0.1)
+    assert abs(errors.mean()) < 0.01
+
+
+async def test_dropouts_and_maximum_range():
+    sensors = SensorConfig(range_dropout_probability=0.2, range_max_m=6.0)
+    ranges, _, world = await collect(sensors, seconds=30)
+    pairs_per_step = 4  # 1-2, 2-1, 2-3, 3-2 are within 6 m; 1-3, 3-1 (8 m) never are
+    steps = len(world.samples)
+    assert {(m.vehicle_id, m.peer_id) for m in ranges} == {(1, 2), (2, 1), (2, 3), (3, 2)}
+    assert len(ranges) / (steps * pairs_per_step) == pytest.approx(0.8, abs=0.04)
+
+
+async def test_target_observations_only_for_sensing_vehicles():
+    _, targets, world = await collect(SensorConfig(), seconds=5, senses=(False, True, False))
+    assert targets and {t.vehicle_id for t in targets} == {2}
+    first = targets[0]
+    expected = np.hypot(
+        4.0 - world.target_position(first.time_s)[0], 0.0 - world.target_position(first.time_s)[1]
+    )
+    assert first.range_m == pytest.approx(expected, abs=1e-6)
+    speed = 2 * math.pi * 2.0 / 20.0
+    assert math.hypot(first.velocity_north_m_s, first.velocity_east_m_s) == pytest.approx(
+        speed, rel=1e-3
+    )
+
+
+async def test_a_failed_uwb_stops_every_range_from_and_to_it():
+    faults = [(1, "uwb", 0.0, None)]  # vehicle index 1 (id 2) from the start
+    ranges, _, _ = await collect(SensorConfig(), seconds=3, faults=faults)
+    assert ranges and all(2 not in (m.vehicle_id, m.peer_id) for m in ranges)
