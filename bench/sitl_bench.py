@@ -69,9 +69,9 @@ async def hover_all(emulator: Emulator) -> None:
     )
 
 
-async def cpu_per_vehicle(n: int, seconds: float) -> tuple[float, float]:
+async def cpu_per_vehicle(n: int, seconds: float, rate_hz: float = 50.0) -> tuple[float, float]:
     """Percent of one core used by the whole process / per vehicle, in real time."""
-    cfg = EmulatorConfig(vehicles=n, ports=ports(n))
+    cfg = EmulatorConfig(vehicles=n, ports=ports(n), physics={"rate_hz": rate_hz})
     async with Emulator(cfg) as emulator:
         await hover_all(emulator)
         cpu0, wall0 = time.process_time(), time.monotonic()
@@ -155,9 +155,12 @@ def main() -> None:
         return result
 
     print("1. CPU per vehicle, real time, default telemetry, hovering")
-    for n in (10, 50):
-        total, per = run(f"{n} vehicles", lambda n=n: cpu_per_vehicle(n, window))  # type: ignore[misc]
-        print(f"   {n:3d} vehicles: {total:5.1f} % of one core in total, {per:.2f} % per vehicle")
+    for n, rate in ((10, 50.0), (50, 50.0), (10, 200.0)):
+        total, per = run(f"{n} vehicles", lambda n=n, rate=rate: cpu_per_vehicle(n, window, rate))  # type: ignore[misc]
+        print(
+            f"   {n:3d} vehicles, {rate:.0f} Hz physics: {total:5.1f} % of one core in total, "
+            f"{per:.2f} % per vehicle"
+        )
 
     print("2. 50 vehicles holding real time")
     figures = run("50 vehicles", lambda: realtime_jitter(50, window))
