@@ -54,6 +54,7 @@ class ControllerSettings:
     release_s: float = 0.03
     odometry_timeout_s: float = 1.0
     lost_after_missed_steps: int = 3
+    target_velocity_hold_steps: int = 8
     silence_timeout_s: float = 1.0
     member_timeout_steps: int = 8
     max_horizontal_speed_m_s: float = 10.0
@@ -64,7 +65,12 @@ class ControllerSettings:
 
 @dataclass
 class StepRecord:
-    """What the controller did at one step (for logs and progress views)."""
+    """What the controller did at one step (for logs and progress views).
+
+    setpoint_sent_s: mission-clock time at which the step's setpoint had been handed to the
+    vehicle link (after ``set_velocity_ned`` returned); ``setpoint_sent_s - time_s`` is the
+    step's lateness, for timing figures only (NaN if not measured).
+    """
 
     step: int
     time_s: float
@@ -74,6 +80,7 @@ class StepRecord:
     phase_rad: float
     neighbours_used: tuple
     estimates_m: dict
+    setpoint_sent_s: float = math.nan
 
 
 class VehicleController:
@@ -126,6 +133,7 @@ class VehicleController:
         self._last_fresh_s = None
         self._previous_command = None
         self._missed_odometry = 0
+        self._known_target_velocity = None
         self.records = []
 
     def _step_of(self, time_s):
@@ -264,8 +272,9 @@ class VehicleController:
             consensus = tuple(float(c) for c in command.consensus_m_s)
         vertical = self._altitude_hold(odometry)
         await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
+        sent_s = self.clock.now_s()
         record = StepRecord(
-            k, t_k, self.state, (*velocity, vertical), consensus, phase, used, estimates
+            k, t_k, self.state, (*velocity, vertical), consensus, phase, used, estimates, sent_s
         )
         self.records.append(record)
         await self._publish_status(k, t_k)
@@ -337,14 +346,26 @@ class VehicleController:
         return ranges
 
     def _target_report(self, data, observation):
+        """The target's motion at step k: own observation, else a neighbour's relay, else the
+        last known velocity for up to ``target_velocity_hold_steps`` (the target moves smoothly;
+        dropping the feed-forward to 0 for a step would make the whole formation fall behind)."""
+        velocity = None
+        odometry = (math.nan, math.nan)
         if observation is not None:
             velocity = (observation.velocity_north_m_s, observation.velocity_east_m_s)
-            return TargetReport(tuple(self._target_odometry), velocity)
-        for message in data.neighbours.values():
-            if message.has_target:
-                velocity = (message.target_velocity_north_m_s, message.target_velocity_east_m_s)
-                return TargetReport((math.nan, math.nan), velocity)
-        return None
+            odometry = tuple(self._target_odometry)
+        else:
+            for message in data.neighbours.values():
+                if message.has_target:
+                    velocity = (message.target_velocity_north_m_s, message.target_velocity_east_m_s)
+                    break
+        if velocity is not None:
+            self._known_target_velocity = (data.step, velocity)
+        elif self._known_target_velocity is not None:
+            step, known = self._known_target_velocity
+            if data.step - step <= self.settings.target_velocity_hold_steps:
+                velocity = known
+        return None if velocity is None else TargetReport(odometry, velocity)
 
     def _lead(self, velocity):
         """u + lead * du/dt: offsets the vehicle's velocity-loop lag and the command delay, so

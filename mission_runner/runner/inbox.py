@@ -78,7 +78,7 @@ class StepInbox:
 
     def _slot(self, step):
         if step < self._current:
-            self.discarded_late += 1
+            self.discarded_late += 1  # never applied to a later step
             return None
         if step > self._current + self._horizon:
             return None
@@ -88,6 +88,10 @@ class StepInbox:
         """A neighbour's StepMessage (own messages are ignored)."""
         if message.vehicle_id == self.own_id or message.vehicle_id not in self._last_heard:
             return
+        # Even a late message proves its sender is alive: without this, a neighbour that fell
+        # out of the membership and is always a little late would never be waited for again.
+        heard = self._last_heard[message.vehicle_id]
+        self._last_heard[message.vehicle_id] = max(heard, min(message.step, self._current))
         data = self._slot(message.step)
         if data is not None:
             data.neighbours[message.vehicle_id] = message

@@ -106,3 +106,21 @@ async def test_wait_complete_wakes_on_arrival_and_gives_up_at_the_deadline():
     await asyncio.sleep(0)
     await deliver()
     assert await waiter is True
+
+
+def test_a_neighbour_that_is_always_late_rejoins_and_is_waited_for_again():
+    box = inbox(timeout=3)
+    for k in range(6):  # vehicle 3 silent: it leaves
+        box.add_step(step(2, k))
+        data = box.take(k)
+    assert 3 not in data.members
+    box.add_step(step(2, 6))
+    data = box.take(6)
+    box.add_step(step(3, 6))  # late for step 6, but alive
+    assert 3 in box.members()
+    box.add_step(step(2, 7))
+    for message in ranges(7, 2, 3):
+        box.add_range(message)
+    assert not box.complete(7)  # now waited for
+    box.add_step(step(3, 7))
+    assert box.complete(7)
