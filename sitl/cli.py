@@ -24,6 +24,7 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
+from mission_runner.errors import MissionRunnerError
 from sitl.config import EmulatorConfig
 from sitl.emulator import Emulator
 from sitl.errors import SitlError
@@ -67,6 +68,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="like PX4 SITL, vehicles with index > 9 all send to api-port-base + 9",
     )
     parser.add_argument("--config", type=Path, help="emulator settings (YAML)")
+    parser.add_argument(
+        "--scenario",
+        type=Path,
+        help="a mission scenario: its vehicles, target and UWB ranging, published on its bus "
+        "(UNIX time) for controllers in other processes",
+    )
+    parser.add_argument(
+        "--start-after",
+        type=float,
+        help="with --scenario: k = 0 this many seconds after start (default: on a start command)",
+    )
     parser.add_argument("--tlog-dir", type=Path, help="record vehicle_<sysid>.tlog files here")
     parser.add_argument("--seed", type=int, help="random seed (wind, odometry noise)")
     parser.add_argument(
@@ -116,14 +128,34 @@ def load_config(args: argparse.Namespace) -> EmulatorConfig:
     return EmulatorConfig.model_validate(data)
 
 
-async def run(config: EmulatorConfig) -> None:
-    """Run the emulator until SIGINT or SIGTERM."""
+async def run(config: EmulatorConfig, scenario=None, start_after_s=None) -> None:
+    """Run the emulator (and the scenario's world) until SIGINT or SIGTERM."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError):
             loop.add_signal_handler(sig, stop.set)
-    async with Emulator(config) as emulator:
+    async with contextlib.AsyncExitStack() as stack:
+        if scenario is None:
+            emulator = await stack.enter_async_context(Emulator(config))
+        else:
+            from sitl.scenario_world import scenario_world  # noqa: PLC0415
+
+            emulator, _ = await stack.enter_async_context(
+                scenario_world(
+                    scenario,
+                    overrides={
+                        "ports": config.ports.model_dump(),
+                        "clock": config.clock.model_dump(),
+                        "tlog_dir": config.tlog_dir,
+                    },
+                    start_after_s=start_after_s,
+                )
+            )
+            prefix = scenario.bus.topics(scenario.name).prefix
+            print(
+                f"sitl: scenario {scenario.name}: world on the {scenario.bus.kind} bus, {prefix}/"
+            )
         print(
             f"sitl: {config.vehicles} vehicle(s) ready, clock {config.clock.mode} "
             f"x{config.clock.speed:g}"
@@ -153,8 +185,22 @@ def main(argv: list[str] | None = None) -> int:
         level=getattr(logging, args.log_level),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    scenario = None
     try:
         config = load_config(args)
+        if args.scenario is not None:
+            from mission_runner.config import emulator_config, load_scenario  # noqa: PLC0415
+
+            scenario = load_scenario(args.scenario)
+            config = emulator_config(
+                scenario,
+                ports=config.ports.model_dump(),
+                clock=config.clock.model_dump(),
+                tlog_dir=config.tlog_dir,
+            )
+    except MissionRunnerError as exc:
+        print(f"sitl: {exc}", file=sys.stderr)
+        return 2
     except ValidationError as exc:
         print(f"sitl: invalid settings:\n{exc}", file=sys.stderr)
         return 2
@@ -162,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sitl: cannot read settings: {exc}", file=sys.stderr)
         return 2
     try:
-        asyncio.run(run(config))
+        asyncio.run(run(config, scenario, args.start_after))
     except SitlError as exc:
         print(f"sitl: {exc}", file=sys.stderr)
         return 1

@@ -52,6 +52,9 @@ class World:
     """Target + UWB + tracker for an :class:`sitl.emulator.Emulator`. Use as ``async with``.
 
     vehicle_ids: the scenario id of emulator vehicle index i is ``vehicle_ids[i]``.
+    time_offset_s: mission time = simulated time + offset (0 in-process; the emulator's UNIX
+    epoch when vehicles in other processes keep UNIX time). Every time the world takes or
+    stamps is mission time.
     senses_target: ``(N,)`` bool. sensors: the scenario's ``SensorConfig``. The first vehicle
     position the emulator places is the scenario's frame origin, so ``target_path`` shares it.
     """
@@ -69,6 +72,7 @@ class World:
         sensors,
         step_s,
         seed=0,
+        time_offset_s=0.0,
     ):
         self.emulator = emulator
         self.bus = bus
@@ -79,6 +83,7 @@ class World:
         self.target_altitude_m = target_altitude_m
         self.sensors = sensors
         self.step_s = step_s
+        self.time_offset_s = time_offset_s
         self.start_s = None
         self._next_step = 0
         self._rng = np.random.default_rng([seed, 7])
@@ -142,6 +147,7 @@ class World:
     def _on_step(self, time_s, truth):
         if self.start_s is None:
             return
+        time_s += self.time_offset_s
         half_dt = 0.5 * self.emulator.dt_s
         t_k = self.start_s + self._next_step * self.step_s
         if time_s < t_k - half_dt:
