@@ -23,7 +23,7 @@ def main(argv=None):
     parser = _parser()
     arguments = parser.parse_args(argv)
     logging.basicConfig(
-        level=logging.WARNING if arguments.quiet else logging.INFO,
+        level=logging.WARNING if getattr(arguments, "quiet", False) else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
     try:
@@ -71,6 +71,25 @@ def _parser():
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress view, no summary")
     run.set_defaults(handler=_run)
+
+    vehicle = commands.add_parser(
+        "vehicle", help="one vehicle's controller as its own process (talks over MQTT only)"
+    )
+    vehicle.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
+    vehicle.add_argument("--id", type=_positive_int, required=True, help="this vehicle's id")
+    vehicle.add_argument(
+        "--url", help="MAVSDK connection URL (default: the scenario's, else PX4 SITL's)"
+    )
+    vehicle.set_defaults(handler=_vehicle)
+
+    ground = commands.add_parser(
+        "ground", help="ground station for vehicle processes: start the mission, show progress"
+    )
+    ground.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
+    ground.add_argument(
+        "--start-delay", type=float, default=2.0, help="seconds from ready to k = 0"
+    )
+    ground.set_defaults(handler=_ground)
     return parser
 
 
@@ -146,6 +165,35 @@ def _run(arguments):
             f"({mission_s / outcome.mission_wall_time_s:.1f}x real time); MAVLink logs in {tlogs}/"
         )
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
+
+
+def _vehicle(arguments):
+    import asyncio  # noqa: PLC0415
+
+    from .runner.process import run_vehicle  # noqa: PLC0415
+
+    scenario = load_scenario(arguments.config)
+    records = asyncio.run(run_vehicle(scenario, arguments.id, url=arguments.url))
+    following = sum(record.state == "following" for record in records)
+    print(f"vehicle {arguments.id}: done, {len(records)} steps, {following} following the law")
+    return EXIT_OK
+
+
+def _ground(arguments):
+    import asyncio  # noqa: PLC0415
+
+    from .runner.process import run_ground  # noqa: PLC0415
+
+    scenario = load_scenario(arguments.config)
+
+    def show(status):
+        if status.state in ("ready", "done", "lost") or status.step % 40 == 0:
+            print(f"vehicle {status.vehicle_id}: {status.state} (step {status.step})", flush=True)
+
+    final = asyncio.run(run_ground(scenario, start_delay_s=arguments.start_delay, on_status=show))
+    lost = sorted(i for i, status in final.items() if status.state == "lost")
+    print(f"ground: mission over; {len(final) - len(lost)} vehicle(s) done, lost: {lost or 'none'}")
+    return EXIT_OK
 
 
 class _FlightView:

@@ -141,7 +141,7 @@ async def run(config: EmulatorConfig, scenario=None, start_after_s=None) -> None
         else:
             from sitl.scenario_world import scenario_world  # noqa: PLC0415
 
-            emulator, _ = await stack.enter_async_context(
+            emulator, world = await stack.enter_async_context(
                 scenario_world(
                     scenario,
                     overrides={
@@ -172,6 +172,15 @@ async def run(config: EmulatorConfig, scenario=None, start_after_s=None) -> None
         sys.stdout.flush()
         await stop.wait()
         print("sitl: stopping")
+        in_mission = (
+            [s for s in world.samples if s.step <= scenario.timing.steps] if scenario else []
+        )
+        if in_mission:
+            last = in_mission[-1]
+            alive = last.alive
+            centroid = last.positions_m[alive].mean(axis=0) if alive.any() else last.target_m
+            error = float(((centroid - last.target_m) ** 2).sum() ** 0.5)
+            print(f"sitl: mission step {last.step}: formation centre {error:.3f} m from the target")
     stats = emulator.stats()
     print(
         f"sitl: stopped after {stats.sim_time_s:.1f} s simulated in {stats.wall_time_s:.1f} s; "

@@ -152,6 +152,49 @@ class MavsdkVehicle:
                 if self.odometry.add(sample):
                     self._updated.set()
 
+    async def boot_to_unix_offset_s(self, *, timeout_s=10.0):
+        """UNIX time minus autopilot boot time, from SYSTEM_TIME (requested at 1 Hz): maps
+        LOCAL_POSITION_NED's ``time_boot_ms`` onto UNIX time for controllers on UNIX time."""
+        from mavsdk.asyncio.plugins.mavlink_direct import MavlinkMessage  # noqa: PLC0415
+
+        stream = self.raw.subscribe_message("SYSTEM_TIME")
+        request = MavlinkMessage(
+            message_name="COMMAND_LONG",
+            system_id=245,
+            component_id=190,
+            target_system_id=self.system_id,
+            target_component_id=1,
+            fields_json=json.dumps(
+                {
+                    "target_system": self.system_id,
+                    "target_component": 1,
+                    "command": 511,  # MAV_CMD_SET_MESSAGE_INTERVAL
+                    "confirmation": 0,
+                    "param1": 2,  # SYSTEM_TIME
+                    "param2": 1e6,
+                    "param3": 0,
+                    "param4": 0,
+                    "param5": 0,
+                    "param6": 0,
+                    "param7": 0,
+                }
+            ),
+        )
+        with contextlib.suppress(Exception):  # some autopilots stream it anyway
+            await self._within(self.raw.send_command(request), "SYSTEM_TIME interval")
+        message = await self._first(
+            stream,
+            lambda m: m.system_id == self.system_id and json.loads(m.fields_json)["time_unix_usec"],
+            "SYSTEM_TIME (is the autopilot's clock set?)",
+            timeout_s,
+        )
+        fields = json.loads(message.fields_json)
+        return fields["time_unix_usec"] / 1e6 - fields["time_boot_ms"] / 1000.0
+
+    def use_time_offset(self, offset_s):
+        """From now on, odometry samples are stamped ``time_boot_ms / 1000 + offset_s``."""
+        self._sample_time_s = lambda ms: ms / 1000.0 + offset_s
+
     async def odometry_updated(self):
         """Wait for the next odometry sample."""
         self._updated.clear()
