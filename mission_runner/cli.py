@@ -2,6 +2,9 @@
 
     mission-runner simulate CONFIG [--out DIR] [--runs N] [--no-figures] [--quiet]
     mission-runner run CONFIG [--out DIR] [--realtime [--speed F]] [--no-figures] [--quiet]
+    mission-runner vehicle CONFIG --id N [--url URL]     one vehicle's controller (MQTT)
+    mission-runner ground CONFIG [--start-delay S]       start vehicle processes, show progress
+    mission-runner ranges CONFIG [--url URL ...]         GPS-synthesised ranges (simulation aid)
 
 Exit codes: 0 success (and every ``expect:`` bound met), 1 an expectation failed, 2 bad input
 (the message names the problem and, for configs, the YAML path).
@@ -90,6 +93,20 @@ def _parser():
         "--start-delay", type=float, default=2.0, help="seconds from ready to k = 0"
     )
     ground.set_defaults(handler=_ground)
+
+    ranges = commands.add_parser(
+        "ranges",
+        help="SIMULATION AID: publish UWB-like ranges synthesised from the vehicles' GPS "
+        "(and a virtual target) for vehicles without UWB",
+    )
+    ranges.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
+    ranges.add_argument(
+        "--url",
+        action="append",
+        default=None,
+        help="MAVSDK URL(s) where every vehicle is heard, e.g. a GCS link udpin://0.0.0.0:14550",
+    )
+    ranges.set_defaults(handler=_ranges)
     return parser
 
 
@@ -193,6 +210,19 @@ def _ground(arguments):
     final = asyncio.run(run_ground(scenario, start_delay_s=arguments.start_delay, on_status=show))
     lost = sorted(i for i, status in final.items() if status.state == "lost")
     print(f"ground: mission over; {len(final) - len(lost)} vehicle(s) done, lost: {lost or 'none'}")
+    return EXIT_OK
+
+
+def _ranges(arguments):
+    import asyncio  # noqa: PLC0415
+
+    from .runner.ranges import run_range_provider  # noqa: PLC0415
+
+    scenario = load_scenario(arguments.config)
+    urls = arguments.url or ["udpin://0.0.0.0:14550"]
+    print("ranges: SIMULATION AID - ranges are synthesised from GPS, not measured", flush=True)
+    steps = asyncio.run(run_range_provider(scenario, urls, seed=scenario.seed))
+    print(f"ranges: published {steps} steps")
     return EXIT_OK
 
 
