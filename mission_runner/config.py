@@ -563,6 +563,12 @@ def emulator_config(scenario, **overrides):
     from sitl.config import EmulatorConfig  # noqa: PLC0415 - the simulator does not need sitl
 
     data = {**scenario.flight.emulator, **overrides}
+    # Sensors sample at t_k exactly only if the physics step divides T: >= 200 Hz, a divisor of T.
+    physics = dict(data.get("physics") or {})
+    physics.setdefault(
+        "rate_hz", math.ceil(200.0 * scenario.timing.step_s) / scenario.timing.step_s
+    )
+    data["physics"] = physics
     data.setdefault("vehicles", len(scenario.vehicles))
     data.setdefault("seed", scenario.seed)
     data.setdefault(

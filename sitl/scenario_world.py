@@ -24,17 +24,8 @@ logger = logging.getLogger(__name__)
 @contextlib.asynccontextmanager
 async def scenario_world(scenario, *, overrides=None, start_after_s=None):
     """Emulator + world for ``scenario``; yields ``(emulator, world)``. Owns its tasks."""
-    from mission_runner.runner.mission import physics_rate_hz  # noqa: PLC0415
-
     step_s = scenario.timing.step_s
-    data = {
-        "physics": {
-            **scenario.flight.emulator.get("physics", {}),
-            "rate_hz": physics_rate_hz(step_s),
-        },
-        **(overrides or {}),
-    }
-    config = emulator_config(scenario, **data)
+    config = emulator_config(scenario, **(overrides or {}))
     topics = scenario.bus.topics(scenario.name)
     async with contextlib.AsyncExitStack() as stack:
         emulator = await stack.enter_async_context(Emulator(config))
@@ -43,19 +34,7 @@ async def scenario_world(scenario, *, overrides=None, start_after_s=None):
             open_bus(scenario.bus, client_id=f"{scenario.name}-sitl-world")
         )
         world = await stack.enter_async_context(
-            World(
-                emulator,
-                bus=bus,
-                topics=topics,
-                vehicle_ids=[v.id for v in scenario.vehicles],
-                senses_target=[v.senses_target for v in scenario.vehicles],
-                target_path=scenario.target.path,
-                target_altitude_m=scenario.target.altitude_m,
-                sensors=scenario.sensors,
-                step_s=step_s,
-                seed=scenario.seed,
-                time_offset_s=offset_s,
-            )
+            World.for_scenario(emulator, scenario, bus, time_offset_s=offset_s)
         )
         control = await stack.enter_async_context(bus.subscribe(topics.control()))
         async with asyncio.TaskGroup() as group:

@@ -113,6 +113,23 @@ class World:
             await asyncio.wait({self._task}, timeout=0.05)
         await self._group.__aexit__(*exc_info)
 
+    @classmethod
+    def for_scenario(cls, emulator, scenario, bus, *, time_offset_s=0.0):
+        """The world a mission scenario describes, publishing on ``bus`` under its topics."""
+        return cls(
+            emulator,
+            bus=bus,
+            topics=scenario.bus.topics(scenario.name),
+            vehicle_ids=[vehicle.id for vehicle in scenario.vehicles],
+            senses_target=[vehicle.senses_target for vehicle in scenario.vehicles],
+            target_path=scenario.target.path,
+            target_altitude_m=scenario.target.altitude_m,
+            sensors=scenario.sensors,
+            step_s=scenario.timing.step_s,
+            seed=scenario.seed,
+            time_offset_s=time_offset_s,
+        )
+
     @property
     def idle(self):
         """Whether every sampled measurement has been handed to the bus."""

@@ -32,7 +32,6 @@ from .links import MavsdkVehicle, connected_vehicles
 
 logger = logging.getLogger(__name__)
 
-PHYSICS_RATE_MIN_HZ = 200.0
 LOCKSTEP_MAX_SPEED = 25.0
 
 
@@ -105,11 +104,6 @@ class FlightOutcome:
     emulator_stats: object
 
 
-def physics_rate_hz(step_s):
-    """A physics rate >= 200 Hz whose step divides T, so sensors sample exactly at t_k."""
-    return math.ceil(PHYSICS_RATE_MIN_HZ * step_s) / step_s
-
-
 async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=None):
     """Fly ``scenario`` on the bundled emulator. Returns a :class:`FlightOutcome`.
 
@@ -132,10 +126,6 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
             "speed": flight.speed,
             "lockstep_max_speed": LOCKSTEP_MAX_SPEED,
         },
-        "physics": {
-            **scenario.flight.emulator.get("physics", {}),
-            "rate_hz": physics_rate_hz(step_s),
-        },
         **(emulator_overrides or {}),
     }
     config = emulator_config(scenario, **overrides)
@@ -145,20 +135,7 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
         bus = await stack.enter_async_context(
             open_bus(scenario.bus, client_id=f"{scenario.name}-world")
         )
-        world = await stack.enter_async_context(
-            World(
-                emulator,
-                bus=bus,
-                topics=topics,
-                vehicle_ids=ids,
-                senses_target=[v.senses_target for v in scenario.vehicles],
-                target_path=scenario.target.path,
-                target_altitude_m=scenario.target.altitude_m,
-                sensors=scenario.sensors,
-                step_s=step_s,
-                seed=scenario.seed,
-            )
-        )
+        world = await stack.enter_async_context(World.for_scenario(emulator, scenario, bus))
         sysids = [endpoint.sysid for endpoint in emulator.endpoints]
         systems = await stack.enter_async_context(
             connected_vehicles([e.mavsdk_url for e in emulator.endpoints], sysids)

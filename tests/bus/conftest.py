@@ -11,17 +11,6 @@ from tests.mosquitto import MosquittoBroker
 
 
 @pytest.fixture
-def mosquitto(tmp_path: Path) -> Iterator[MosquittoBroker]:
-    """A running anonymous mosquitto on a free loopback port, stopped after the test."""
-    broker = MosquittoBroker(tmp_path / "mosquitto")
-    broker.start()
-    try:
-        yield broker
-    finally:
-        broker.stop()
-
-
-@pytest.fixture
 def mosquitto_with_users(tmp_path: Path) -> Iterator[MosquittoBroker]:
     """A running mosquitto that only lets in user ``vehicle`` with password ``s3cret``."""
     broker = MosquittoBroker(tmp_path / "mosquitto-auth", users={"vehicle": "s3cret"})

@@ -19,7 +19,6 @@ from mission_runner.bus import (
     TargetObservation,
     Topics,
 )
-from tests.runner.conftest import mosquitto  # noqa: F401 - the fixture
 from tests.runner.flying import CONFIGS
 from tests.sitl.helpers import free_port_config
 
@@ -39,8 +38,7 @@ def scenario_file(tmp_path, broker):
 
 @pytest.mark.timeout(60)
 async def test_world_process_publishes_ranges_on_the_unix_step_grid_after_start(
-    tmp_path,
-    mosquitto,  # noqa: F811
+    tmp_path, mosquitto
 ):
     ports = free_port_config(4, gcs=False)
     process = subprocess.Popen(
