@@ -33,6 +33,13 @@ from .links import MavsdkVehicle, connected_vehicles
 logger = logging.getLogger(__name__)
 
 LOCKSTEP_MAX_SPEED = 25.0
+#: Lockstep speed while no controller holds the clock (take-off, hover, landing). MAVSDK hands
+#: every telemetry message to Python in a callback that needs the GIL; with the emulator keeping
+#: the event loop thread busy, those callbacks drain at a few hundred per second, and telemetry
+#: sped up beyond that queues in front of the health and altitude updates the take-off waits for
+#: (observed: 10 to 50 s stalls, or the 60 s take-off timeout, at 25x on a loaded 2-core machine).
+PACED_SPEED = 10.0
+PACE_PERIOD_S = 0.02
 
 
 @dataclass(frozen=True)
@@ -119,8 +126,8 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
     flight, step_s = scenario.flight, scenario.timing.step_s
     ids = [vehicle.id for vehicle in scenario.vehicles]
     overrides = {
-        # Capped so that take-off and landing, when no controller holds lockstep time, do not
-        # flood MAVSDK (whose timers and callback queues run on wall time) with telemetry.
+        # Capped so that lockstep never floods MAVSDK (whose timers and callback queues run on
+        # wall time) with telemetry; take-off and landing are held lower still (_paced).
         "clock": {
             "mode": flight.clock,
             "speed": flight.speed,
@@ -132,6 +139,8 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
     topics = scenario.bus.topics(scenario.name)
     async with contextlib.AsyncExitStack() as stack:
         emulator = await stack.enter_async_context(Emulator(config))
+        before_mission = await stack.enter_async_context(contextlib.AsyncExitStack())
+        await before_mission.enter_async_context(_paced(emulator.clock))
         bus = await stack.enter_async_context(
             open_bus(scenario.bus, client_id=f"{scenario.name}-world")
         )
@@ -196,9 +205,10 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
             _schedule_events(scenario, emulator, world, start_s)
             mission_started = time.perf_counter()
             start.set_result(start_s)
+            await before_mission.aclose()  # from here on the controllers pace the clock
         records = {c.vehicle_id: task.result() for c, task in zip(controllers, flying, strict=True)}
         mission_wall = time.perf_counter() - mission_started
-        async with asyncio.TaskGroup() as group:
+        async with _paced(emulator.clock), asyncio.TaskGroup() as group:
             for vehicle, controller in zip(vehicles, controllers, strict=True):
                 if controller.state != "lost":
                     group.create_task(
@@ -210,6 +220,31 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
     return FlightOutcome(
         result, records, start_s, time.perf_counter() - started, mission_wall, stats
     )
+
+
+@contextlib.asynccontextmanager
+async def _paced(clock, speed=PACED_SPEED):
+    """While the block runs, lockstep time advances at most ``speed`` x wall time (a clock
+    participant releasing ``speed * PACE_PERIOD_S`` beyond the current time every period; a late
+    period slows it down, never bursts it). A no-op in real time."""
+    if clock.mode != "lockstep":
+        yield
+        return
+
+    async def pace(participant):
+        released = clock.now_s
+        while True:
+            released = max(released, clock.now_s + speed * PACE_PERIOD_S)
+            participant.acted(released)
+            await asyncio.sleep(PACE_PERIOD_S)
+
+    async with clock.participant("pace") as participant:
+        task = asyncio.create_task(pace(participant), name="lockstep-pace")
+        try:
+            yield
+        finally:
+            task.cancel()
+            await asyncio.wait({task})
 
 
 async def _fly_one(controller, start, steps):
