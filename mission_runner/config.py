@@ -361,6 +361,12 @@ class FlightConfig(Model):
         title="Step deadline",
         description="How long after t_k a vehicle waits for the step's messages and ranges [s].",
     )
+    lockstep_wait_s: PositiveFloat = Field(
+        0.5,
+        title="Lockstep wait",
+        description="In lockstep, simulated time stands still while a vehicle waits for a step's "
+        "messages; after this many wall seconds it goes on without the missing ones.",
+    )
     silence_timeout_s: PositiveFloat = Field(
         1.0,
         title="Silence timeout",

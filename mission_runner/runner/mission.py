@@ -264,6 +264,7 @@ def _controllers(scenario, vehicles, altitudes, buses, topics, emulator, on_step
     settings = ControllerSettings(
         step_s=step_s,
         step_deadline_s=scenario.flight.step_deadline_s,
+        wall_deadline_s=scenario.flight.lockstep_wait_s,
         silence_timeout_s=scenario.flight.silence_timeout_s,
         member_timeout_steps=scenario.flight.member_timeout_steps,
         max_vertical_speed_m_s=scenario.flight.max_vertical_speed_m_s,
