@@ -251,9 +251,10 @@ class MavsdkVehicle:
         self.in_offboard = True
 
     async def set_velocity_ned(self, north_m_s, east_m_s, down_m_s, yaw_deg=0.0):
-        await self.offboard.set_velocity_ned(
-            VelocityNedYaw(float(north_m_s), float(east_m_s), float(down_m_s), float(yaw_deg))
+        setpoint = VelocityNedYaw(
+            float(north_m_s), float(east_m_s), float(down_m_s), float(yaw_deg)
         )
+        await self._within(self.offboard.set_velocity_ned(setpoint), "velocity setpoint")
 
     async def finish(self, action="land", *, timeout_s=60.0):
         """Leave OFFBOARD and land (waiting for the disarm) or hold."""

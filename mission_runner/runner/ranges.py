@@ -22,7 +22,7 @@ import numpy as np
 
 from ..bus import ControlCommand, MissionControl, RangeMessage, TargetObservation, open_bus
 from ..scenario import target_positions
-from .errors import RunnerError
+from .errors import RunnerError, RunnerTimeoutError
 from .links import MavsdkVehicle, connected_vehicles
 from .odometry import OdometrySample, OdometryTrack
 
@@ -123,10 +123,14 @@ async def run_range_provider(scenario, urls, *, steps=None, start_s=None, seed=0
     return steps
 
 
-async def _start_command(control):
-    async for _, message in control.messages(MissionControl):
-        if message.command is ControlCommand.START:
-            return message.time_s
+async def _start_command(control, timeout_s=600.0):
+    try:
+        async with asyncio.timeout(timeout_s):
+            async for _, message in control.messages(MissionControl):
+                if message.command is ControlCommand.START:
+                    return message.time_s
+    except TimeoutError:
+        raise RunnerTimeoutError("the ground station's start command", timeout_s) from None
     raise RunnerError("the bus closed before the start command")
 
 
