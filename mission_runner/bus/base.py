@@ -217,6 +217,18 @@ class Bus(abc.ABC):
     endpoint: str
     """Where the bus connects, for error messages (``"host:port"`` or ``"in-process"``)."""
 
+    _subscriptions: list[Subscription]
+    _open: bool
+    _closed: bool
+
+    def _close_subscriptions(self) -> None:
+        """Mark the bus closed and end every live subscription (their iterations stop)."""
+        self._open = False
+        self._closed = True
+        for subscription in self._subscriptions:
+            subscription.close()
+        self._subscriptions.clear()
+
     @abc.abstractmethod
     async def __aenter__(self) -> Self: ...
 

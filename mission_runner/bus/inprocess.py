@@ -121,11 +121,7 @@ class InProcessBus(Bus):
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        self._open = False
-        self._closed = True
-        for subscription in self._subscriptions:
-            subscription.close()
-        self._subscriptions.clear()
+        self._close_subscriptions()
         if self._task_group is not None:
             # The delivery loop only ends by cancellation; messages still in flight are lost,
             # as they would be in a network that goes down.

@@ -296,11 +296,7 @@ class MqttBus(Bus):
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        self._open = False
-        self._closed = True
-        for subscription in self._subscriptions:
-            subscription.close()
-        self._subscriptions.clear()
+        self._close_subscriptions()
         self._patterns.clear()
         await self._notify()
         if self._runner is not None:
