@@ -104,6 +104,8 @@ async def test_kill_silences_a_vehicle_and_it_falls() -> None:
             what="vehicle 1 airborne",
         )
         emulator.kill_vehicle(0)
+        # Telemetry sent before the kill may still wait in c0's socket: let the loop read it.
+        await emulator.run_for(0.1)
         c0.counts.clear()
         await emulator.run_for(2.0)
         await c1.expect(is_heartbeat_of(2), 3)  # the other vehicle carries on
