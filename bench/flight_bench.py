@@ -227,8 +227,10 @@ def swarm_data(n: int, seconds: float) -> dict:
         )
     data["vehicles"] = vehicles
     data["flight"]["end_action"] = "hold"
-    emulator = data["flight"].setdefault("emulator", {})
-    emulator["params"] = {**emulator.get("params", {}), "MPC_ACC_HOR": 5.0}
+    data["flight"]["autopilot_params"] = {
+        **data["flight"].get("autopilot_params", {}),
+        "MPC_ACC_HOR": 5.0,
+    }
     data["expect"] = {}
     return data
 

@@ -2,12 +2,13 @@
 
     mission-runner simulate CONFIG [--out DIR] [--runs N] [--no-figures] [--quiet]
     mission-runner run CONFIG [--out DIR] [--realtime [--speed F]] [--no-figures] [--quiet]
-    mission-runner vehicle CONFIG --id N [--url URL]     one vehicle's controller (MQTT)
-    mission-runner ground CONFIG [--start-delay S]       start vehicle processes, show progress
-    mission-runner ranges CONFIG [--url URL ...]         GPS-synthesised ranges (simulation aid)
+    mission-runner vehicle CONFIG --id N [--url URL] [--out DIR]   one vehicle's controller (MQTT)
+    mission-runner ground CONFIG [--start-delay S]       prepare, start and watch vehicle processes
+    mission-runner ranges CONFIG [--source sih|gps]      synthesised UWB ranges (simulation aid)
 
 Exit codes: 0 success (and every ``expect:`` bound met), 1 an expectation failed, 2 bad input
-(the message names the problem and, for configs, the YAML path).
+(the message names the problem and, for configs, the YAML path), 3 a runtime failure (a vehicle
+refused, was lost or the mission was aborted; the message says which and why), 130 interrupted.
 """
 
 import argparse
@@ -18,8 +19,9 @@ from pathlib import Path
 
 from .config import load_scenario
 from .errors import MissionRunnerError
+from .runner.errors import RunnerError
 
-EXIT_OK, EXIT_EXPECTATION_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_OK, EXIT_EXPECTATION_FAILED, EXIT_BAD_INPUT, EXIT_RUNTIME_FAILURE = 0, 1, 2, 3
 
 
 def main(argv=None):
@@ -31,6 +33,9 @@ def main(argv=None):
     )
     try:
         return arguments.handler(arguments)
+    except RunnerError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_RUNTIME_FAILURE
     except MissionRunnerError as error:
         print(f"error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -83,6 +88,9 @@ def _parser():
     vehicle.add_argument(
         "--url", help="MAVSDK connection URL (default: the scenario's, else PX4 SITL's)"
     )
+    vehicle.add_argument(
+        "--out", type=Path, default=None, help="output folder (default: out/<name>-vehicle-<id>)"
+    )
     vehicle.set_defaults(handler=_vehicle)
 
     ground = commands.add_parser(
@@ -96,18 +104,36 @@ def _parser():
 
     ranges = commands.add_parser(
         "ranges",
-        help="SIMULATION AID: publish UWB-like ranges synthesised from the vehicles' GPS "
-        "(and a virtual target) for vehicles without UWB",
+        help="SIMULATION AID: publish UWB-like ranges synthesised from a simulator's ground "
+        "truth (--source sih) or the vehicles' GPS (--source gps) for vehicles without UWB",
     )
     ranges.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
+    ranges.add_argument(
+        "--source",
+        choices=("sih", "gps"),
+        default="sih",
+        help="sih: HIL_STATE_QUATERNION ground truth (PX4 SIH, or the emulator's truth stream) "
+        "on UDP <truth-port-base> + id - 1; gps: GLOBAL_POSITION_INT through MAVSDK (--url)",
+    )
+    ranges.add_argument(
+        "--truth-port-base", type=_port, default=19410, help="UDP port of vehicle id 1's truth"
+    )
     ranges.add_argument(
         "--url",
         action="append",
         default=None,
-        help="MAVSDK URL(s) where every vehicle is heard, e.g. a GCS link udpin://0.0.0.0:14550",
+        help="with --source gps: MAVSDK URL(s) where every vehicle is heard, e.g. a GCS link "
+        "udpin://0.0.0.0:14550",
     )
     ranges.set_defaults(handler=_ranges)
     return parser
+
+
+def _port(text):
+    value = _positive_int(text)
+    if value > 65535:
+        raise argparse.ArgumentTypeError(f"not a UDP port: {value}")
+    return value
 
 
 def _positive_int(text):
@@ -187,13 +213,21 @@ def _run(arguments):
 def _vehicle(arguments):
     import asyncio  # noqa: PLC0415
 
+    from .outputs import write_vehicle_run  # noqa: PLC0415
     from .runner.process import run_vehicle  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
-    records = asyncio.run(run_vehicle(scenario, arguments.id, url=arguments.url))
-    following = sum(record.state == "following" for record in records)
-    print(f"vehicle {arguments.id}: done, {len(records)} steps, {following} following the law")
-    return EXIT_OK
+    out_dir = arguments.out or Path("out") / f"{scenario.name}-vehicle-{arguments.id}"
+    run = asyncio.run(run_vehicle(scenario, arguments.id, url=arguments.url))
+    write_vehicle_run(run, out_dir, config_path=arguments.config)
+    following = sum(record.state == "following" for record in run.records)
+    print(
+        f"vehicle {arguments.id}: {run.state}, {len(run.records)} steps, {following} following "
+        f"the law, {run.skipped_steps} skipped; autopilot clock {run.autopilot_clock_rate:.4f}x, "
+        f"mission clock {run.clock_rate:.4f}x; results in {out_dir}/"
+        + (f"\n  {run.detail}" if run.detail else "")
+    )
+    return EXIT_OK if run.state == "done" else EXIT_RUNTIME_FAILURE
 
 
 def _ground(arguments):
@@ -204,12 +238,22 @@ def _ground(arguments):
     scenario = load_scenario(arguments.config)
 
     def show(status):
-        if status.state in ("ready", "done", "lost") or status.step % 40 == 0:
-            print(f"vehicle {status.vehicle_id}: {status.state} (step {status.step})", flush=True)
+        if status.state not in ("following", "holding") or status.step % 40 == 0:
+            detail = f": {status.detail}" if status.detail else ""
+            print(
+                f"vehicle {status.vehicle_id}: {status.state} (step {status.step}){detail}",
+                flush=True,
+            )
 
-    final = asyncio.run(run_ground(scenario, start_delay_s=arguments.start_delay, on_status=show))
-    lost = sorted(i for i, status in final.items() if status.state == "lost")
-    print(f"ground: mission over; {len(final) - len(lost)} vehicle(s) done, lost: {lost or 'none'}")
+    outcome = asyncio.run(run_ground(scenario, start_delay_s=arguments.start_delay, on_status=show))
+    done = len(outcome.statuses) - len(outcome.lost)
+    lost = ", ".join(
+        f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
+    )
+    print(
+        f"ground: mission {outcome.mission_id} over; {done} vehicle(s) done, lost: {lost or 'none'}"
+        f"; mission clock {outcome.clock_rate:.4f}x"
+    )
     return EXIT_OK
 
 
@@ -219,11 +263,26 @@ def _ranges(arguments):
     from .runner.ranges import run_range_provider  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
-    urls = arguments.url or ["udpin://0.0.0.0:14550"]
-    print("ranges: SIMULATION AID - ranges are synthesised from GPS, not measured", flush=True)
-    steps = asyncio.run(run_range_provider(scenario, urls, seed=scenario.seed))
-    print(f"ranges: published {steps} steps")
-    return EXIT_OK
+    print(
+        f"ranges: SIMULATION AID - ranges are synthesised from {arguments.source.upper()} "
+        "positions, not measured",
+        flush=True,
+    )
+    stats = asyncio.run(
+        run_range_provider(
+            scenario,
+            source=arguments.source,
+            urls=arguments.url or ["udpin://0.0.0.0:14550"],
+            truth_port_base=arguments.truth_port_base,
+            seed=scenario.seed,
+        )
+    )
+    lateness = ", ".join(f"{k} {v:.1f} ms" for k, v in stats.lateness_percentiles_ms().items())
+    print(
+        f"ranges: {stats.steps} steps, {stats.ranges} ranges published, "
+        f"{stats.missing_vehicles} vehicle-steps without a position; after t_k: {lateness}"
+    )
+    return EXIT_OK if stats.ranges else EXIT_RUNTIME_FAILURE
 
 
 class _FlightView:

@@ -343,8 +343,25 @@ class FlightConfig(Model):
     altitude_m: PositiveFloat = Field(
         5.0, title="Altitude", description="Default height above home every vehicle holds [m]."
     )
-    end_action: Literal["land", "hold"] = Field(
+    end_action: Literal["land", "hold", "return"] = Field(
         "land", title="At the end", description="What vehicles do when the mission ends."
+    )
+    on_lost: Literal["land", "hold", "return"] = Field(
+        "land",
+        title="On loss",
+        description="What a vehicle does when its controller gives up on it (own odometry "
+        "gone, link dead, mission aborted): its process commands it if the link still works, "
+        "and the autopilot's offboard-loss failsafe is set to the same (PX4 COM_OBL_RC_ACT).",
+    )
+    autopilot_params: dict[
+        Annotated[str, Field(min_length=1, max_length=16, pattern=r"^[A-Z0-9_]+$")],
+        float | int,
+    ] = Field(
+        {},
+        title="Autopilot parameters",
+        description="PX4 parameters set over MAVLink on every vehicle, emulated or real, before "
+        "take-off and read back (integers are INT32, other numbers REAL32), e.g. "
+        "{MPC_ACC_HOR: 5.0}.",
     )
     clock: Literal["lockstep", "realtime"] = Field(
         "lockstep",

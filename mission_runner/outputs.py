@@ -169,3 +169,80 @@ def batch_csv(result):
     for run in range(result.runs):
         writer.writerow([run, *(f"{values[run]:.9g}" for values in metrics.values())])
     return buffer.getvalue()
+
+
+def write_vehicle_run(run, out_dir, *, config_path=None):
+    """One vehicle process's outputs: ``steps.csv`` (per step: state, phase, command, consensus,
+    neighbours used, lateness of the setpoint, every estimate) and ``summary.json`` (final state,
+    counts, the autopilot's clock fit, parameters applied). Written atomically."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    peers = sorted({peer for record in run.records for peer in record.estimates_m})
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(
+        [
+            "step",
+            "time_s",
+            "state",
+            "phase_rad",
+            "velocity_north_m_s",
+            "velocity_east_m_s",
+            "velocity_down_m_s",
+            "consensus_north_m_s",
+            "consensus_east_m_s",
+            "neighbours_used",
+            "setpoint_lateness_s",
+            *(f"estimate_{peer}_{axis}_m" for peer in peers for axis in ("north", "east")),
+        ]
+    )
+    for record in run.records:
+        estimates = []
+        for peer in peers:
+            value = record.estimates_m.get(peer)
+            estimates += ["", ""] if value is None else [f"{value[0]:.6f}", f"{value[1]:.6f}"]
+        writer.writerow(
+            [
+                record.step,
+                f"{record.time_s:.6f}",
+                record.state,
+                f"{record.phase_rad:.9f}",
+                *(f"{v:.6f}" for v in record.velocity_ned_m_s),
+                *(f"{v:.6f}" for v in record.consensus_m_s),
+                " ".join(str(peer) for peer in record.neighbours_used),
+                f"{record.setpoint_sent_s - record.time_s:.6f}",
+                *estimates,
+            ]
+        )
+    write_atomic(out_dir / "steps.csv", buffer.getvalue())
+    states = {}
+    for record in run.records:
+        states[record.state] = states.get(record.state, 0) + 1
+    lateness = [r.setpoint_sent_s - r.time_s for r in run.records if np.isfinite(r.setpoint_sent_s)]
+    document = {
+        "vehicle_id": run.vehicle_id,
+        "mission_id": run.mission_id,
+        "state": run.state,
+        "detail": run.detail,
+        "steps": len(run.records),
+        "steps_by_state": states,
+        "skipped_steps": run.skipped_steps,
+        "start_s": run.start_s,
+        "mission_clock_rate": run.clock_rate,
+        "autopilot_clock_rate": run.autopilot_clock_rate,
+        "autopilot_clock_residual_s": run.clock_residual_s,
+        "setpoint_lateness_s": (
+            {
+                "p50": float(np.percentile(lateness, 50)),
+                "p99": float(np.percentile(lateness, 99)),
+                "max": float(np.max(lateness)),
+            }
+            if lateness
+            else None
+        ),
+        "autopilot_params": run.params,
+        "config": None if config_path is None else str(config_path),
+        "versions": versions(),
+    }
+    write_atomic(out_dir / "summary.json", json.dumps(document, indent=2) + "\n")
+    return document

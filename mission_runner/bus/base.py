@@ -168,6 +168,8 @@ class Subscription:
                 return topic, decoded
 
     def _decode(self, message_type: type[M], topic: str, payload: bytes) -> M | None:
+        if not payload:
+            return None  # MQTT's "retained value cleared": no message, not an error
         try:
             return message_type.from_payload(payload)
         except MessageDecodeError as exc:

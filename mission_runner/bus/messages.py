@@ -32,6 +32,7 @@ from mission_runner.bus.topics import TARGET_PEER_ID, TopicKind
 class ControlCommand(enum.StrEnum):
     """Commands of the mission control topic."""
 
+    PREPARE = "prepare"
     START = "start"
     STOP = "stop"
     HOLD = "hold"
@@ -262,11 +263,31 @@ class TargetObservation(Message):
 
 @dataclass(frozen=True, slots=True)
 class MissionControl(Message):
-    """A mission command from the ground station: start, stop, hold or land."""
+    """A mission command from the ground station: prepare, start, stop, hold or land.
+
+    ``mission_id`` names one mission (a ground station run): vehicles answer ``prepare`` with
+    statuses carrying it, act only on commands carrying it, and a retained message of an earlier
+    mission is recognised as such. ``start`` carries k = 0 as ``time_s`` on the mission clock,
+    which is ``mission_s = clock_reference_s + clock_rate * (unix_s - clock_reference_s)``
+    (``clock_rate`` follows autopilots whose simulated time runs faster or slower than wall time).
+    """
 
     command: ControlCommand
     time_s: float
     reason: str | None = None
+    mission_id: str | None = None
+    clock_rate: float | None = None
+    clock_reference_s: float | None = None
+
+    def _check(self) -> None:
+        _require(
+            self.mission_id is None or 0 < len(self.mission_id) <= 64,
+            "mission_id must have 1 to 64 characters",
+        )
+        _require(
+            self.clock_rate is None or 0.01 <= self.clock_rate <= 100.0,
+            f"clock_rate must be in [0.01, 100], got {self.clock_rate}",
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -275,6 +296,8 @@ class VehicleStatus(Message):
 
     ``state`` is the controller's state name (e.g. ``"following"``, ``"holding"``,
     ``"lost"``); ``tracking_ok`` whether it currently follows the algorithm on fresh data.
+    ``mission_id`` is the mission it reports for (see :class:`MissionControl`);
+    ``clock_rate`` its autopilot's boot-clock seconds per UNIX second, as measured.
     """
 
     vehicle_id: int
@@ -283,8 +306,14 @@ class VehicleStatus(Message):
     step: int
     tracking_ok: bool
     detail: str = ""
+    mission_id: str | None = None
+    clock_rate: float | None = None
 
     def _check(self) -> None:
+        _require(
+            self.clock_rate is None or self.clock_rate > 0,
+            f"clock_rate must be > 0, got {self.clock_rate}",
+        )
         _require(self.vehicle_id >= 1, f"vehicle_id must be >= 1, got {self.vehicle_id}")
         _require(self.step >= 0, f"step must be >= 0, got {self.step}")
         _require(bool(self.state), "state must not be empty")

@@ -3,15 +3,17 @@
 - :class:`EmulatorClock`: the emulator's simulated time (real time, sped up, or lockstep). In
   lockstep each controller is a participant: the world advances only as far as every controller
   has released, so results do not depend on machine load.
-- :class:`WallClock`: UNIX time, for real vehicles whose companion computers are time-synchronised
-  (NTP or GPS); PX4's SYSTEM_TIME maps its boot time onto it.
+- :class:`WallClock`: UNIX time (optionally scaled, :class:`.timesync.MissionTime`), for vehicle
+  processes on time-synchronised companion computers (NTP or GPS); each autopilot's boot clock is
+  mapped onto it continuously (:class:`.timesync.ClockMapping`).
 
-Both offer ``now_s()``, ``sleep_until(t)``, ``release(t)`` and ``lockstep``.
+Both offer ``now_s()``, ``sleep_until(t)``, ``release(t)``, ``rate`` and ``lockstep``.
 """
 
 import asyncio
 import contextlib
-import time
+
+from .timesync import MissionTime
 
 
 class EmulatorClock:
@@ -39,6 +41,11 @@ class EmulatorClock:
     def now_s(self):
         return self._clock.now_s
 
+    @property
+    def rate(self):
+        """Mission seconds per wall second (the speed factor; lockstep has none)."""
+        return self._clock.speed if not self.lockstep else 1.0
+
     async def sleep_until(self, time_s):
         await self._clock.sleep_until(time_s)
 
@@ -49,9 +56,13 @@ class EmulatorClock:
 
 
 class WallClock:
-    """UNIX time in seconds; ``release`` is a no-op."""
+    """The mission clock of a vehicle process: ``time`` (a :class:`MissionTime`, UNIX time by
+    default) in seconds; ``release`` is a no-op."""
 
     lockstep = False
+
+    def __init__(self, time=None):
+        self.time = time or MissionTime()
 
     async def __aenter__(self):
         return self
@@ -59,12 +70,16 @@ class WallClock:
     async def __aexit__(self, *exc_info):
         return None
 
-    @staticmethod
-    def now_s():
-        return time.time()
+    def now_s(self):
+        return self.time.now_s()
+
+    @property
+    def rate(self):
+        """Mission seconds per wall second."""
+        return self.time.rate
 
     async def sleep_until(self, time_s):
-        delay = time_s - time.time()
+        delay = (time_s - self.now_s()) / self.time.rate
         if delay > 0:
             await asyncio.sleep(delay)
 

@@ -134,6 +134,8 @@ class VehicleController:
         self._previous_command = None
         self._missed_odometry = 0
         self._known_target_velocity = None
+        self.skipped_steps = 0
+        self.mission_id = None  # carried by every status (vehicle processes set it)
         self.records = []
 
     def _step_of(self, time_s):
@@ -217,6 +219,13 @@ class VehicleController:
     async def _step(self, k):
         settings = self.settings
         t_k = self.start_s + k * settings.step_s
+        if not self.clock.lockstep and self.clock.now_s() >= t_k + settings.step_s:
+            # Step k's instant is a whole step in the past (a stall, a slow machine): its
+            # inputs are stale and a command for it would be late. Skip it, keeping the
+            # oscillator on the grid, so the controller is back on the current step at once
+            # instead of falling further behind every step.
+            self._skip(k, t_k)
+            return
         self.clock.release(t_k + settings.release_s)
         await self.clock.sleep_until(t_k)
         odometry = await self._odometry_at(t_k)
@@ -225,7 +234,7 @@ class VehicleController:
         if odometry is not None:
             self._missed_odometry = 0
             # The target observation of step k is usually in by now; wait briefly if not.
-            observation = await self._target_observation(k)
+            observation = await self._target_observation(k, t_k)
             message = self._with_target(
                 StepMessage(self.vehicle_id, k, t_k, phase, odometry[0], odometry[1]),
                 observation,
@@ -243,16 +252,7 @@ class VehicleController:
             velocity = (0.0, 0.0)
             self.state = "holding"
             used, estimates, consensus = (), {}, (0.0, 0.0)
-            # Keep the oscillator turning so the phase stays meaningful when data returns.
-            self.law.step(
-                own_odometry_m=(math.nan, math.nan),
-                neighbours={},
-                ranges_m={},
-                target=None,
-                members=[self.vehicle_id],
-                shape_now=self.shape(k),
-                shape_next=self.shape(k + 1),
-            )
+            self._turn_oscillator(k)
         else:
             self.state = "following"
             command = self.law.step(
@@ -281,6 +281,35 @@ class VehicleController:
         if self.on_step is not None:
             self.on_step(self.vehicle_id, record)
 
+    def _turn_oscillator(self, k):
+        """Advance the law through step k with no data: the oscillator keeps turning so the
+        phase stays on the grid (and meaningful when data returns); no estimate changes."""
+        self.law.step(
+            own_odometry_m=(math.nan, math.nan),
+            neighbours={},
+            ranges_m={},
+            target=None,
+            members=[self.vehicle_id],
+            shape_now=self.shape(k),
+            shape_next=self.shape(k + 1),
+        )
+
+    def _skip(self, k, t_k):
+        phase = self.law.phase_rad
+        self._turn_oscillator(k)
+        self.inbox.take(k)
+        self.skipped_steps += 1
+        logger.warning(
+            "vehicle %s: step %d skipped (%.3f s late)",
+            self.vehicle_id,
+            k,
+            self.clock.now_s() - t_k,
+        )
+        record = StepRecord(k, t_k, "skipped", (0.0, 0.0, 0.0), (0.0, 0.0), phase, (), {})
+        self.records.append(record)
+        if self.on_step is not None:
+            self.on_step(self.vehicle_id, record)
+
     async def _odometry_at(self, t_k):
         """Own odometry (north, east, down) at t_k, or None if telemetry stopped."""
         track = self.link.odometry
@@ -293,13 +322,23 @@ class VehicleController:
             return None
         return sample
 
-    async def _target_observation(self, k):
+    async def _target_observation(self, k, t_k):
+        """This vehicle's step-k target observation, awaited no longer than the step's own
+        deadline: one that never comes must not cost more than the step has."""
         if not self.senses_target:
             return None
         await self.inbox.wait_for(
-            lambda: self.inbox.pending_target(k) is not None, self.settings.wall_deadline_s
+            lambda: self.inbox.pending_target(k) is not None, self._wait_s(t_k)
         )
         return self.inbox.pending_target(k)
+
+    def _wait_s(self, t_k):
+        """Wall seconds left until step k's deadline (in lockstep, where the mission clock
+        stands still while controllers wait, a fixed wall-clock bound)."""
+        if self.clock.lockstep:
+            return self.settings.wall_deadline_s
+        remaining = t_k + self.settings.step_deadline_s - self.clock.now_s()
+        return max(remaining, 0.0) / self.clock.rate
 
     def _with_target(self, message, observation):
         """Integrate the observed target velocity (trapezoid over the time since the previous
@@ -328,11 +367,9 @@ class VehicleController:
         )
 
     async def _wait_inputs(self, k, t_k):
-        deadline = t_k + self.settings.step_deadline_s
-        remaining = deadline - self.clock.now_s()
-        if remaining > 0 or self.clock.lockstep:
-            wait = self.settings.wall_deadline_s if self.clock.lockstep else remaining
-            await self.inbox.wait_complete(k, max(wait, 0.0))
+        wait_s = self._wait_s(t_k)
+        if wait_s > 0:
+            await self.inbox.wait_complete(k, wait_s)
 
     def _horizontal_ranges(self, data, odometry):
         """UWB ranges are 3-D; the law is planar. Project with both vehicles' altitudes."""
@@ -400,5 +437,13 @@ class VehicleController:
             logger.warning("vehicle %s: could not publish %s: %s", self.vehicle_id, topic, error)
 
     async def _publish_status(self, k, t_k):
-        status = VehicleStatus(self.vehicle_id, t_k, self.state, k, self.state == "following", "")
+        status = VehicleStatus(
+            self.vehicle_id,
+            t_k,
+            self.state,
+            k,
+            self.state == "following",
+            "",
+            mission_id=self.mission_id,
+        )
         await self._publish(self.topics.status(self.vehicle_id), status)

@@ -13,23 +13,31 @@ holds on a normal end.
 """
 
 import asyncio
+import collections
 import contextlib
 import json
 import logging
+import math
+import time
 
-from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkError
 from mavsdk.asyncio.plugins.action import ActionAsync
 from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
 from mavsdk.asyncio.plugins.offboard import OffboardAsync, VelocityNedYaw
+from mavsdk.asyncio.plugins.param import ParamAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
 from .errors import RunnerTimeoutError, VehicleCommandError, VehicleConnectionError
 from .odometry import OdometrySample, OdometryTrack
+from .timesync import ClockMapping, ClockMappingError
 
 logger = logging.getLogger(__name__)
 
 ODOMETRY_RATE_HZ = 50.0
+SYSTEM_TIME_RATE_HZ = 2.0
+MAVLINK_MSG_ID_SYSTEM_TIME = 2
 _mavsdk_logging_routed = False
+_REASON_SEVERITIES = frozenset({"EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING"})
 
 
 def route_mavsdk_logs():
@@ -98,34 +106,66 @@ async def _discovery_ticks(mavsdk):
             yield
 
 
-class MavsdkVehicle:
-    """One PX4 vehicle. An async context manager that owns its odometry task.
+class MappedTrack:
+    """A vehicle's odometry track (on its autopilot's boot clock) read on the mission clock:
+    ``boot_s_at(mission_s)`` maps the query time, so a better clock fit applies at once to every
+    sample already received."""
 
-    sample_time_s(time_boot_ms) maps the autopilot's boot time to the mission clock (identity in
-    seconds for the in-process emulator, whose boot time is the simulated time).
+    def __init__(self, track, boot_s_at):
+        self._track = track
+        self._boot_s_at = boot_s_at
+
+    @property
+    def latest(self):
+        return self._track.latest
+
+    def at(self, mission_s):
+        """``(north_m, east_m, down_m)`` at mission time ``mission_s``, or None (no two samples
+        bracket it, or the autopilot's clock is not known yet)."""
+        try:
+            boot_s = self._boot_s_at(mission_s)
+        except ClockMappingError:
+            return None
+        return self._track.at(boot_s)
+
+
+class MavsdkVehicle:
+    """One PX4 vehicle. An async context manager that owns its telemetry tasks.
+
+    Odometry samples are kept on the autopilot's boot clock (``time_boot_ms``); ``odometry``
+    reads them on the mission clock. By default boot time *is* mission time (the in-process
+    emulator, whose boot clock is the simulated time); :meth:`follow_clock` maps it through
+    SYSTEM_TIME onto a :class:`.timesync.MissionTime` instead, continuously.
     """
 
-    def __init__(self, system, system_id, *, sample_time_s, command_timeout_s=10.0):
+    def __init__(self, system, system_id, *, command_timeout_s=10.0):
         self.system = system
         self.system_id = system_id
         self.action = ActionAsync(system)
         self.telemetry = TelemetryAsync(system)
         self.offboard = OffboardAsync(system)
+        self.param = ParamAsync(system)
         self.raw = MavlinkDirectAsync(system)
-        self.odometry = OdometryTrack()
-        self._sample_time_s = sample_time_s
+        self.track = OdometryTrack()
+        self.boot_s_at = float
+        self.odometry = MappedTrack(self.track, self._boot_s)
+        self.clock_mapping = None
+        self.status_texts = collections.deque(maxlen=50)  # (monotonic s, severity, text)
+        self._status_text = asyncio.Event()
         self._timeout_s = command_timeout_s
         self._updated = asyncio.Event()
         self._group = None
-        self._odometry_task = None
+        self._tasks = []
         self.in_offboard = False
+
+    def _boot_s(self, mission_s):
+        return self.boot_s_at(mission_s)  # late-bound: follow_clock replaces boot_s_at
 
     async def __aenter__(self):
         self._group = asyncio.TaskGroup()
         await self._group.__aenter__()
-        self._odometry_task = self._group.create_task(
-            self._stream_odometry(), name=f"vehicle-{self.system_id}-odometry"
-        )
+        self._spawn(self._stream_odometry(), "odometry")
+        self._spawn(self._collect_status_texts(), "statustext")
         with contextlib.suppress(Exception):  # a vehicle may refuse rate changes; use its rate
             await self._within(
                 self.telemetry.set_rate_position_velocity_ned(ODOMETRY_RATE_HZ), "odometry rate"
@@ -133,8 +173,14 @@ class MavsdkVehicle:
         return self
 
     async def __aexit__(self, *exc_info):
-        self._odometry_task.cancel()
+        for task in self._tasks:
+            task.cancel()
         await self._group.__aexit__(*exc_info)
+
+    def _spawn(self, coroutine, what):
+        self._tasks.append(
+            self._group.create_task(coroutine, name=f"vehicle-{self.system_id}-{what}")
+        )
 
     async def _stream_odometry(self):
         stream = self.raw.subscribe_message("LOCAL_POSITION_NED")
@@ -144,20 +190,79 @@ class MavsdkVehicle:
                     continue
                 fields = json.loads(message.fields_json)
                 sample = OdometrySample(
-                    self._sample_time_s(fields["time_boot_ms"]),
-                    fields["x"],
-                    fields["y"],
-                    fields["z"],
+                    fields["time_boot_ms"] / 1000.0, fields["x"], fields["y"], fields["z"]
                 )
-                if self.odometry.add(sample):
+                if self.track.add(sample):
                     self._updated.set()
 
-    async def boot_to_unix_offset_s(self, *, timeout_s=10.0):
-        """UNIX time minus autopilot boot time, from SYSTEM_TIME (requested at 1 Hz): maps
-        LOCAL_POSITION_NED's ``time_boot_ms`` onto UNIX time for controllers on UNIX time."""
+    async def _collect_status_texts(self):
+        stream = self.telemetry.subscribe_status_text()
+        async with contextlib.aclosing(stream):
+            async for status in stream:
+                self.status_texts.append((time.monotonic(), status.type.name, status.text))
+                logger.info("vehicle %s says: %s", self.system_id, status.text)
+                self._status_text.set()
+
+    async def reason_since(self, since_s, *, wait_s=1.0):
+        """The autopilot's last warning-or-worse STATUSTEXT since monotonic ``since_s`` (PX4
+        explains a refusal that way, usually just after its COMMAND_ACK), waiting up to
+        ``wait_s`` for one; None if it said nothing."""
+
+        def latest():
+            for at_s, severity, text in reversed(self.status_texts):
+                if at_s >= since_s and severity in _REASON_SEVERITIES:
+                    return text
+            return None
+
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(wait_s):
+                while latest() is None:
+                    self._status_text.clear()
+                    await self._status_text.wait()
+        return latest()
+
+    async def follow_clock(self, mission_time, *, timeout_s=10.0):
+        """Map this autopilot's boot clock onto ``mission_time`` from now on, refitted at every
+        SYSTEM_TIME (requested at ``SYSTEM_TIME_RATE_HZ``). Returns the :class:`ClockMapping`
+        once it has its first pair; raises :class:`RunnerTimeoutError` if none comes."""
+        mapping = ClockMapping()
+        first = asyncio.Event()
+        stream = self.raw.subscribe_message("SYSTEM_TIME")
+
+        async def feed():
+            async with contextlib.aclosing(stream):
+                async for message in stream:
+                    if message.system_id != self.system_id:
+                        continue
+                    fields = json.loads(message.fields_json)
+                    if fields["time_unix_usec"] and mapping.add(
+                        fields["time_boot_ms"] / 1000.0, fields["time_unix_usec"] / 1e6
+                    ):
+                        first.set()
+
+        self._spawn(feed(), "clock")
+        with contextlib.suppress(VehicleCommandError, RunnerTimeoutError):
+            # Some autopilots stream it anyway; PX4 SITL sends it at 1 Hz by default.
+            await self.request_interval(MAVLINK_MSG_ID_SYSTEM_TIME, SYSTEM_TIME_RATE_HZ)
+        try:
+            async with asyncio.timeout(timeout_s):
+                await first.wait()
+        except TimeoutError:
+            raise RunnerTimeoutError(
+                f"vehicle {self.system_id}: SYSTEM_TIME with a UNIX time (is the autopilot's "
+                "clock set?)",
+                timeout_s,
+            ) from None
+        self.clock_mapping = mapping
+        self.boot_s_at = lambda mission_s: mapping.boot_s(mission_time.to_unix(mission_s))
+        return mapping
+
+    async def request_interval(self, message_id, rate_hz):
+        """MAV_CMD_SET_MESSAGE_INTERVAL for ``message_id`` at ``rate_hz`` on this link."""
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkMessage  # noqa: PLC0415
 
-        stream = self.raw.subscribe_message("SYSTEM_TIME")
+        params = {f"param{i}": 0 for i in range(1, 8)}
+        params.update(param1=message_id, param2=1e6 / rate_hz)
         request = MavlinkMessage(
             message_name="COMMAND_LONG",
             system_id=245,
@@ -170,30 +275,14 @@ class MavsdkVehicle:
                     "target_component": 1,
                     "command": 511,  # MAV_CMD_SET_MESSAGE_INTERVAL
                     "confirmation": 0,
-                    "param1": 2,  # SYSTEM_TIME
-                    "param2": 1e6,
-                    "param3": 0,
-                    "param4": 0,
-                    "param5": 0,
-                    "param6": 0,
-                    "param7": 0,
+                    **params,
                 }
             ),
         )
-        with contextlib.suppress(Exception):  # some autopilots stream it anyway
-            await self._within(self.raw.send_command(request), "SYSTEM_TIME interval")
-        message = await self._first(
-            stream,
-            lambda m: m.system_id == self.system_id and json.loads(m.fields_json)["time_unix_usec"],
-            "SYSTEM_TIME (is the autopilot's clock set?)",
-            timeout_s,
-        )
-        fields = json.loads(message.fields_json)
-        return fields["time_unix_usec"] / 1e6 - fields["time_boot_ms"] / 1000.0
-
-    def use_time_offset(self, offset_s):
-        """From now on, odometry samples are stamped ``time_boot_ms / 1000 + offset_s``."""
-        self._sample_time_s = lambda ms: ms / 1000.0 + offset_s
+        try:
+            await self._within(self.raw.send_command(request), f"interval of {message_id}")
+        except MavsdkError as error:
+            raise VehicleCommandError(f"vehicle {self.system_id}: {error}") from error
 
     async def odometry_updated(self):
         """Wait for the next odometry sample."""
@@ -220,18 +309,14 @@ class MavsdkVehicle:
         raise VehicleConnectionError(f"vehicle {self.system_id}: telemetry ended ({what})")
 
     async def take_off(self, altitude_m, *, timeout_s=60.0):
-        """Wait for health, arm, take off and climb to ``altitude_m`` above home."""
+        """Wait for health, arm, take off and climb to ``altitude_m`` above home. A refusal
+        raises :class:`VehicleCommandError` with the autopilot's own reason (its STATUSTEXT)."""
         await self._first(
             self.telemetry.subscribe_health_all_ok(), bool, "health (is it armable?)", timeout_s
         )
-        try:
-            await self._within(self.action.set_takeoff_altitude(altitude_m), "takeoff altitude")
-            await self._within(self.action.arm(), "arm")
-            await self._within(self.action.takeoff(), "takeoff")
-        except Exception as error:
-            if isinstance(error, RunnerTimeoutError):
-                raise
-            raise VehicleCommandError(f"vehicle {self.system_id}: {error}") from error
+        await self._commanded(self.action.set_takeoff_altitude(altitude_m), "takeoff altitude")
+        await self._commanded(self.action.arm(), "arm")
+        await self._commanded(self.action.takeoff(), "takeoff")
         await self._first(
             self.telemetry.subscribe_position(),
             lambda p: p.relative_altitude_m > altitude_m - 0.3,
@@ -239,16 +324,62 @@ class MavsdkVehicle:
             timeout_s,
         )
 
+    async def _commanded(self, awaitable, what):
+        """Run a MAVSDK command; a refusal becomes a VehicleCommandError naming the command, the
+        result and the autopilot's reason."""
+        asked_s = time.monotonic()
+        try:
+            return await self._within(awaitable, what)
+        except MavsdkError as error:
+            result = getattr(getattr(error, "result", None), "name", None) or str(error)
+            reason = await self.reason_since(asked_s)
+            raise VehicleCommandError(
+                f"vehicle {self.system_id}: {what} refused ({result})"
+                + (f": {reason}" if reason else "")
+            ) from error
+
     async def start_offboard(self):
         """Enter OFFBOARD with a zero-velocity setpoint (PX4 needs one streaming first)."""
         await self.set_velocity_ned(0.0, 0.0, 0.0)
-        try:
-            await self._within(self.offboard.start(), "offboard start")
-        except Exception as error:
-            if isinstance(error, RunnerTimeoutError):
-                raise
-            raise VehicleCommandError(f"vehicle {self.system_id}: offboard: {error}") from error
+        await self._commanded(self.offboard.start(), "offboard start")
         self.in_offboard = True
+
+    async def apply_params(self, params):
+        """Set autopilot parameters (``{name: value}``) and read each back. The parameter's type
+        (INT32 or REAL32) is the autopilot's, so ``5`` sets a float parameter to 5.0. Returns
+        ``{name: value read back}``; a parameter the autopilot refuses or does not have raises
+        :class:`VehicleCommandError`, one it changes (rounds, clamps) is logged as a warning."""
+        from mavsdk.asyncio.plugins.param import ParamError, ParamResult  # noqa: PLC0415
+
+        applied = {}
+        for name, value in params.items():
+            try:
+                await self._within(self.param.get_param_float(name), f"parameter {name}")
+                setter, getter = self.param.set_param_float, self.param.get_param_float
+                wanted = float(value)
+            except ParamError as error:
+                if error.result is not ParamResult.WRONG_TYPE:
+                    raise VehicleCommandError(
+                        f"vehicle {self.system_id}: parameter {name}: {error.result.name}"
+                    ) from error
+                if float(value) != int(value):
+                    raise VehicleCommandError(
+                        f"vehicle {self.system_id}: parameter {name} is an integer, got {value}"
+                    ) from error
+                setter, getter = self.param.set_param_int, self.param.get_param_int
+                wanted = int(value)
+            await self._commanded(setter(name, wanted), f"parameter {name} = {wanted}")
+            back = await self._commanded(getter(name), f"parameter {name} read-back")
+            if not math.isclose(back, wanted, rel_tol=1e-6, abs_tol=1e-6):
+                logger.warning(
+                    "vehicle %s: parameter %s set to %s, reads back %s",
+                    self.system_id,
+                    name,
+                    wanted,
+                    back,
+                )
+            applied[name] = back
+        return applied
 
     async def set_velocity_ned(self, north_m_s, east_m_s, down_m_s, yaw_deg=0.0):
         setpoint = VelocityNedYaw(
@@ -257,18 +388,20 @@ class MavsdkVehicle:
         await self._within(self.offboard.set_velocity_ned(setpoint), "velocity setpoint")
 
     async def finish(self, action="land", *, timeout_s=60.0):
-        """Leave OFFBOARD and land (waiting for the disarm) or hold."""
+        """Leave OFFBOARD and land (waiting for the disarm), return (RTL) or hold."""
         if self.in_offboard:
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(MavsdkError, RunnerTimeoutError):
                 await self._within(self.offboard.stop(), "offboard stop")
             self.in_offboard = False
         if action == "land":
-            await self._within(self.action.land(), "land")
+            await self._commanded(self.action.land(), "land")
             await self._first(
                 self.telemetry.subscribe_armed(),
                 lambda armed: not armed,
                 "land and disarm",
                 timeout_s,
             )
+        elif action == "return":
+            await self._commanded(self.action.return_to_launch(), "return")
         else:
-            await self._within(self.action.hold(), "hold")
+            await self._commanded(self.action.hold(), "hold")

@@ -22,13 +22,11 @@ import numpy as np
 
 from ..bus import lost_vehicle_will, open_bus
 from ..config import emulator_config
-from ..enclosing import VehicleEnclosing
-from ..scenario import shape_matrices
-from ..sim.simulator import algorithm_params, score
+from ..sim.simulator import score
 from .clock import EmulatorClock
-from .controller import ControllerSettings, VehicleController
 from .errors import RunnerError
 from .links import MavsdkVehicle, connected_vehicles
+from .wiring import altitude_of, autopilot_params, build_controller, shape_schedule
 
 logger = logging.getLogger(__name__)
 
@@ -150,15 +148,16 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
             connected_vehicles([e.mavsdk_url for e in emulator.endpoints], sysids)
         )
         vehicles = [
-            await stack.enter_async_context(
-                MavsdkVehicle(systems[sysid], sysid, sample_time_s=lambda ms: ms / 1000.0)
-            )
+            await stack.enter_async_context(MavsdkVehicle(systems[sysid], sysid))
             for sysid in sysids
         ]
-        altitudes = [v.altitude_m or flight.altitude_m for v in scenario.vehicles]
+        params = autopilot_params(scenario)
         async with asyncio.TaskGroup() as group:
-            for vehicle, altitude in zip(vehicles, altitudes, strict=True):
-                group.create_task(vehicle.take_off(altitude), name=f"takeoff-{vehicle.system_id}")
+            for vehicle, config in zip(vehicles, scenario.vehicles, strict=True):
+                group.create_task(
+                    _prepare(vehicle, params, altitude_of(scenario, config)),
+                    name=f"takeoff-{vehicle.system_id}",
+                )
 
         callbacks = [on_step] if on_step else []
         if on_progress is not None:
@@ -182,9 +181,7 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
                 )
                 for vehicle_id in ids
             ]
-        controllers = _controllers(
-            scenario, vehicles, altitudes, buses, topics, emulator, step_callback
-        )
+        controllers = _controllers(scenario, vehicles, buses, emulator, step_callback)
         start = asyncio.get_running_loop().create_future()
         mission_started = None
         async with asyncio.TaskGroup() as group:
@@ -222,6 +219,11 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
     )
 
 
+async def _prepare(vehicle, params, altitude_m):
+    await vehicle.apply_params(params)
+    await vehicle.take_off(altitude_m)
+
+
 @contextlib.asynccontextmanager
 async def _paced(clock, speed=PACED_SPEED):
     """While the block runs, lockstep time advances at most ``speed`` x wall time (a clock
@@ -255,51 +257,20 @@ async def _fly_one(controller, start, steps):
         return await controller.run(start_s, steps)
 
 
-def _controllers(scenario, vehicles, altitudes, buses, topics, emulator, on_step):  # noqa: PLR0917
-    params = algorithm_params(scenario)
-    step_s = scenario.timing.step_s
-    ids = [vehicle.id for vehicle in scenario.vehicles]
-    steps = scenario.timing.steps
-    shapes = shape_matrices(scenario.algorithm.shape, (np.arange(steps + 2)) * step_s)
-    settings = ControllerSettings(
-        step_s=step_s,
-        step_deadline_s=scenario.flight.step_deadline_s,
-        wall_deadline_s=scenario.flight.lockstep_wait_s,
-        silence_timeout_s=scenario.flight.silence_timeout_s,
-        member_timeout_steps=scenario.flight.member_timeout_steps,
-        max_vertical_speed_m_s=scenario.flight.max_vertical_speed_m_s,
-        velocity_lead_s=scenario.flight.velocity_lead_s,
-    )
-    controllers = []
-    for config, vehicle, altitude, bus in zip(
-        scenario.vehicles, vehicles, altitudes, buses, strict=True
-    ):
-        law = VehicleEnclosing(
-            params,
-            config.id,
-            ids,
-            config.initial_phase_rad,
-            config.omega_rad_s or scenario.algorithm.omega_rad_s,
+def _controllers(scenario, vehicles, buses, emulator, on_step):
+    shape = shape_schedule(scenario)
+    return [
+        build_controller(
+            scenario,
+            config,
+            link=vehicle,
+            bus=bus,
+            clock=EmulatorClock(emulator.clock, f"vehicle-{config.id}"),
+            on_step=on_step,
+            shape=shape,
         )
-        controllers.append(
-            VehicleController(
-                vehicle_id=config.id,
-                vehicle_ids=ids,
-                law=law,
-                senses_target=config.senses_target,
-                link=vehicle,
-                bus=bus,
-                topics=topics,
-                clock=EmulatorClock(emulator.clock, f"vehicle-{config.id}"),
-                settings=ControllerSettings(
-                    **{**settings.__dict__, "max_horizontal_speed_m_s": config.speed_limit_m_s}
-                ),
-                shape=lambda k, shapes=shapes: shapes[min(k, len(shapes) - 1)],
-                altitude_m=altitude,
-                on_step=on_step,
-            )
-        )
-    return controllers
+        for config, vehicle, bus in zip(scenario.vehicles, vehicles, buses, strict=True)
+    ]
 
 
 def _schedule_events(scenario, emulator, world, start_s):

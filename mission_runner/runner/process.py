@@ -1,16 +1,23 @@
 """A swarm as separate processes: one controller per vehicle (one companion computer each), and a
-ground station, talking only over MQTT and sharing UNIX time.
+ground station, talking only over MQTT.
 
-- :func:`run_vehicle` (``mission-runner vehicle CONFIG --id N``): connects to its vehicle through
-  MAVSDK (the scenario's ``url``, or ``--url``), takes off, enters OFFBOARD hovering on the step
-  grid, reports ``ready`` on its status topic, waits for the ground station's ``start``, flies
-  the steps and lands (or holds).
-- :func:`run_ground` (``mission-runner ground CONFIG``): waits until every vehicle is ready,
-  publishes ``start`` with k = 0 on the step grid a little later, shows progress, and returns
-  when every vehicle is done (or lost).
+The handshake, as an operator expects it:
 
-The vehicles may be real PX4 or the emulator started with ``sitl --scenario CONFIG`` (whose world
-publishes UWB ranges and target observations on the same bus in UNIX time).
+1. ``mission-runner ground CONFIG`` publishes ``prepare`` (retained) with a fresh mission id.
+2. Each ``mission-runner vehicle CONFIG --id N`` connects to its autopilot, maps the autopilot's
+   clock (:mod:`.timesync`), and on ``prepare`` sets the scenario's autopilot parameters, arms,
+   takes off, enters OFFBOARD hovering on the step grid and reports ``ready`` with the mission id
+   and its autopilot's clock rate. A refusal (PX4's own reason) is reported as ``failed``.
+3. The ground station starts the mission when every vehicle is ready: ``start`` with k = 0 and
+   the mission clock (UNIX time, scaled to the autopilots' measured clock rate when they run
+   simulated time at another speed, PX4 SITL's speed factor). If any vehicle failed, or not all
+   are ready in time, it aborts the mission for everyone (``land``): nobody is left hovering.
+4. Vehicles fly the steps and land (``flight.end_action``). A vehicle whose controller gives up
+   reports ``lost`` - final, never followed by ``done`` - and is put in ``flight.on_lost`` by its
+   process (and by its autopilot's offboard-loss failsafe, set to the same, if the process dies).
+
+Statuses and commands carry the mission id, so retained messages of an earlier mission are never
+taken for this one's.
 """
 
 import asyncio
@@ -18,8 +25,8 @@ import contextlib
 import logging
 import math
 import time
-
-import numpy as np
+import uuid
+from dataclasses import dataclass, field
 
 from ..bus import (
     BusError,
@@ -29,17 +36,21 @@ from ..bus import (
     lost_vehicle_will,
     open_bus,
 )
-from ..enclosing import VehicleEnclosing
-from ..scenario import shape_matrices
-from ..sim.simulator import algorithm_params
 from .clock import WallClock
-from .controller import ControllerSettings, VehicleController
 from .errors import RunnerError, RunnerTimeoutError
 from .links import MavsdkVehicle, connected_vehicles
+from .timesync import MissionTime
+from .wiring import altitude_of, autopilot_params, build_controller
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_API_PORT_BASE = 14540
+#: How long a vehicle in the air waits to be commanded when its mission ends abnormally.
+SAFE_STATE_TIMEOUT_S = 30.0
+
+
+class MissionAbortedError(RunnerError):
+    """The ground station aborted the mission (a vehicle refused, or not all were ready)."""
 
 
 def default_url(scenario, vehicle_id):
@@ -49,8 +60,55 @@ def default_url(scenario, vehicle_id):
     return f"udpin://0.0.0.0:{DEFAULT_API_PORT_BASE + index}"
 
 
-async def run_vehicle(scenario, vehicle_id, *, url=None, ready_timeout_s=120.0, on_step=None):
-    """Fly vehicle ``vehicle_id`` of ``scenario`` as its own process. Returns its step records."""
+@dataclass
+class VehicleRun:
+    """What one vehicle process did: its step records, final state and clock fit."""
+
+    vehicle_id: int
+    mission_id: str | None = None
+    state: str = "connecting"
+    detail: str = ""
+    records: list = field(default_factory=list)
+    start_s: float | None = None
+    clock_rate: float = 1.0
+    autopilot_clock_rate: float | None = None
+    clock_residual_s: float | None = None
+    skipped_steps: int = 0
+    params: dict = field(default_factory=dict)
+
+
+class _Reporter:
+    """Publishes this vehicle's status (retained) under the current mission id."""
+
+    def __init__(self, bus, topics, run):
+        self.bus, self.topics, self.run = bus, topics, run
+
+    async def __call__(self, state, *, step=0, detail="", clock_rate=None):
+        self.run.state, self.run.detail = state, detail
+        status = VehicleStatus(
+            self.run.vehicle_id,
+            time.time(),
+            state,
+            step,
+            state == "following",
+            detail,
+            mission_id=self.run.mission_id,
+            clock_rate=clock_rate,
+        )
+        try:
+            await self.bus.publish_message(
+                self.topics.status(self.run.vehicle_id), status, retain=True, timeout=2.0
+            )
+        except BusError as error:
+            logger.warning(
+                "vehicle %s: status %s not published: %s", status.vehicle_id, state, error
+            )
+
+
+async def run_vehicle(scenario, vehicle_id, *, url=None, ready_timeout_s=180.0, on_step=None):
+    """Fly vehicle ``vehicle_id`` of ``scenario`` as its own process. Returns its
+    :class:`VehicleRun`; raises :class:`RunnerError` when it could not fly (after reporting it
+    and putting the vehicle in a safe state)."""
     if scenario.bus.kind != "mqtt":
         raise RunnerError("a vehicle process talks to the others over MQTT: set bus.kind: mqtt")
     ids = [v.id for v in scenario.vehicles]
@@ -58,16 +116,13 @@ async def run_vehicle(scenario, vehicle_id, *, url=None, ready_timeout_s=120.0, 
         raise RunnerError(f"vehicle {vehicle_id} is not in the scenario (ids {ids})")
     config = scenario.vehicles[ids.index(vehicle_id)]
     url = url or config.url or default_url(scenario, vehicle_id)
-    step_s = scenario.timing.step_s
     topics = scenario.bus.topics(scenario.name)
-    altitude = config.altitude_m or scenario.flight.altitude_m
-    shapes = shape_matrices(scenario.algorithm.shape, np.arange(scenario.timing.steps + 2) * step_s)
+    mission_time = MissionTime()
+    run = VehicleRun(vehicle_id)
     async with contextlib.AsyncExitStack() as stack:
         systems = await stack.enter_async_context(connected_vehicles([url], [vehicle_id]))
-        vehicle = await stack.enter_async_context(
-            MavsdkVehicle(systems[vehicle_id], vehicle_id, sample_time_s=lambda ms: math.nan)
-        )
-        vehicle.use_time_offset(await vehicle.boot_to_unix_offset_s())
+        vehicle = await stack.enter_async_context(MavsdkVehicle(systems[vehicle_id], vehicle_id))
+        mapping = await vehicle.follow_clock(mission_time)
         bus = await stack.enter_async_context(
             open_bus(
                 scenario.bus,
@@ -76,93 +131,204 @@ async def run_vehicle(scenario, vehicle_id, *, url=None, ready_timeout_s=120.0, 
             )
         )
         control = await stack.enter_async_context(bus.subscribe(topics.control()))
-        await vehicle.take_off(altitude)
-        clock = WallClock()
-        controller = VehicleController(
-            vehicle_id=vehicle_id,
-            vehicle_ids=ids,
-            law=VehicleEnclosing(
-                algorithm_params(scenario),
-                vehicle_id,
-                ids,
-                config.initial_phase_rad,
-                config.omega_rad_s or scenario.algorithm.omega_rad_s,
-            ),
-            senses_target=config.senses_target,
+        report = _Reporter(bus, topics, run)
+        await report("waiting", detail="waiting for the ground station's prepare")
+        prepare = await _next_command(control, {ControlCommand.PREPARE}, None, ready_timeout_s)
+        run.mission_id = prepare.mission_id
+        try:
+            run.params = await vehicle.apply_params(autopilot_params(scenario))
+            await vehicle.take_off(altitude_of(scenario, config))
+        except RunnerError as error:
+            await report("failed", detail=str(error))
+            with contextlib.suppress(RunnerError):
+                await vehicle.finish("land", timeout_s=SAFE_STATE_TIMEOUT_S)
+            raise
+        controller = build_controller(
+            scenario,
+            config,
             link=vehicle,
             bus=bus,
-            topics=topics,
-            clock=clock,
-            settings=ControllerSettings(
-                step_s=step_s,
-                step_deadline_s=scenario.flight.step_deadline_s,
-                silence_timeout_s=scenario.flight.silence_timeout_s,
-                member_timeout_steps=scenario.flight.member_timeout_steps,
-                max_horizontal_speed_m_s=config.speed_limit_m_s,
-                max_vertical_speed_m_s=scenario.flight.max_vertical_speed_m_s,
-                velocity_lead_s=scenario.flight.velocity_lead_s,
-            ),
-            shape=lambda k: shapes[min(k, len(shapes) - 1)],
-            altitude_m=altitude,
+            clock=WallClock(mission_time),
             on_step=on_step,
         )
-        start = asyncio.get_running_loop().create_future()
-        async with asyncio.TaskGroup() as group:
-            hovering = group.create_task(
-                controller.hover_until(start), name=f"vehicle-{vehicle_id}-hover"
-            )
+        try:
+            await _fly(scenario, vehicle, controller, control, report, run, mapping, mission_time)
+        except BaseException as error:
+            # Never leave a vehicle in the air undriven: whatever ended the mission, command the
+            # configured safe state (PX4's offboard-loss failsafe covers a dead process).
+            action = scenario.flight.on_lost
+            logger.warning("vehicle %s: mission ended (%r): %s", vehicle_id, error, action)
+            with contextlib.suppress(RunnerError):
+                await asyncio.shield(vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S))
+            if run.state not in ("lost", "aborted", "failed"):
+                await report("lost", detail=f"mission ended: {error!r}")
+            raise
+        finally:
+            run.records = controller.records
+            run.skipped_steps = controller.skipped_steps
+            run.autopilot_clock_rate = mapping.fit.boot_rate
+            run.clock_residual_s = mapping.fit.residual_s
+    return run
+
+
+async def _fly(scenario, vehicle, controller, control, report, run, mapping, mission_time):  # noqa: PLR0917
+    steps = scenario.timing.steps
+    controller.mission_id = run.mission_id
+    start = asyncio.get_running_loop().create_future()
+    async with asyncio.TaskGroup() as group:
+        hovering = group.create_task(
+            controller.hover_until(start), name=f"vehicle-{run.vehicle_id}-hover"
+        )
+        try:
             await vehicle.start_offboard()
-            await _publish_status(bus, topics, vehicle_id, "ready")
-            try:
-                start.set_result(await _start_time(control, ready_timeout_s))
-            except BaseException:
-                hovering.cancel()
-                raise
-        records = await controller.run(start.result(), scenario.timing.steps)
-        if controller.state != "lost":
-            await vehicle.finish(scenario.flight.end_action)
-        await _publish_status(bus, topics, vehicle_id, "done", step=len(records))
-    return records
+            command = await _until_start(control, report, run, mapping, scenario)
+        except BaseException:
+            hovering.cancel()
+            raise
+        if command.command is not ControlCommand.START:
+            hovering.cancel()
+            await _abort(vehicle, report, run, scenario, command)
+            return
+        rate = command.clock_rate or 1.0
+        mission_time.set(rate, command.clock_reference_s or command.time_s)
+        run.clock_rate, run.start_s = rate, command.time_s
+        controller.mission_id = run.mission_id
+        start.set_result(command.time_s)
+    flying = asyncio.ensure_future(controller.run(run.start_s, steps))
+    watching = asyncio.ensure_future(
+        _next_command(control, {ControlCommand.LAND, ControlCommand.STOP}, run.mission_id, None)
+    )
+    try:
+        done, _ = await asyncio.wait({flying, watching}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for task in (flying, watching):
+            task.cancel()
+        await asyncio.gather(flying, watching, return_exceptions=True)
+    if watching in done:
+        await _abort(vehicle, report, run, scenario, watching.result())
+        return
+    flying.result()  # a controller failure propagates (and lands the vehicle, see run_vehicle)
+    last = controller.records[-1].step if controller.records else 0
+    if controller.state == "lost":
+        await report("lost", step=last, detail="own odometry stopped: no longer driven")
+        with contextlib.suppress(RunnerError):
+            await vehicle.finish(scenario.flight.on_lost, timeout_s=SAFE_STATE_TIMEOUT_S)
+        return
+    await vehicle.finish(scenario.flight.end_action)
+    await report("done", step=len(controller.records))
 
 
-async def _start_time(control, timeout_s):
+async def _abort(vehicle, report, run, scenario, command):
+    detail = f"mission aborted by the ground station: {command.reason or command.command.value}"
+    logger.warning("vehicle %s: %s", run.vehicle_id, detail)
+    await report("aborted", detail=detail)
+    action = "land" if command.command is ControlCommand.LAND else scenario.flight.on_lost
+    await vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S)
+
+
+async def _until_start(control, report, run, mapping, scenario):
+    """Report ready (again for every new prepare) until this mission's start, land or stop."""
+    wanted = {
+        ControlCommand.PREPARE,
+        ControlCommand.START,
+        ControlCommand.LAND,
+        ControlCommand.STOP,
+    }
+    while True:
+        await report("ready", clock_rate=mapping.fit.boot_rate)
+        command = await _next_command(control, wanted, None, None)
+        if command.command is ControlCommand.PREPARE:
+            run.mission_id = command.mission_id
+            continue
+        if command.mission_id != run.mission_id:
+            logger.warning(
+                "vehicle %s: ignoring %s of mission %s (this is %s)",
+                run.vehicle_id,
+                command.command.value,
+                command.mission_id,
+                run.mission_id,
+            )
+            continue
+        return command
+
+
+async def _next_command(control, commands, mission_id, timeout_s):
+    """The next control message whose command is in ``commands`` (and, if ``mission_id`` is
+    given, of that mission)."""
     try:
         async with asyncio.timeout(timeout_s):
             async for _, message in control.messages(MissionControl):
-                if message.command is ControlCommand.START:
-                    return message.time_s
+                if message.command in commands and (
+                    mission_id is None or message.mission_id == mission_id
+                ):
+                    return message
     except TimeoutError:
-        raise RunnerTimeoutError("the ground station's start command", timeout_s) from None
-    raise RunnerError("the bus closed before the start command")
+        names = "/".join(sorted(c.value for c in commands))
+        raise RunnerTimeoutError(f"the ground station's {names}", timeout_s) from None
+    raise RunnerError("the bus closed while waiting for the ground station")
 
 
-async def _publish_status(bus, topics, vehicle_id, state, step=0):
-    status = VehicleStatus(vehicle_id, time.time(), state, step, state == "following", "")
-    try:
-        await bus.publish_message(topics.status(vehicle_id), status, retain=True, timeout=2.0)
-    except BusError as error:
-        logger.warning("vehicle %s: status %s not published: %s", vehicle_id, state, error)
+@dataclass
+class GroundOutcome:
+    """The mission as the ground station saw it: the final status of every vehicle."""
+
+    mission_id: str
+    start_s: float | None
+    clock_rate: float
+    statuses: dict
+
+    @property
+    def lost(self):
+        return sorted(i for i, s in self.statuses.items() if s.state != "done")
 
 
 async def run_ground(scenario, *, start_delay_s=2.0, ready_timeout_s=180.0, on_status=None):
-    """Start the mission when every vehicle is ready; return ``{id: last status}`` once every
-    vehicle is done or lost."""
+    """Prepare, start and watch a mission of vehicle processes. Returns a :class:`GroundOutcome`
+    once every vehicle is done or lost; raises :class:`MissionAbortedError` (after commanding
+    every vehicle to land) when a vehicle failed or not all were ready in time."""
     if scenario.bus.kind != "mqtt":
         raise RunnerError("the ground station talks to vehicle processes over MQTT")
     ids = {v.id for v in scenario.vehicles}
     topics = scenario.bus.topics(scenario.name)
     step_s = scenario.timing.step_s
     duration_s = scenario.timing.steps * step_s
+    mission_id = uuid.uuid4().hex[:12]
     latest = {}
+    started = {"at": None}
     async with (
         open_bus(scenario.bus, client_id=f"{scenario.name}-ground") as bus,
         bus.subscribe(topics.all_status()) as statuses,
     ):
 
+        async def control(command, time_s, **fields):
+            message = MissionControl(command, time_s, mission_id=mission_id, **fields)
+            await bus.publish_message(
+                topics.control(), message, retain=command is ControlCommand.PREPARE, timeout=5.0
+            )
+
+        def ours(status):
+            if status.mission_id == mission_id:
+                return True
+            # The last will has no mission id; after the start it can only be this mission's.
+            return (
+                status.mission_id is None
+                and status.state == "lost"
+                and started["at"] is not None
+                and status.vehicle_id in latest
+            )
+
         async def until(condition, timeout_s, what):
             try:
                 async with asyncio.timeout(timeout_s):
                     async for _, status in statuses.messages(VehicleStatus):
+                        if status.vehicle_id not in ids or not ours(status):
+                            continue
+                        if latest.get(status.vehicle_id) and latest[status.vehicle_id].state in (
+                            "lost",
+                            "failed",
+                            "aborted",
+                        ):
+                            continue  # final: a lost vehicle stays lost
                         latest[status.vehicle_id] = status
                         if on_status is not None:
                             on_status(status)
@@ -171,18 +337,54 @@ async def run_ground(scenario, *, start_delay_s=2.0, ready_timeout_s=180.0, on_s
             except TimeoutError:
                 raise RunnerTimeoutError(what, timeout_s) from None
 
-        def all_in(*states):
-            return ids <= {i for i, s in latest.items() if s.state in states}
+        def states(*wanted):
+            return {i for i, s in latest.items() if s.state in wanted}
 
-        await until(lambda: all_in("ready", "hovering"), ready_timeout_s, "every vehicle ready")
-        start_s = math.ceil((time.time() + start_delay_s) / step_s) * step_s
-        await bus.publish_message(
-            topics.control(), MissionControl(ControlCommand.START, start_s), timeout=5.0
-        )
-        logger.info("ground: mission starts at UNIX %.3f", start_s)
-        await until(
-            lambda: all_in("done", "lost"),
-            start_delay_s + duration_s + 120.0,
-            "every vehicle done",
-        )
-    return latest
+        try:
+            await control(ControlCommand.PREPARE, time.time())
+            logger.info(
+                "ground: mission %s prepared; waiting for %d vehicles", mission_id, len(ids)
+            )
+            try:
+                await until(
+                    lambda: bool(states("failed")) or ids <= states("ready"),
+                    ready_timeout_s,
+                    "every vehicle ready",
+                )
+            except RunnerTimeoutError as error:
+                missing = sorted(ids - states("ready"))
+                await control(ControlCommand.LAND, time.time(), reason=f"not ready: {missing}")
+                raise MissionAbortedError(
+                    f"mission aborted, every vehicle told to land: vehicles {missing} not ready "
+                    f"within {ready_timeout_s:g} s"
+                ) from error
+            failed = sorted(states("failed"))
+            if failed:
+                reasons = "; ".join(latest[i].detail for i in failed)
+                await control(
+                    ControlCommand.LAND, time.time(), reason=f"vehicle(s) {failed} failed"
+                )
+                raise MissionAbortedError(f"mission aborted, every vehicle told to land: {reasons}")
+            rate = MissionTime.rate_for([latest[i].clock_rate or 1.0 for i in ids])
+            reference_s = time.time()
+            start_s = math.ceil((reference_s + start_delay_s * rate) / step_s) * step_s
+            started["at"] = start_s
+            await control(
+                ControlCommand.START,
+                start_s,
+                clock_rate=rate,
+                clock_reference_s=reference_s,
+            )
+            logger.info(
+                "ground: mission %s starts at %.3f (clock rate %.4f)", mission_id, start_s, rate
+            )
+            await until(
+                lambda: ids <= states("done", "lost", "aborted"),
+                (start_delay_s + duration_s) / rate + 120.0,
+                "every vehicle done",
+            )
+        finally:
+            # The prepare must not start the next vehicle process that connects.
+            with contextlib.suppress(BusError):
+                await bus.publish(topics.control(), b"", retain=True, timeout=2.0)
+    return GroundOutcome(mission_id, started["at"], rate, latest)

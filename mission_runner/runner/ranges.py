@@ -1,14 +1,25 @@
-"""A SIMULATION AID: UWB ranges and target observations synthesised from the vehicles' reported
-global positions, for flying the mission on vehicles without UWB (real PX4 SITL, or a GPS field
-test). It publishes exactly what a UWB driver and a target tracker would publish (see
-:mod:`sitl.world`), so the controllers run unchanged; nothing here is used when real sensors exist.
+"""A SIMULATION AID: UWB ranges and target observations synthesised from the vehicles' positions,
+for flying the mission on vehicles without UWB. It publishes exactly what a UWB driver and a target
+tracker would publish, so the controllers run unchanged; nothing here is used when real sensors
+exist.
 
-It listens to every vehicle's GLOBAL_POSITION_INT with its timestamp (MAVSDK raw messages, boot
-time mapped to UNIX time with SYSTEM_TIME), interpolates each position at the step boundaries
-t_k = start + kT (UNIX time), and publishes the 3-D distance between every pair plus Gaussian noise,
-and, for the vehicles that sense it, the horizontal range and velocity of a virtual target that
-follows the scenario's path. The scenario frame's origin is placed so that the first vehicle's first
-fix is at its ``initial_position_m``.
+Two sources of positions:
+
+- ``sih``: a simulator's ground truth, HIL_STATE_QUATERNION as PX4's SIH sends it on its own UDP
+  link (instance i: from 19450+i to 19410+i; the emulator's ``truth_stream`` sends the same).
+  PX4 leaves its ``time_usec`` at 0, so each message is stamped on arrival (host clock, a
+  millisecond or less on one machine). Ranges are then as good as the chosen UWB model
+  (``scenario.sensors``: noise, dropouts, maximum range).
+- ``gps``: each vehicle's GLOBAL_POSITION_INT through MAVSDK (a GCS link where every vehicle is
+  heard), stamped with the autopilot's boot time mapped continuously onto the mission clock
+  (:mod:`.timesync`). For field tests without UWB: GPS/EKF positions differ between vehicles by
+  decimetres (PX4 SIH: -0.54..+0.38 m, 5th-95th percentile of pair ranges against truth), which
+  is far more than the RLSE tolerates: expect metres of tracking error.
+
+Each step's ranges are published as soon as every live vehicle has a position after t_k (the two
+samples bracketing t_k, interpolated), not after a fixed delay. The scenario frame's origin is
+placed so that the first vehicle's first fix is at its ``initial_position_m``; the virtual target
+follows the scenario's path on the mission clock from k = 0.
 """
 
 import asyncio
@@ -17,146 +28,280 @@ import json
 import logging
 import math
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
 
 from ..bus import ControlCommand, MissionControl, RangeMessage, TargetObservation, open_bus
 from ..scenario import target_positions
+from ..sensors import measure_ranges
 from .errors import RunnerError, RunnerTimeoutError
 from .links import MavsdkVehicle, connected_vehicles
 from .odometry import OdometrySample, OdometryTrack
+from .timesync import MissionTime
 
 logger = logging.getLogger(__name__)
 
 EARTH_RADIUS_M = 6_371_000.0
 POSITION_RATE_HZ = 20.0
+SOURCES = ("sih", "gps")
+TRUTH_PORT_BASE = 19410
+#: A vehicle whose last position is older than this at t_k is not waited for (dead or silent).
+STALE_AFTER_S = 1.0
+#: Longest wait after t_k for the positions bracketing it.
+MAX_WAIT_S = 0.25
 
 
-class GlobalTrack:
-    """One vehicle's GLOBAL_POSITION_INT on UNIX time, in a local north-east-down frame."""
+class GeodeticFrame:
+    """Latitude/longitude/altitude to the scenario's north-east-down frame: flat earth around the
+    first vehicle's first fix, which is placed at its ``initial_position_m``. Fixes of other
+    vehicles before that one are dropped (the frame is not known yet)."""
 
-    def __init__(self, vehicle):
-        self.vehicle = vehicle
-        self.track = OdometryTrack()
-        self.reference = None  # (lat, lon, alt) of the frame origin
+    def __init__(self, first_id, first_position_m):
+        self.first_id = first_id
+        self.first_position_m = first_position_m
+        self.reference = None  # (lat, lon, alt) of the first fix
 
-    def local(self, lat_deg, lon_deg, alt_m):
+    def local(self, vehicle_id, lat_deg, lon_deg, alt_m):
+        """``(north_m, east_m, down_m)`` in the scenario frame, or None before the first fix."""
+        if self.reference is None:
+            if vehicle_id != self.first_id:
+                return None
+            self.reference = (lat_deg, lon_deg, alt_m)
         lat0, lon0, alt0 = self.reference
         north = math.radians(lat_deg - lat0) * EARTH_RADIUS_M
         east = math.radians(lon_deg - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
-        return north, east, -(alt_m - alt0)
-
-    async def stream(self, offset_s, on_first_fix):
-        stream = self.vehicle.raw.subscribe_message("GLOBAL_POSITION_INT")
-        async with contextlib.aclosing(stream):
-            async for message in stream:
-                if message.system_id != self.vehicle.system_id:
-                    continue
-                fields = json.loads(message.fields_json)
-                lat, lon, alt = fields["lat"] / 1e7, fields["lon"] / 1e7, fields["alt"] / 1000.0
-                if self.reference is None:
-                    on_first_fix(self, lat, lon, alt)
-                    if self.reference is None:
-                        continue  # the origin (the first vehicle's first fix) is not known yet
-                self.track.add(
-                    OdometrySample(
-                        fields["time_boot_ms"] / 1000.0 + offset_s, *self.local(lat, lon, alt)
-                    )
-                )
+        return (
+            north + self.first_position_m[0],
+            east + self.first_position_m[1],
+            -(alt_m - alt0),
+        )
 
 
-async def run_range_provider(scenario, urls, *, steps=None, start_s=None, seed=0):
-    """Publish synthetic ranges for ``steps`` steps (default: the scenario's) from ``start_s``
-    (UNIX; default: the ground station's start command). Returns the number of steps done."""
+@dataclass
+class VehiclePositions:
+    """One vehicle's positions in the scenario frame, stamped on UNIX time."""
+
+    vehicle_id: int
+    track: OdometryTrack = field(default_factory=lambda: OdometryTrack(capacity=512))
+    received: int = 0
+
+    def newest_s(self):
+        latest = self.track.latest
+        return -math.inf if latest is None else latest.time_s
+
+
+@dataclass
+class RangeStats:
+    """What the aid published: steps, ranges, and how long after t_k each step went out."""
+
+    steps: int = 0
+    ranges: int = 0
+    missing_vehicles: int = 0
+    lateness_s: list = field(default_factory=list)
+
+    def lateness_percentiles_ms(self):
+        if not self.lateness_s:
+            return {}
+        values = np.asarray(self.lateness_s) * 1000.0
+        return {f"p{q}": float(np.percentile(values, q)) for q in (50, 95, 99)} | {
+            "max": float(values.max())
+        }
+
+
+class _Positions:
+    """Every vehicle's positions, with a wake-up on each new sample."""
+
+    def __init__(self, scenario):
+        self.ids = [v.id for v in scenario.vehicles]
+        self.vehicles = {i: VehiclePositions(i) for i in self.ids}
+        self.frame = GeodeticFrame(self.ids[0], scenario.vehicles[0].initial_position_m)
+        self.changed = asyncio.Event()
+
+    def add(self, vehicle_id, unix_s, lat_deg, lon_deg, alt_m):
+        local = self.frame.local(vehicle_id, lat_deg, lon_deg, alt_m)
+        if local is None:
+            return
+        positions = self.vehicles[vehicle_id]
+        if positions.track.add(OdometrySample(unix_s, *local)):
+            positions.received += 1
+            self.changed.set()
+
+    async def bracketing(self, unix_s, max_wait_s):
+        """Wait until every vehicle heard recently has a sample after ``unix_s`` (or
+        ``max_wait_s``); return ``(n, 3)`` positions at ``unix_s``, NaN rows where unknown."""
+
+        def ready():
+            return all(
+                p.newest_s() >= unix_s or p.newest_s() < unix_s - STALE_AFTER_S
+                for p in self.vehicles.values()
+            )
+
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(max_wait_s):
+                while not ready():
+                    self.changed.clear()
+                    await self.changed.wait()
+        rows = []
+        for vehicle_id in self.ids:
+            at = self.vehicles[vehicle_id].track.at(unix_s)
+            rows.append(at if at is not None else (math.nan,) * 3)
+        return np.asarray(rows, dtype=float)
+
+
+class _TruthProtocol(asyncio.DatagramProtocol):
+    """HIL_STATE_QUATERNION datagrams from one SIH instance, stamped on arrival."""
+
+    def __init__(self, positions, vehicle_id):
+        self.positions = positions
+        self.vehicle_id = vehicle_id
+        self.parser = mavlink.MAVLink(None)
+        self.parser.robust_parsing = True
+        self.malformed = 0
+
+    def datagram_received(self, data, addr):
+        arrived_s = time.time()
+        try:
+            messages = self.parser.parse_buffer(data) or []
+        except mavlink.MAVError:
+            self.malformed += 1
+            return
+        for message in messages:
+            if message.get_type() != "HIL_STATE_QUATERNION":
+                continue
+            if message.get_srcSystem() != self.vehicle_id:
+                self.malformed += 1  # another instance's stream on this port: never mix them
+                continue
+            self.positions.add(
+                self.vehicle_id, arrived_s, message.lat / 1e7, message.lon / 1e7, message.alt / 1e3
+            )
+
+
+async def _sih_source(stack, positions, scenario, port_base):
+    loop = asyncio.get_running_loop()
+    for vehicle_id in positions.ids:
+        port = port_base + vehicle_id - 1
+        try:
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda vehicle_id=vehicle_id: _TruthProtocol(positions, vehicle_id),
+                local_addr=("127.0.0.1", port),
+            )
+        except OSError as error:
+            raise RunnerError(
+                f"cannot listen for vehicle {vehicle_id}'s ground truth on UDP {port}: "
+                f"{error.strerror} (--truth-port-base moves it)"
+            ) from None
+        stack.callback(transport.close)
+
+
+async def _gps_source(stack, positions, urls, mission_time, group):
+    """Stream every vehicle's GLOBAL_POSITION_INT into ``positions`` (tasks in ``group``, cancelled
+    when ``stack`` closes)."""
+    ids = positions.ids
+    tasks = []
+    systems = await stack.enter_async_context(connected_vehicles(urls, ids))
+    for vehicle_id in ids:
+        vehicle = await stack.enter_async_context(MavsdkVehicle(systems[vehicle_id], vehicle_id))
+        with contextlib.suppress(Exception):
+            await vehicle.telemetry.set_rate_position(POSITION_RATE_HZ)
+        mapping = await vehicle.follow_clock(mission_time)
+        tasks.append(
+            group.create_task(_gps_stream(vehicle, mapping, positions), name=f"gps-{vehicle_id}")
+        )
+    stack.callback(lambda: [task.cancel() for task in tasks])
+
+
+async def _gps_stream(vehicle, mapping, positions):
+    stream = vehicle.raw.subscribe_message("GLOBAL_POSITION_INT")
+    async with contextlib.aclosing(stream):
+        async for message in stream:
+            if message.system_id != vehicle.system_id:
+                continue
+            fields = json.loads(message.fields_json)
+            positions.add(
+                vehicle.system_id,
+                mapping.unix_s(fields["time_boot_ms"] / 1000.0),
+                fields["lat"] / 1e7,
+                fields["lon"] / 1e7,
+                fields["alt"] / 1000.0,
+            )
+
+
+async def run_range_provider(
+    scenario,
+    *,
+    source="sih",
+    urls=(),
+    truth_port_base=TRUTH_PORT_BASE,
+    steps=None,
+    seed=0,
+    start_timeout_s=600.0,
+):
+    """Publish synthetic ranges for ``steps`` steps (default: the scenario's) from the ground
+    station's start. Returns :class:`RangeStats`."""
     if scenario.bus.kind != "mqtt":
         raise RunnerError("the range provider publishes for vehicle processes: set bus.kind: mqtt")
-    ids = [v.id for v in scenario.vehicles]
-    step_s = scenario.timing.step_s
+    if source not in SOURCES:
+        raise RunnerError(f"unknown range source {source!r}: use one of {', '.join(SOURCES)}")
     steps = scenario.timing.steps if steps is None else steps
     topics = scenario.bus.topics(scenario.name)
     rng = np.random.default_rng([seed, 11])
-    sensors = scenario.sensors
+    mission_time = MissionTime()
+    positions = _Positions(scenario)
+    stats = RangeStats()
     async with contextlib.AsyncExitStack() as stack:
-        systems = await stack.enter_async_context(connected_vehicles(urls, ids))
         bus = await stack.enter_async_context(
             open_bus(scenario.bus, client_id=f"{scenario.name}-range-provider")
         )
         control = await stack.enter_async_context(bus.subscribe(topics.control()))
-        tracks = []
-        for vehicle_id in ids:
-            vehicle = await stack.enter_async_context(
-                MavsdkVehicle(systems[vehicle_id], vehicle_id, sample_time_s=lambda ms: math.nan)
-            )
-            with contextlib.suppress(Exception):
-                await vehicle.telemetry.set_rate_position(POSITION_RATE_HZ)
-            tracks.append((GlobalTrack(vehicle), await vehicle.boot_to_unix_offset_s()))
-        origin = {}
-
-        def first_fix(track, lat, lon, alt):
-            # Every track shares one origin: the first vehicle's first fix (which the scenario
-            # frame puts at that vehicle's initial_position_m).
-            if track is tracks[0][0]:
-                origin["lla"] = (lat, lon, alt)
-            if origin:
-                track.reference = origin["lla"]
-
-        async with asyncio.TaskGroup() as group:
-            streams = [
-                group.create_task(
-                    track.stream(offset, first_fix), name=f"gps-{track.vehicle.system_id}"
-                )
-                for track, offset in tracks
-            ]
-            try:
-                if start_s is None:
-                    start_s = await _start_command(control)
-                for k in range(steps):
-                    t_k = start_s + k * step_s
-                    await asyncio.sleep(max(0.0, t_k + 0.06 - time.time()))  # a fix after t_k
-                    positions = [track.track.at(t_k) for track, _ in tracks]
-                    await _publish_step(
-                        bus, topics, scenario, ids, positions, k, t_k, start_s, rng, sensors
-                    )
-            finally:
-                for task in streams:
-                    task.cancel()
-    return steps
+        group = await stack.enter_async_context(asyncio.TaskGroup())
+        if source == "sih":
+            await _sih_source(stack, positions, scenario, truth_port_base)
+        else:
+            await _gps_source(stack, positions, list(urls), mission_time, group)
+        start = await _start_command(control, start_timeout_s)
+        mission_time.set(start.clock_rate or 1.0, start.clock_reference_s or start.time_s)
+        for k in range(steps):
+            t_k = start.time_s + k * scenario.timing.step_s
+            unix_k = mission_time.to_unix(t_k)
+            await asyncio.sleep(max(0.0, unix_k - time.time()))
+            now = await positions.bracketing(unix_k, MAX_WAIT_S)
+            await _publish_step(bus, topics, scenario, now, k, t_k, start.time_s, rng, stats)
+            stats.lateness_s.append(mission_time.now_s() - t_k)
+    return stats
 
 
-async def _start_command(control, timeout_s=600.0):
+async def _start_command(control, timeout_s):
     try:
         async with asyncio.timeout(timeout_s):
             async for _, message in control.messages(MissionControl):
                 if message.command is ControlCommand.START:
-                    return message.time_s
+                    return message
     except TimeoutError:
         raise RunnerTimeoutError("the ground station's start command", timeout_s) from None
     raise RunnerError("the bus closed before the start command")
 
 
-async def _publish_step(bus, topics, scenario, ids, positions, k, t_k, start_s, rng, sensors):  # noqa: PLR0917
-    noise = sensors.range_noise_std_m
-    for i, here in enumerate(positions):
-        if here is None:
-            continue
-        for j, there in enumerate(positions):
-            if i == j or there is None:
-                continue
-            distance = math.dist(here, there) + (rng.normal(scale=noise) if noise else 0.0)
-            if sensors.range_max_m is not None and distance > sensors.range_max_m:
-                continue
-            message = RangeMessage(ids[i], ids[j], t_k, abs(distance), step=k)
-            await bus.publish_message(topics.range(ids[i], ids[j]), message, timeout=0.1)
+async def _publish_step(bus, topics, scenario, positions_m, k, t_k, start_s, rng, stats):  # noqa: PLR0917
+    ids = [v.id for v in scenario.vehicles]
+    missing = np.isnan(positions_m[:, 0])
+    stats.steps += 1
+    stats.missing_vehicles += int(missing.sum())
+    ranges = measure_ranges(positions_m, scenario.sensors, rng)
+    for i, j in zip(*np.nonzero(np.isfinite(ranges)), strict=True):
+        message = RangeMessage(ids[i], ids[j], t_k, float(ranges[i, j]), step=k)
+        await bus.publish_message(topics.range(ids[i], ids[j]), message, timeout=0.1)
+        stats.ranges += 1
     elapsed = np.array([t_k - start_s, t_k - start_s + 1e-3])
     target = target_positions(scenario.target.path, elapsed)
     velocity = (target[1] - target[0]) / 1e-3
-    first = scenario.vehicles[0].initial_position_m
+    noise = scenario.sensors.range_noise_std_m
     for i, vehicle in enumerate(scenario.vehicles):
-        if not vehicle.senses_target or positions[i] is None:
+        if not vehicle.senses_target or missing[i]:
             continue
-        # Scenario frame = track frame shifted by the first vehicle's scenario start position.
-        north = positions[i][0] + first[0]
-        east = positions[i][1] + first[1]
-        horizontal = math.hypot(north - target[0, 0], east - target[0, 1])
+        horizontal = math.hypot(*(positions_m[i, :2] - target[0]))
+        if noise:
+            horizontal = abs(horizontal + rng.normal(scale=noise))
         observation = TargetObservation(ids[i], t_k, horizontal, *map(float, velocity))
         await bus.publish_message(topics.target(ids[i]), observation, timeout=0.1)

@@ -71,6 +71,8 @@ def test_four_vehicle_processes_a_ground_station_and_the_emulator_over_mosquitto
                 str(i + 1),
                 "--url",
                 f"udpin://0.0.0.0:{ports.api_remote_base + i}",
+                "--out",
+                str(tmp_path / f"vehicle_{i + 1}"),
             )
             for i in range(4)
         ]
@@ -85,7 +87,7 @@ def test_four_vehicle_processes_a_ground_station_and_the_emulator_over_mosquitto
         sitl_out, _ = sitl.communicate(timeout=30)
 
     assert ground.returncode == 0, ground_out
-    assert "mission over; 4 vehicle(s) done, lost: none" in ground_out, ground_out
+    assert re.search(r"mission \w+ over; 4 vehicle\(s\) done, lost: none", ground_out), ground_out
     for number, (vehicle, output) in enumerate(zip(vehicles, outputs, strict=True), start=1):
         assert vehicle.returncode == 0, output
         following = re.search(rf"vehicle {number}: done, {STEPS} steps, (\d+) following", output)

@@ -1,0 +1,193 @@
+"""Time that holds on real autopilots: an autopilot's boot clock mapped onto the mission clock.
+
+Every timestamp an autopilot sends (LOCAL_POSITION_NED's ``time_boot_ms``, HIL_STATE_QUATERNION's
+``time_usec``) is on its *boot clock*. The mission clock is shared by every vehicle process (UNIX
+time on time-synchronised companion computers, possibly scaled, see :class:`MissionTime`). The two
+are related by SYSTEM_TIME, which carries both clocks read at the same instant on the autopilot, so
+the link's latency does not enter the pair.
+
+The relation is not a constant offset: PX4 SITL's simulated boot clock runs at 0.986x the host's
+clock at speed factor 1 and ~1.93x at 2, and even a hardware crystal drifts by tens of ppm. An
+offset estimated once drifts ~14 ms per second on SIH. :class:`ClockMapping` therefore fits
+``unix = offset + rate * boot`` by least squares over a sliding window of pairs, continuously, and
+survives a jump of the autopilot's UNIX clock (GPS time arriving, NTP stepping) by refitting.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import dataclass
+
+from .errors import RunnerError
+
+#: Rates outside this band are not a clock, they are a bug or a hostile message.
+MIN_RATE, MAX_RATE = 0.01, 100.0
+
+
+class ClockMappingError(RunnerError):
+    """The mapping cannot answer yet (no pair) or was given an impossible pair."""
+
+
+@dataclass(frozen=True, slots=True)
+class ClockFit:
+    """``unix_s = reference_unix_s + rate * (boot_s - reference_boot_s)``; ``residual_s`` is the
+    RMS misfit of the pairs in the window, ``pairs`` how many there were."""
+
+    reference_boot_s: float
+    reference_unix_s: float
+    rate: float
+    residual_s: float
+    pairs: int
+
+    @property
+    def boot_rate(self) -> float:
+        """Boot-clock seconds per UNIX second (0.986 for PX4 SIH at speed factor 1)."""
+        return 1.0 / self.rate
+
+    def unix_s(self, boot_s: float) -> float:
+        return self.reference_unix_s + self.rate * (boot_s - self.reference_boot_s)
+
+    def boot_s(self, unix_s: float) -> float:
+        return self.reference_boot_s + (unix_s - self.reference_unix_s) / self.rate
+
+
+class ClockMapping:
+    """Boot clock -> UNIX clock of one autopilot, from (boot_s, unix_s) pairs.
+
+    window_s: boot seconds of pairs kept for the fit (long enough to average the millisecond
+    quantisation, short enough to follow a rate that wanders). jump_s: a pair this far from the
+    current fit is an outlier; ``jumps_to_refit`` outliers in a row mean the autopilot's clock was
+    stepped, and the fit restarts from them. Until two pairs span ``min_span_s`` the rate is
+    taken as ``nominal_rate``.
+    """
+
+    def __init__(
+        self,
+        *,
+        window_s: float = 20.0,
+        jump_s: float = 0.1,
+        jumps_to_refit: int = 3,
+        min_span_s: float = 1.5,
+        nominal_rate: float = 1.0,
+    ) -> None:
+        self.window_s = window_s
+        self.jump_s = jump_s
+        self.jumps_to_refit = jumps_to_refit
+        self.min_span_s = min_span_s
+        self.nominal_rate = nominal_rate
+        self._pairs: deque[tuple[float, float]] = deque()
+        self._outliers: list[tuple[float, float]] = []
+        self._fit: ClockFit | None = None
+        self.rejected = 0
+        self.refits = 0
+
+    @property
+    def ready(self) -> bool:
+        return self._fit is not None
+
+    @property
+    def fit(self) -> ClockFit:
+        if self._fit is None:
+            raise ClockMappingError("no SYSTEM_TIME pair yet: the autopilot's clock is unknown")
+        return self._fit
+
+    def add(self, boot_s: float, unix_s: float) -> bool:
+        """Add a pair read at one instant; returns False if it was rejected as an outlier or a
+        repeat (a pair not newer than the last one)."""
+        if not (math.isfinite(boot_s) and math.isfinite(unix_s)) or unix_s <= 0 or boot_s < 0:
+            self.rejected += 1
+            return False
+        if self._pairs and boot_s <= self._pairs[-1][0]:
+            if boot_s < self._pairs[-1][0] - self.window_s:  # the autopilot rebooted
+                self._restart([(boot_s, unix_s)])
+                return True
+            return False
+        if self._fit is not None and abs(self._fit.unix_s(boot_s) - unix_s) > self.jump_s:
+            self._outliers.append((boot_s, unix_s))
+            if len(self._outliers) < self.jumps_to_refit:
+                self.rejected += 1
+                return False
+            self._restart(self._outliers)
+            return True
+        self._outliers.clear()
+        self._pairs.append((boot_s, unix_s))
+        while self._pairs and self._pairs[-1][0] - self._pairs[0][0] > self.window_s:
+            self._pairs.popleft()
+        self._refit()
+        return True
+
+    def _restart(self, pairs: list[tuple[float, float]]) -> None:
+        self.refits += 1
+        self._pairs = deque(pairs)
+        self._outliers = []
+        self._refit()
+
+    def _refit(self) -> None:
+        count = len(self._pairs)
+        boots = [b for b, _ in self._pairs]
+        unixes = [u for _, u in self._pairs]
+        mean_boot, mean_unix = sum(boots) / count, sum(unixes) / count
+        span = boots[-1] - boots[0]
+        rate = self.nominal_rate
+        if span >= self.min_span_s:
+            sxx = sum((b - mean_boot) ** 2 for b in boots)
+            sxy = sum((b - mean_boot) * (u - mean_unix) for b, u in self._pairs)
+            fitted = sxy / sxx
+            if MIN_RATE <= fitted <= MAX_RATE:
+                rate = fitted
+        residual = math.sqrt(
+            sum((u - (mean_unix + rate * (b - mean_boot))) ** 2 for b, u in self._pairs) / count
+        )
+        self._fit = ClockFit(mean_boot, mean_unix, rate, residual, count)
+
+    def unix_s(self, boot_s: float) -> float:
+        return self.fit.unix_s(boot_s)
+
+    def boot_s(self, unix_s: float) -> float:
+        return self.fit.boot_s(unix_s)
+
+
+class MissionTime:
+    """The mission clock of vehicle processes: UNIX time, optionally scaled to follow autopilots
+    whose simulated time does not run at wall speed (PX4 SITL's speed factor).
+
+    ``mission_s = reference_s + rate * (unix_s - reference_s)``: at ``reference_s`` both clocks
+    read the same. The ground station chooses ``rate`` (the autopilots' measured boot-clock rate,
+    or exactly 1 where that is within ``UNITY_BAND`` of 1, as for hardware) and sends it with the
+    start command, so that every process runs the same clock. ``unix`` is injectable for tests.
+    """
+
+    UNITY_BAND = 0.002
+
+    def __init__(self, rate: float = 1.0, reference_s: float = 0.0, *, unix=time.time) -> None:
+        self._unix = unix
+        self.set(rate, reference_s)
+
+    def set(self, rate: float, reference_s: float) -> None:
+        if not (math.isfinite(rate) and MIN_RATE <= rate <= MAX_RATE):
+            raise ClockMappingError(f"mission clock rate must be in [{MIN_RATE}, {MAX_RATE}]")
+        self.rate = float(rate)
+        self.reference_s = float(reference_s)
+
+    @classmethod
+    def rate_for(cls, autopilot_rates: list[float]) -> float:
+        """The mission clock rate for autopilots whose boot clocks run at ``autopilot_rates``
+        (boot seconds per UNIX second, :attr:`ClockFit.boot_rate`): their median, or exactly 1
+        when that is within ``UNITY_BAND`` of 1."""
+        rates = sorted(r for r in autopilot_rates if math.isfinite(r) and r > 0)
+        if not rates:
+            return 1.0
+        middle = len(rates) // 2
+        median = rates[middle] if len(rates) % 2 else 0.5 * (rates[middle - 1] + rates[middle])
+        return 1.0 if abs(median - 1.0) <= cls.UNITY_BAND else median
+
+    def from_unix(self, unix_s: float) -> float:
+        return self.reference_s + self.rate * (unix_s - self.reference_s)
+
+    def to_unix(self, mission_s: float) -> float:
+        return self.reference_s + (mission_s - self.reference_s) / self.rate
+
+    def now_s(self) -> float:
+        return self.from_unix(self._unix())
