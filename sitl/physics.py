@@ -85,7 +85,8 @@ class MulticopterPhysics:
     Arrays (all float64 unless noted):
 
     - ``position_ned_m`` (n, 3), ``velocity_ned_m_s`` (n, 3), ``acceleration_ned_m_s2`` (n, 3)
-    - ``yaw_rad`` (n,), ``roll_rad`` (n,), ``pitch_rad`` (n,), ``yaw_rate_rad_s`` (n,)
+    - ``yaw_rad`` (n,), ``roll_rad`` (n,), ``pitch_rad`` (n,), ``yaw_rate_rad_s`` (n,),
+      ``roll_rate_rad_s`` (n,), ``pitch_rate_rad_s`` (n,) (Euler angle rates)
     - setpoints: ``control_mode`` (n,) int8, ``velocity_setpoint_ned_m_s`` (n, 3),
       ``position_setpoint_ned_m`` (n, 3), ``velocity_feedforward_ned_m_s`` (n, 3),
       ``acceleration_setpoint_ned_m_s2`` (n, 3), ``yaw_setpoint_rad`` (n,) NaN = keep,
@@ -119,6 +120,8 @@ class MulticopterPhysics:
         self.roll_rad: FloatArray = np.zeros(n)
         self.pitch_rad: FloatArray = np.zeros(n)
         self.yaw_rate_rad_s: FloatArray = np.zeros(n)
+        self.roll_rate_rad_s: FloatArray = np.zeros(n)
+        self.pitch_rate_rad_s: FloatArray = np.zeros(n)
 
         self.control_mode = np.full(n, MOTORS_OFF, dtype=np.int8)
         self.velocity_setpoint_ned_m_s: FloatArray = np.zeros((n, 3))
@@ -264,8 +267,14 @@ class MulticopterPhysics:
         forward = accel[:, 0] * cos_y + accel[:, 1] * sin_y
         right = accel[:, 1] * cos_y - accel[:, 0] * sin_y
         # Motors off: no thrust to tilt with (accel is gravity only, so the atan2 give 0 there).
-        self.pitch_rad[:] = -np.arctan2(forward, GRAVITY_M_S2)
-        self.roll_rad[:] = np.arctan2(right, GRAVITY_M_S2)
+        pitch = -np.arctan2(forward, GRAVITY_M_S2)
+        roll = np.arctan2(right, GRAVITY_M_S2)
+        np.subtract(pitch, self.pitch_rad, out=self.pitch_rate_rad_s)
+        self.pitch_rate_rad_s /= dt
+        np.subtract(roll, self.roll_rad, out=self.roll_rate_rad_s)
+        self.roll_rate_rad_s /= dt
+        self.pitch_rad[:] = pitch
+        self.roll_rad[:] = roll
 
 
 def _shrink(magnitude: FloatArray, limit: FloatArray) -> FloatArray:
