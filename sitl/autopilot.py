@@ -27,7 +27,9 @@ from typing import Protocol
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import physics as ph
+from sitl.config import PX4_ARMING_DENIED_TEXT
 from sitl.geo import MapProjection
+from sitl.gnss import GnssError
 from sitl.mission import MISSION_TYPE_MISSION, RELATIVE_ALT_FRAMES, MissionItem, MissionTransfer
 from sitl.modes import MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, FlightMode
 from sitl.odometry import Odometry
@@ -132,9 +134,16 @@ class Snapshot:
     yaw_rad: list[float] = field(default_factory=list)
     yaw_rate_rad_s: list[float] = field(default_factory=list)
     drift_ned_m: list[list[float]] = field(default_factory=list)
+    gps_error_ned_m: list[list[float]] | None = None
+    """Error of the reported global position (world NED m), None while there is none."""
     step_id: int = 0
 
-    def refresh(self, physics: ph.MulticopterPhysics, odometry: Odometry) -> None:
+    def refresh(
+        self,
+        physics: ph.MulticopterPhysics,
+        odometry: Odometry,
+        gnss: GnssError | None = None,
+    ) -> None:
         self.position_ned_m = physics.position_ned_m.tolist()
         self.velocity_ned_m_s = physics.velocity_ned_m_s.tolist()
         self.roll_rad = physics.roll_rad.tolist()
@@ -142,6 +151,10 @@ class Snapshot:
         self.yaw_rad = physics.yaw_rad.tolist()
         self.yaw_rate_rad_s = physics.yaw_rate_rad_s.tolist()
         self.drift_ned_m = odometry.drift_ned_m.tolist()
+        if gnss is not None and gnss.active:
+            self.gps_error_ned_m = gnss.error_ned_m.tolist()
+        else:
+            self.gps_error_ned_m = None
         self.step_id += 1
 
 
@@ -154,6 +167,18 @@ class _Command:
     frame: int | None  # None for COMMAND_LONG
     x_int: int = 0
     y_int: int = 0
+    source: tuple[int, int] = (0, 0)  # sender's system and component id
+
+
+@dataclass(slots=True)
+class _ArmRefusal:
+    """Injected arm refusals still to come, and the attempt refused last (for retransmissions)."""
+
+    remaining: int = 0
+    text: str = PX4_ARMING_DENIED_TEXT
+    retry_window_s: float = 2.0
+    last_key: tuple[object, ...] | None = None
+    last_at_s: float = -math.inf
 
 
 @dataclass(slots=True)
@@ -171,7 +196,9 @@ class Px4Autopilot:
     ``physics``/``odometry``/``snapshot`` are shared by all vehicles; this object touches only
     row ``index``. ``projection`` maps world north/east to latitude/longitude and
     ``ground_amsl_m`` is the altitude of the flat ground. ``unix_epoch_start_us`` is the wall time
-    that corresponds to simulated time 0 (for SYSTEM_TIME).
+    that corresponds to simulated time 0 (for SYSTEM_TIME) unless ``unix_time_us`` gives the
+    UNIX time for a simulated time. ``boot_offset_s`` is how long the autopilot had been running
+    at simulated time 0: every timestamp it sends is on that boot clock.
     """
 
     def __init__(
@@ -187,6 +214,8 @@ class Px4Autopilot:
         preflight_ready_after_s: float = 1.0,
         battery_drain_percent_per_min: float = 1.0,
         unix_epoch_start_us: int = 0,
+        unix_time_us: Callable[[float], int] | None = None,
+        boot_offset_s: float = 0.0,
     ) -> None:
         self.index = index
         self.sysid = index + 1
@@ -199,6 +228,8 @@ class Px4Autopilot:
         self.preflight_ready_after_s = preflight_ready_after_s
         self.battery_drain_percent_per_min = battery_drain_percent_per_min
         self.unix_epoch_start_us = unix_epoch_start_us
+        self._unix_time_us = unix_time_us
+        self.boot_offset_s = float(boot_offset_s)
         self.params = ParamStore(param_overrides, on_change=self._param_changed)
         self.params.set_silently("MAV_SYS_ID", self.sysid)
         self.links: list[Link] = []
@@ -224,6 +255,8 @@ class Px4Autopilot:
         self.failsafe_active = False
         self.battery_remaining_pct = 100.0
         self.rejected_setpoints = 0
+        self._arm_refusal = _ArmRefusal()
+        self._statustext_id = 0
 
         self._now_s = 0.0
         self._last_update_s = 0.0
@@ -315,13 +348,19 @@ class Px4Autopilot:
     def position_ok(self) -> bool:
         return self.gps_ok or self.flow_ok
 
+    def boot_time_s(self, now_s: float) -> float:
+        """The autopilot's boot clock at simulated time ``now_s``."""
+        return now_s + self.boot_offset_s
+
     def time_boot_ms(self, now_s: float) -> int:
-        return int(now_s * 1000.0) & 0xFFFFFFFF
+        return int((now_s + self.boot_offset_s) * 1000.0) & 0xFFFFFFFF
 
     def time_usec(self, now_s: float) -> int:
-        return int(now_s * 1e6)
+        return int((now_s + self.boot_offset_s) * 1e6)
 
     def unix_time_us(self, now_s: float) -> int:
+        if self._unix_time_us is not None:
+            return self._unix_time_us(now_s)
         return self.unix_epoch_start_us + int(now_s * 1e6)
 
     def position_ned(self) -> list[float]:
@@ -337,17 +376,55 @@ class Px4Autopilot:
         s = self._snap
         return s.roll_rad[i], s.pitch_rad[i], s.yaw_rad[i], s.yaw_rate_rad_s[i]
 
+    def reported_position_ned(self) -> list[float]:
+        """World NED position the vehicle reports as its own: the truth plus the GPS/EKF
+        error (see :mod:`sitl.gnss`)."""
+        pos = self._snap.position_ned_m[self.index]
+        errors = self._snap.gps_error_ned_m
+        if errors is None:
+            return pos
+        err = errors[self.index]
+        return [pos[0] + err[0], pos[1] + err[1], pos[2] + err[2]]
+
     def global_position(self) -> tuple[float, float, float]:
-        """(latitude deg, longitude deg, altitude AMSL m) of the true position."""
+        """(latitude deg, longitude deg, altitude AMSL m) the vehicle reports: the true
+        position plus the GPS/EKF error."""
         if self._cache_step != self._snap.step_id:
-            n, e, d = self.position_ned()
+            n, e, d = self.reported_position_ned()
             lat, lon = self._projection.to_global(n, e)
             self._cache_global = (lat, lon, self.ground_amsl_m - d)
             self._cache_step = self._snap.step_id
         return self._cache_global
 
+    def true_global_position(self) -> tuple[float, float, float]:
+        """(latitude deg, longitude deg, altitude AMSL m) of the true position."""
+        n, e, d = self.position_ned()
+        lat, lon = self._projection.to_global(n, e)
+        return lat, lon, self.ground_amsl_m - d
+
     def altitude_above_home_m(self) -> float:
         return self._home_ned_m[2] - self.position_ned()[2]
+
+    def reported_altitude_above_home_m(self) -> float:
+        return self._home_ned_m[2] - self.reported_position_ned()[2]
+
+    def truth_rates(self) -> tuple[float, float, float, list[float], list[float]]:
+        """Body rates (roll, pitch, yaw; rad/s, FRD), NED acceleration (m/s^2) and the wind
+        (NED m/s) of the true state, for the ground-truth stream."""
+        i = self.index
+        phys = self._physics
+        roll, pitch, _, yaw_rate = self.attitude()
+        roll_rate = float(phys.roll_rate_rad_s[i])
+        pitch_rate = float(phys.pitch_rate_rad_s[i])
+        sr, cr = math.sin(roll), math.cos(roll)
+        sp, cp = math.sin(pitch), math.cos(pitch)
+        p = roll_rate - yaw_rate * sp
+        q = pitch_rate * cr + yaw_rate * sr * cp
+        r = -pitch_rate * sr + yaw_rate * cr * cp
+        accel = [float(v) for v in phys.acceleration_ned_m_s2[i]]
+        wind = phys.wind
+        wind_ned = [0.0, 0.0, 0.0] if wind is None else [float(v) for v in wind.velocity_ned_m_s[i]]
+        return p, q, r, accel, wind_ned
 
     def height_above_ground_m(self) -> float:
         return -self.position_ned()[2]
@@ -462,7 +539,8 @@ class Px4Autopilot:
 
     def _on_timesync(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         if msg.tc1 == 0:
-            link.send(mavlink.MAVLink_timesync_message(int(self._now_s * 1e9), msg.ts1))
+            boot_ns = int(self.boot_time_s(self._now_s) * 1e9)
+            link.send(mavlink.MAVLink_timesync_message(boot_ns, msg.ts1))
 
     def _on_mission_message(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         self.mission.handle(msg, link, self._now_s)
@@ -526,6 +604,7 @@ class Px4Autopilot:
             command,
             (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7),
             None,
+            source=(msg.get_srcSystem(), msg.get_srcComponent()),
         )
         self._run_command(cmd, msg, link)
 
@@ -538,6 +617,7 @@ class Px4Autopilot:
             msg.frame,
             msg.x,
             msg.y,
+            source=(msg.get_srcSystem(), msg.get_srcComponent()),
         )
         self._run_command(cmd, msg, link)
 
@@ -573,6 +653,11 @@ class Px4Autopilot:
                 if self.mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
                     self._statustext(now, CRITICAL, "Arming denied: no offboard signal")
                     return TEMPORARILY_REJECTED
+            if self._injected_arm_refusal(cmd, link, now):
+                # PX4's commander: mavlink_log_critical(... "\t"), then TRANSITION_DENIED,
+                # which the arm command answers with TEMPORARILY_REJECTED.
+                self._statustext(now, CRITICAL, self._arm_refusal.text + "\t")
+                return TEMPORARILY_REJECTED
             self._arm(now)
             return ACCEPTED
         if p1 == 0.0:
@@ -584,6 +669,36 @@ class Px4Autopilot:
             self._disarm(now, "Disarmed by external command")
             return ACCEPTED
         return DENIED
+
+    def deny_arming(self, count: int, text: str, retry_window_s: float) -> None:
+        """Refuse the next ``count`` arm attempts with STATUSTEXT ``text`` (added to any
+        refusals still pending); see :class:`sitl.config.DenyArmingFault`."""
+        if count < 1:
+            raise ValueError(f"count must be >= 1, got {count!r}")
+        refusal = self._arm_refusal
+        refusal.remaining += count
+        refusal.text = text
+        refusal.retry_window_s = retry_window_s
+
+    @property
+    def arm_refusals_pending(self) -> int:
+        return self._arm_refusal.remaining
+
+    def _injected_arm_refusal(self, cmd: _Command, link: Link, now_s: float) -> bool:
+        """Whether an injected health failure refuses this arm command (uses up one refusal
+        unless it retransmits the attempt refused last)."""
+        refusal = self._arm_refusal
+        force = cmd.params[1]
+        key = (link.name, cmd.source, cmd.command, None if math.isnan(force) else force)
+        window = refusal.retry_window_s
+        if window > 0 and key == refusal.last_key and now_s - refusal.last_at_s < window:
+            return True
+        if refusal.remaining <= 0:
+            return False
+        refusal.remaining -= 1
+        refusal.last_key = key
+        refusal.last_at_s = now_s
+        return True
 
     def _cmd_takeoff(self, cmd: _Command, link: Link) -> int:
         if not self.armed:
@@ -1408,12 +1523,25 @@ class Px4Autopilot:
 
     # ================================================================ output
     def _statustext(self, now_s: float, severity: int, text: str) -> None:
-        self.status_log.append((now_s, text))
-        logger.debug("vehicle %d: %s", self.sysid, text)
+        """Log ``text`` and send it; PX4 sends texts over 50 bytes in 50-byte chunks that share
+        a non-zero id (a tab that PX4 appends to many texts is kept on the wire only)."""
+        shown = text.rstrip("\t")
+        self.status_log.append((now_s, shown))
+        logger.debug("vehicle %d: %s", self.sysid, shown)
         if self.on_statustext is not None:
-            self.on_statustext(now_s, severity, text)
-        if self.alive:
-            self._broadcast(mavlink.MAVLink_statustext_message(severity, text[:50].encode()))
+            self.on_statustext(now_s, severity, shown)
+        if not self.alive:
+            return
+        data = text.encode()
+        if len(data) <= 50:
+            self._broadcast(mavlink.MAVLink_statustext_message(severity, data))
+            return
+        self._statustext_id = self._statustext_id % 0xFFFF + 1
+        for seq, start in enumerate(range(0, len(data), 50)):
+            chunk = data[start : start + 50]
+            self._broadcast(
+                mavlink.MAVLink_statustext_message(severity, chunk, self._statustext_id, seq)
+            )
 
     def _broadcast(self, msg: mavlink.MAVLink_message) -> None:
         for link in self.links:

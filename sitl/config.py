@@ -288,6 +288,14 @@ class StreamRates(_Model):
     mission_current_hz: float = Field(
         1.0, ge=0, le=100, title="MISSION_CURRENT", description="Rate, Hz."
     )
+    hil_state_quaternion_hz: float = Field(
+        0.0,
+        ge=0,
+        le=100,
+        title="HIL_STATE_QUATERNION",
+        description="Rate, Hz, of the ground-truth state (PX4 streams it only on SIH's own "
+        "link, see truth_stream).",
+    )
 
 
 def _gcs_rates() -> StreamRates:
@@ -352,6 +360,126 @@ class ClockConfig(_Model):
         "seconds is dropped with a warning, so a dead participant cannot stall the clock "
         "(None: wait forever).",
     )
+    unix_time: Literal["simulated", "host"] = Field(
+        "simulated",
+        title="SYSTEM_TIME UNIX clock",
+        description="Where SYSTEM_TIME.time_unix_usec comes from. simulated: the host's UNIX "
+        "time at start plus simulated time, so it runs exactly with the boot clock. host: in "
+        "realtime mode the host's clock (time.time()) when the message is built, like PX4 "
+        "SITL, whose simulated boot clock does not run exactly at wall speed (SIH: 0.986x at "
+        "speed factor 1; set speed 0.986 to reproduce the drift). In lockstep mode simulated "
+        "time has no relation to the host's clock, so host behaves like simulated.",
+    )
+
+
+class BootClockConfig(_Model):
+    """When each vehicle's autopilot booted, before the emulator's simulated time 0.
+
+    PX4 stamps its messages with its boot clock (time_boot_ms, time_usec). Instances started
+    one after another have boot clocks that differ by their start delays, so a client must map
+    every vehicle's clock separately. Vehicle i's boot clock reads simulated time + offset_i;
+    everything inside the emulator (physics, timeouts, faults) stays on simulated time.
+    """
+
+    offset_s: list[Annotated[float, Field(ge=0.0, le=1e6)]] = Field(
+        default_factory=list,
+        title="Boot clock offsets",
+        description="Boot-clock offset of vehicle 0, 1, ..., s (one per vehicle, or empty). "
+        "Exclusive with spread_s.",
+    )
+    spread_s: float = Field(
+        0.0,
+        ge=0.0,
+        le=1e6,
+        title="Random boot clock spread",
+        description="If > 0 (and offset_s empty), every vehicle's offset is drawn uniformly "
+        "from [0, spread_s] s, seeded.",
+    )
+    seed: int | None = Field(
+        None,
+        ge=0,
+        title="Boot clock seed",
+        description="Seed of the random offsets (None: the emulator's seed).",
+    )
+
+
+class GpsErrorConfig(_Model):
+    """Error of the position the vehicle reports as its own (GPS through the EKF):
+    GLOBAL_POSITION_INT, GPS_RAW_INT, VFR_HUD and ALTITUDE altitudes.
+
+    Per vehicle, a first-order Gauss-Markov bias in north, east and down (standard deviation
+    bias_std_m, correlation time bias_time_constant_s, stationary from the start) plus white
+    noise drawn every physics step. The vehicles fly on their true position: only what they
+    report is wrong, and the emulator's truth stays exact.
+    """
+
+    bias_std_m: float = Field(
+        0.0,
+        ge=0.0,
+        le=100.0,
+        title="Bias standard deviation",
+        description="Stationary standard deviation of each axis of the bias, m (SIH-like: "
+        "0.2-0.3).",
+    )
+    bias_time_constant_s: float = Field(
+        30.0,
+        gt=0.0,
+        le=1e5,
+        title="Bias correlation time",
+        description="Correlation time of the bias, s (SIH-like: 20-60).",
+    )
+    noise_std_m: float = Field(
+        0.0,
+        ge=0.0,
+        le=100.0,
+        title="White noise",
+        description="Standard deviation of the white noise on each axis, m.",
+    )
+
+    @property
+    def active(self) -> bool:
+        return self.bias_std_m > 0 or self.noise_std_m > 0
+
+
+class TruthStreamConfig(_Model):
+    """SIH's ground-truth link: vehicle i binds local_base + i and sends HIL_STATE_QUATERNION
+    (and a 1 Hz HEARTBEAT, like every PX4 MAVLink instance) to remote_base + i on
+    ports.remote_host, from its own system id, component 1 (PX4: 19450+i -> 19410+i, 25 Hz).
+    """
+
+    enabled: bool = Field(
+        False, title="Enabled", description="Open the ground-truth link on every vehicle."
+    )
+    rate_hz: float = Field(
+        25.0,
+        gt=0.0,
+        le=100.0,
+        title="Rate",
+        description="HIL_STATE_QUATERNION rate in simulated Hz (PX4 SIH: 25).",
+    )
+    local_base: int = Field(
+        19450,
+        ge=1,
+        le=65535,
+        title="Ground-truth local port base",
+        description="Vehicle i binds local_base + i for its ground-truth link (PX4: 19450).",
+    )
+    remote_base: int = Field(
+        19410,
+        ge=1,
+        le=65535,
+        title="Ground-truth client port base",
+        description="Vehicle i sends ground truth to remote_base + i (PX4: 19410).",
+    )
+    fields: Literal["px4", "mavlink"] = Field(
+        "px4",
+        title="Field conventions",
+        description="px4: exactly as PX4 (v1.16) fills the message: time_usec left 0, "
+        "accelerations copied in m/s^2 (truncated to integers) into the mG fields, airspeeds "
+        "0, integers truncated towards zero. mavlink: as the MAVLink definition reads: "
+        "time_usec on the vehicle's boot clock, accelerations in mG, airspeeds the speed "
+        "through the air, integers rounded.",
+    )
 
 
 class KillFault(_Model):
@@ -390,7 +518,48 @@ class SensorFault(_Model):
     )
 
 
-Fault = Annotated[KillFault | LinkDropFault | SensorFault, Field(discriminator="kind")]
+PX4_ARMING_DENIED_TEXT = "Arming denied: Resolve system health failures first"
+"""What PX4's commander says when its health and arming checks refuse an arm command."""
+
+
+class DenyArmingFault(_Model):
+    """The next ``count`` arm commands are refused as PX4 refuses an arm when a health check
+    fails after clients saw the vehicle healthy: COMMAND_ACK TEMPORARILY_REJECTED and a
+    CRITICAL STATUSTEXT. Forced arms are refused too (PX4 runs its checks on every arm
+    command from MAVLink, forced or not).
+    """
+
+    kind: Literal["deny_arming"] = Field(title="Kind", description="Fault kind discriminator.")
+    vehicle_index: int = Field(ge=0, title="Vehicle", description="0-based index (sysid - 1).")
+    at_s: float = Field(
+        0.0, ge=0.0, title="Time", description="Simulated time from which it applies, s."
+    )
+    count: int = Field(
+        1, ge=1, le=1_000_000, title="Refusals", description="How many arm attempts to refuse."
+    )
+    reason: str = Field(
+        PX4_ARMING_DENIED_TEXT,
+        min_length=1,
+        max_length=200,
+        title="STATUSTEXT",
+        description="The text of the STATUSTEXT sent with each refusal (PX4's by default; PX4 "
+        "ends it with a tab and splits texts longer than 50 characters into chunks).",
+    )
+    retry_window_s: float = Field(
+        2.0,
+        ge=0.0,
+        le=600.0,
+        title="Retransmission window",
+        description="An identical arm command from the same client on the same link within "
+        "this many simulated seconds of a refused attempt is a retransmission of it (MAVSDK "
+        "resends a command 0.5 s after it if no ACK came, three times): it is refused again, "
+        "with the same STATUSTEXT, without using up a refusal. 0: every arm command counts.",
+    )
+
+
+Fault = Annotated[
+    KillFault | LinkDropFault | SensorFault | DenyArmingFault, Field(discriminator="kind")
+]
 
 
 class EmulatorConfig(_Model):
@@ -407,7 +576,8 @@ class EmulatorConfig(_Model):
         0,
         ge=0,
         title="Random seed",
-        description="Seed of every random process (wind gusts, odometry noise and drift).",
+        description="Seed of every random process (wind gusts, odometry noise and drift, GPS "
+        "error, random boot-clock offsets).",
     )
     ports: PortsConfig = Field(
         default_factory=PortsConfig, title="Ports", description="UDP port layout."
@@ -434,6 +604,21 @@ class EmulatorConfig(_Model):
     )
     clock: ClockConfig = Field(
         default_factory=ClockConfig, title="Clock", description="Time keeping."
+    )
+    boot_clock: BootClockConfig = Field(
+        default_factory=BootClockConfig,
+        title="Boot clocks",
+        description="Per-vehicle offset of the boot clock that stamps the vehicle's messages.",
+    )
+    gps_error: GpsErrorConfig = Field(
+        default_factory=GpsErrorConfig,
+        title="GPS position error",
+        description="Bias and noise of the positions the vehicles report (default: exact).",
+    )
+    truth_stream: TruthStreamConfig = Field(
+        default_factory=TruthStreamConfig,
+        title="Ground-truth stream",
+        description="SIH's HIL_STATE_QUATERNION link (off by default).",
     )
     params: dict[str, float] = Field(
         default_factory=dict,
@@ -481,6 +666,14 @@ class EmulatorConfig(_Model):
                 raise ValueError(
                     f"fault on vehicle_index {fault.vehicle_index} but only {n} vehicle(s) exist"
                 )
+        offsets = self.boot_clock.offset_s
+        if offsets and len(offsets) != n:
+            raise ValueError(
+                f"boot_clock.offset_s has {len(offsets)} value(s) for {n} vehicle(s); give one "
+                "per vehicle, or use boot_clock.spread_s"
+            )
+        if offsets and self.boot_clock.spread_s > 0:
+            raise ValueError("boot_clock: give offset_s or spread_s, not both")
         ports = self.ports
         local = ports.resolved_api_local_base(n)
         ranges = {
@@ -489,14 +682,18 @@ class EmulatorConfig(_Model):
         }
         if ports.gcs_enabled:
             ranges["ports.gcs_local_base"] = (ports.gcs_local_base, ports.gcs_local_base + n - 1)
+        truth = self.truth_stream
+        if truth.enabled:
+            ranges["truth_stream.local_base"] = (truth.local_base, truth.local_base + n - 1)
+            ranges["truth_stream.remote_base"] = (truth.remote_base, truth.remote_base + n - 1)
         for name, (lo, hi) in ranges.items():
             if hi > 65535:
                 raise ValueError(f"{name}: ports {lo}..{hi} for {n} vehicles exceed 65535")
         if ports.gcs_enabled:
             gcs = ports.gcs_remote_port
-            for name in ("ports.api_local_base", "ports.gcs_local_base"):
-                lo, hi = ranges[name]
-                if lo <= gcs <= hi:
+            for name, (lo, hi) in ranges.items():
+                # api_remote_port() skips the GCS port; every other range must not hold it.
+                if name != "ports.api_remote_base" and lo <= gcs <= hi:
                     raise ValueError(f"{name} ({lo}..{hi}) contains ports.gcs_remote_port {gcs}")
         names = list(ranges)
         for i, a in enumerate(names):

@@ -8,12 +8,17 @@ closes the sockets and the telemetry logs.
 
 The physics task steps everything in fixed simulated steps as far as the clock allows (real time,
 sped-up real time, or lockstep; see :mod:`sitl.clock`). One step: scheduled faults, autopilot
-updates, ``physics.step(dt)``, odometry drift, step listeners, due telemetry, send.
+updates, ``physics.step(dt)``, odometry drift, GPS error, step listeners, due telemetry, send.
 
 For a world module (ranging, moving target, sensor faults published on a bus) there are
 :meth:`Emulator.add_step_listener` - called after every step with ``(time_s, truth)`` - and the
 read-only :attr:`Emulator.truth`. Faults: :meth:`Emulator.kill_vehicle`,
-:meth:`Emulator.drop_link`, :meth:`Emulator.fail_sensor` (now or at a simulated time).
+:meth:`Emulator.drop_link`, :meth:`Emulator.fail_sensor`, :meth:`Emulator.deny_arming` (now or
+at a simulated time).
+
+Like PX4 SITL, every vehicle can have a third link, SIH's ground-truth stream
+(``config.truth_stream``), and its own boot clock (``config.boot_clock``); everything inside the
+emulator runs on the one simulated time.
 """
 
 from __future__ import annotations
@@ -38,9 +43,18 @@ import numpy.typing as npt
 from sitl import physics as ph
 from sitl.autopilot import Px4Autopilot, Snapshot
 from sitl.clock import Clock
-from sitl.config import EmulatorConfig, KillFault, LinkDropFault, SensorFault
+from sitl.config import (
+    PX4_ARMING_DENIED_TEXT,
+    DenyArmingFault,
+    EmulatorConfig,
+    KillFault,
+    LinkDropFault,
+    SensorFault,
+    StreamRates,
+)
 from sitl.errors import EmulatorStateError, PortInUseError, SitlTimeoutError
 from sitl.geo import MapProjection
+from sitl.gnss import GnssError
 from sitl.link import VehicleLink
 from sitl.modes import FlightMode
 from sitl.odometry import Odometry
@@ -69,6 +83,9 @@ class VehicleEndpoints:
     api_remote_port: int
     gcs_local_port: int | None
     gcs_remote_port: int | None
+    truth_local_port: int | None = None
+    """Port of the ground-truth link (None when ``truth_stream`` is off)."""
+    truth_remote_port: int | None = None
 
     @property
     def mavsdk_url(self) -> str:
@@ -159,6 +176,21 @@ class Truth:
         return self._view(self._emulator._physics_or_raise().pitch_rad)
 
     @property
+    def roll_rate_rad_s(self) -> npt.NDArray[np.float64]:
+        """(n,) rate of change of the roll angle (an Euler rate, not a body rate)."""
+        return self._view(self._emulator._physics_or_raise().roll_rate_rad_s)
+
+    @property
+    def pitch_rate_rad_s(self) -> npt.NDArray[np.float64]:
+        """(n,) rate of change of the pitch angle (an Euler rate, not a body rate)."""
+        return self._view(self._emulator._physics_or_raise().pitch_rate_rad_s)
+
+    @property
+    def yaw_rate_rad_s(self) -> npt.NDArray[np.float64]:
+        """(n,) rate of change of the yaw angle (an Euler rate, not a body rate)."""
+        return self._view(self._emulator._physics_or_raise().yaw_rate_rad_s)
+
+    @property
     def odometry_origin_ned_m(self) -> npt.NDArray[np.float64]:
         """Where each vehicle's LOCAL_POSITION_NED frame has its origin (world NED)."""
         return self._view(self._emulator._odometry_or_raise().origin_ned_m)
@@ -167,6 +199,17 @@ class Truth:
     def odometry_drift_ned_m(self) -> npt.NDArray[np.float64]:
         """Current drift of each vehicle's odometry (world NED metres)."""
         return self._view(self._emulator._odometry_or_raise().drift_ned_m)
+
+    @property
+    def gps_error_ned_m(self) -> npt.NDArray[np.float64]:
+        """(n, 3) error of the position each vehicle reports (GLOBAL_POSITION_INT, GPS_RAW_INT)
+        at this step, world NED metres: reported = true + error."""
+        return self._view(self._emulator._gnss_or_raise().error_ned_m)
+
+    @property
+    def boot_clock_offset_s(self) -> npt.NDArray[np.float64]:
+        """(n,) each vehicle's boot clock minus simulated time, s (``config.boot_clock``)."""
+        return self._view(self._emulator._boot_offsets_s)
 
     @property
     def alive(self) -> npt.NDArray[np.bool_]:
@@ -211,6 +254,8 @@ class Emulator:
         """(time_s, vehicle index, what happened) for faults and failsafes."""
         self._physics: ph.MulticopterPhysics | None = None
         self._odometry: Odometry | None = None
+        self._gnss: GnssError | None = None
+        self._boot_offsets_s: npt.NDArray[np.float64] = np.zeros(0)
         self._snapshot = Snapshot()
         self._autopilots: list[Px4Autopilot] = []
         self._links: list[list[VehicleLink]] = []
@@ -327,7 +372,22 @@ class Emulator:
             drift_random_walk_m_s_per_sqrt_s=odo.drift_random_walk_m_s_per_sqrt_s,
             seed=config.seed,
         )
-        self._snapshot.refresh(self._physics, self._odometry)
+        gps = config.gps_error
+        self._gnss = GnssError(
+            n,
+            bias_std_m=gps.bias_std_m,
+            bias_time_constant_s=gps.bias_time_constant_s,
+            noise_std_m=gps.noise_std_m,
+            rng=np.random.default_rng([config.seed, 0x6E55]),
+        )
+        self._boot_offsets_s = self._boot_offsets(n)
+        self._snapshot.refresh(self._physics, self._odometry, self._gnss)
+        unix_time_us = None
+        if config.clock.unix_time == "host" and self.clock.mode == "realtime":
+            # PX4's SYSTEM_TIME reads the host's clock (CLOCK_REALTIME) when it sends.
+            def unix_time_us(now_s: float) -> int:
+                return int(time.time() * 1e6)
+
         self._autopilots = [
             Px4Autopilot(
                 i,
@@ -340,13 +400,25 @@ class Emulator:
                 preflight_ready_after_s=config.preflight_ready_after_s,
                 battery_drain_percent_per_min=config.battery_drain_percent_per_min,
                 unix_epoch_start_us=int(time.time() * 1e6),
+                unix_time_us=unix_time_us,
+                boot_offset_s=float(self._boot_offsets_s[i]),
             )
             for i in range(n)
         ]
         for ap in self._autopilots:
             ap.on_statustext = self._statustext_observer(ap.index)
+            ap.telemetry.truth_fields = config.truth_stream.fields
         for fault in config.faults:
             self._schedule_fault(fault)
+
+    def _boot_offsets(self, n: int) -> npt.NDArray[np.float64]:
+        boot = self.config.boot_clock
+        if boot.offset_s:
+            return np.array(boot.offset_s, dtype=float)
+        if boot.spread_s > 0:
+            seed = self.config.seed if boot.seed is None else boot.seed
+            return np.random.default_rng([seed, 0xB007]).uniform(0.0, boot.spread_s, size=n)
+        return np.zeros(n)
 
     def _warn_about_client_timers(self) -> None:
         """MAVSDK's timers are wall-clock; at high speed factors PX4's timeouts (simulated
@@ -393,6 +465,14 @@ class Emulator:
         config = self.config
         ports = config.ports
         phase_step = self._dt_s
+        # Like PX4's custom-mode MAVLink instance on SIH's port: HEARTBEAT and the ground truth.
+        truth_rates = StreamRates(
+            **{
+                **dict.fromkeys(StreamRates.model_fields, 0.0),
+                "heartbeat_hz": 1.0,
+                "hil_state_quaternion_hz": config.truth_stream.rate_hz,
+            }
+        )
         for ap in self._autopilots:
             i = ap.index
             tlog = self._tlogs[i] if self._tlogs else None
@@ -417,6 +497,17 @@ class Emulator:
                         "ports.gcs_local_base (--gcs-port-base)",
                     )
                 )
+            truth = config.truth_stream
+            if truth.enabled:
+                specs.append(
+                    (
+                        "truth",
+                        truth.local_base + i,
+                        (ports.remote_host, truth.remote_base + i),
+                        truth_rates,
+                        "truth_stream.local_base (--truth-port-base)",
+                    )
+                )
             links: list[VehicleLink] = []
             for name, local_port, remote, rates, setting in specs:
                 link = VehicleLink(
@@ -427,7 +518,8 @@ class Emulator:
                     rates=rates,
                     deliver=self._deliver_to(ap),
                     stream_phase_s=phase,
-                    tlog=tlog,
+                    # 25 Hz of ground truth would swamp the tlogs; PX4 logs none of it either.
+                    tlog=tlog if name != "truth" else None,
                     now_us=self._tlog_time_us,
                 )
                 try:
@@ -507,9 +599,12 @@ class Emulator:
                 ap.update(now)
         physics.step(dt)
         odometry.step(dt)
+        gnss = self._gnss
+        if gnss is not None and gnss.active:
+            gnss.step(dt)
         self._steps += 1
         now = self.time_s
-        self._snapshot.refresh(physics, odometry)
+        self._snapshot.refresh(physics, odometry, gnss)
         self.clock.advance_to(now)
         for listener in self._listeners:
             listener(now, self.truth)
@@ -575,6 +670,7 @@ class Emulator:
     def endpoints(self) -> list[VehicleEndpoints]:
         ports = self.config.ports
         gcs = ports.gcs_enabled
+        truth = self.config.truth_stream
         return [
             VehicleEndpoints(
                 i,
@@ -583,6 +679,8 @@ class Emulator:
                 ports.api_remote_port(i),
                 ports.gcs_local_port(i) if gcs else None,
                 ports.gcs_remote_port if gcs else None,
+                truth.local_base + i if truth.enabled else None,
+                truth.remote_base + i if truth.enabled else None,
             )
             for i in range(self.config.vehicles)
         ]
@@ -640,6 +738,11 @@ class Emulator:
         if self._odometry is None:
             raise EmulatorStateError("the emulator has not been started")
         return self._odometry
+
+    def _gnss_or_raise(self) -> GnssError:
+        if self._gnss is None:
+            raise EmulatorStateError("the emulator has not been started")
+        return self._gnss
 
     # ================================================================ faults
     def kill_vehicle(self, index: int, at_s: float | None = None) -> None:
@@ -710,11 +813,49 @@ class Emulator:
         if duration_s is not None:
             self._at(start + duration_s, set_ok(True), f"restore {sensor} of vehicle {index}")
 
-    def _schedule_fault(self, fault: KillFault | LinkDropFault | SensorFault) -> None:
+    def deny_arming(
+        self,
+        index: int,
+        count: int = 1,
+        reason: str = PX4_ARMING_DENIED_TEXT,
+        *,
+        at_s: float | None = None,
+        retry_window_s: float = 2.0,
+    ) -> None:
+        """From ``at_s`` (default now), refuse vehicle ``index``'s next ``count`` arm attempts
+        the way PX4 refuses an arm when a health check fails: COMMAND_ACK TEMPORARILY_REJECTED
+        and a CRITICAL STATUSTEXT ``reason``, on every retransmission of a refused attempt
+        within ``retry_window_s`` simulated seconds (see :class:`sitl.config.DenyArmingFault`).
+        """
+        ap = self._autopilot(index)
+        if count < 1:
+            raise ValueError(f"count must be >= 1, got {count!r}")
+        if not reason:
+            raise ValueError("reason must not be empty")
+        if retry_window_s < 0:
+            raise ValueError(f"retry_window_s must be >= 0, got {retry_window_s!r}")
+
+        def deny() -> None:
+            ap.deny_arming(count, reason, retry_window_s)
+            self.events.append((self.time_s, index, f"arming denied x{count}: {reason}"))
+
+        self._at(at_s, deny, f"deny arming of vehicle {index} x{count}")
+
+    def _schedule_fault(
+        self, fault: KillFault | LinkDropFault | SensorFault | DenyArmingFault
+    ) -> None:
         if isinstance(fault, KillFault):
             self.kill_vehicle(fault.vehicle_index, fault.at_s)
         elif isinstance(fault, LinkDropFault):
             self.drop_link(fault.vehicle_index, fault.link, fault.at_s, fault.duration_s)
+        elif isinstance(fault, DenyArmingFault):
+            self.deny_arming(
+                fault.vehicle_index,
+                fault.count,
+                fault.reason,
+                at_s=fault.at_s,
+                retry_window_s=fault.retry_window_s,
+            )
         else:
             self.fail_sensor(fault.vehicle_index, fault.sensor, fault.at_s, fault.duration_s)
 

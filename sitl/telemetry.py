@@ -9,7 +9,7 @@ message id; the same builder answers REQUEST_MESSAGE.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 from pymavlink.dialects.v20 import common as mavlink
 
@@ -30,6 +30,7 @@ MSG_GLOBAL_POSITION_INT = 33
 MSG_MISSION_CURRENT = 42
 MSG_GPS_GLOBAL_ORIGIN = 49
 MSG_VFR_HUD = 74
+MSG_HIL_STATE_QUATERNION = 115
 MSG_ALTITUDE = 141
 MSG_BATTERY_STATUS = 147
 MSG_AUTOPILOT_VERSION = 148
@@ -51,6 +52,7 @@ STREAM_RATE_FIELDS: dict[int, str] = {
     MSG_VFR_HUD: "vfr_hud_hz",
     MSG_ALTITUDE: "altitude_hz",
     MSG_MISSION_CURRENT: "mission_current_hz",
+    MSG_HIL_STATE_QUATERNION: "hil_state_quaternion_hz",
 }
 
 #: Messages that can be requested once (REQUEST_MESSAGE) or streamed (SET_MESSAGE_INTERVAL).
@@ -92,6 +94,8 @@ CAPABILITIES = (
     | 0x1000  # PARAM_ENCODE_BYTEWISE
     | 0x2000  # MAVLINK2
 )
+GRAVITY_M_S2 = 9.80665
+
 #: PX4 v1.15.0 release: major << 24 | minor << 16 | patch << 8 | FIRMWARE_VERSION_TYPE_OFFICIAL.
 FLIGHT_SW_VERSION = (1 << 24) | (15 << 16) | (0 << 8) | 255
 
@@ -161,10 +165,15 @@ class StreamScheduler:
 
 
 class TelemetryBuilder:
-    """Builds one vehicle's MAVLink messages from its current state."""
+    """Builds one vehicle's MAVLink messages from its current state.
+
+    ``truth_fields`` chooses how HIL_STATE_QUATERNION is filled (see
+    :class:`sitl.config.TruthStreamConfig`).
+    """
 
     def __init__(self, autopilot: Px4Autopilot) -> None:
         self.ap = autopilot
+        self.truth_fields: Literal["px4", "mavlink"] = "px4"
         self._builders = {
             MSG_HEARTBEAT: self.heartbeat,
             MSG_SYS_STATUS: self.sys_status,
@@ -182,6 +191,7 @@ class TelemetryBuilder:
             MSG_AUTOPILOT_VERSION: self.autopilot_version,
             MSG_HOME_POSITION: self.home_position,
             MSG_EXTENDED_SYS_STATE: self.extended_sys_state,
+            MSG_HIL_STATE_QUATERNION: self.hil_state_quaternion,
         }
 
     def build(self, msg_id: int, now_s: float) -> mavlink.MAVLink_message | None:
@@ -296,7 +306,7 @@ class TelemetryBuilder:
             round(lat * 1e7),
             round(lon * 1e7),
             round(alt_m * 1000),
-            round(ap.altitude_above_home_m() * 1000),
+            round(ap.reported_altitude_above_home_m() * 1000),
             _clamp_i16(vn * 100),
             _clamp_i16(ve * 100),
             _clamp_i16(vd * 100),
@@ -328,7 +338,7 @@ class TelemetryBuilder:
     def altitude(self, now_s: float) -> mavlink.MAVLink_message:
         ap = self.ap
         _, _, alt_m = ap.global_position()
-        rel = ap.altitude_above_home_m()
+        rel = ap.reported_altitude_above_home_m()
         local_z = ap.odometry_sample()[2] if ap.flow_ok else math.nan
         return mavlink.MAVLink_altitude_message(
             ap.time_usec(now_s), alt_m, alt_m, -local_z, rel, math.nan, ap.height_above_ground_m()
@@ -388,6 +398,47 @@ class TelemetryBuilder:
 
     def extended_sys_state(self, now_s: float) -> mavlink.MAVLink_message:
         return mavlink.MAVLink_extended_sys_state_message(0, self.ap.landed_state)
+
+    def hil_state_quaternion(self, now_s: float) -> mavlink.MAVLink_message:
+        """The true state, as PX4's HIL_STATE_QUATERNION stream sends SIH's ground truth.
+
+        PX4 (streams/HIL_STATE_QUATERNION.hpp) never sets time_usec, assigns the NED
+        acceleration in m/s^2 to the mG fields and leaves the airspeeds 0; its float to integer
+        conversions truncate towards zero. ``truth_fields = "mavlink"`` fills the fields as the
+        message definition reads instead.
+        """
+        ap = self.ap
+        roll, pitch, yaw, _ = ap.attitude()
+        p, q, r, accel, wind = ap.truth_rates()
+        lat, lon, alt_m = ap.true_global_position()
+        vn, ve, vd = ap.velocity_ned()
+        if self.truth_fields == "px4":
+            time_usec = 0
+            to_int = math.trunc
+            acc = [_clamp_i16(math.trunc(a)) for a in accel]
+            airspeed = 0
+        else:
+            time_usec = ap.time_usec(now_s)
+            to_int = round
+            acc = [_clamp_i16(a / GRAVITY_M_S2 * 1000.0) for a in accel]
+            air = math.sqrt((vn - wind[0]) ** 2 + (ve - wind[1]) ** 2 + (vd - wind[2]) ** 2)
+            airspeed = min(round(air * 100), 65535)
+        return mavlink.MAVLink_hil_state_quaternion_message(
+            time_usec,
+            list(euler_to_quaternion(roll, pitch, yaw)),
+            p,
+            q,
+            r,
+            to_int(lat * 1e7),
+            to_int(lon * 1e7),
+            to_int(alt_m * 1000),
+            _clamp_i16(to_int(vn * 100)),
+            _clamp_i16(to_int(ve * 100)),
+            _clamp_i16(to_int(vd * 100)),
+            airspeed,
+            airspeed,
+            *acc,
+        )
 
 
 def euler_to_quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
