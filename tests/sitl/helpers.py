@@ -5,7 +5,8 @@
   so state-machine tests need neither asyncio nor time.
 - :class:`RawClient` is a minimal MAVLink client over real UDP (pymavlink) with
   ``expect(predicate, timeout)`` matchers instead of polling.
-- :func:`free_port_config` picks port bases that are free right now for every range a test needs.
+- :func:`free_port_config` picks port bases that are free right now for every range a test needs;
+  :func:`free_truth_stream` does the same for the ground-truth link.
 """
 
 from __future__ import annotations
@@ -21,8 +22,9 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.autopilot import Px4Autopilot, Snapshot
-from sitl.config import PortsConfig, StreamRates
+from sitl.config import PortsConfig, StreamRates, TruthStreamConfig
 from sitl.geo import MapProjection
+from sitl.gnss import GnssError
 from sitl.odometry import Odometry
 from sitl.physics import MulticopterPhysics
 from sitl.telemetry import StreamScheduler
@@ -69,12 +71,16 @@ class Bench:
         dt: float = 0.02,
         odometry: dict[str, float] | None = None,
         spacing_m: float = 5.0,
+        boot_offsets_s: list[float] | None = None,
+        unix_time_us: Callable[[float], int] | None = None,
+        gnss: GnssError | None = None,
     ) -> None:
         start = [[0.0, spacing_m * i, 0.0] for i in range(n)]
         self.physics = MulticopterPhysics(start)
         self.odometry = Odometry(start, **(odometry or {}))
+        self.gnss = gnss
         self.snapshot = Snapshot()
-        self.snapshot.refresh(self.physics, self.odometry)
+        self.snapshot.refresh(self.physics, self.odometry, gnss)
         self.projection = MapProjection(47.397742, 8.545594)
         self.autopilots = [
             Px4Autopilot(
@@ -86,6 +92,8 @@ class Bench:
                 ground_amsl_m=488.0,
                 param_overrides=params,
                 preflight_ready_after_s=ready_after_s,
+                unix_time_us=unix_time_us,
+                boot_offset_s=boot_offsets_s[i] if boot_offsets_s else 0.0,
             )
             for i in range(n)
         ]
@@ -110,9 +118,11 @@ class Bench:
                 ap.update(self.t)
             self.physics.step(self.dt)
             self.odometry.step(self.dt)
+            if self.gnss is not None:
+                self.gnss.step(self.dt)
             self.steps += 1
             self.t = self.steps * self.dt
-            self.snapshot.refresh(self.physics, self.odometry)
+            self.snapshot.refresh(self.physics, self.odometry, self.gnss)
 
     def run(self, seconds: float) -> None:
         self.step(round(seconds / self.dt))
@@ -136,6 +146,7 @@ class Bench:
         vehicle: int = 0,
         target: int | None = None,
         target_component: int = 1,
+        src: tuple[int, int] = (255, 190),
     ) -> int | None:
         """Send COMMAND_LONG; return the ACK result (None if there was no ACK)."""
         p = [*params, *([0.0] * (7 - len(params)))]
@@ -143,7 +154,9 @@ class Bench:
         link = self.links[vehicle]
         before = len(link.sent)
         self.deliver(
-            mavlink.MAVLink_command_long_message(sysid, target_component, command, 0, *p), vehicle
+            mavlink.MAVLink_command_long_message(sysid, target_component, command, 0, *p),
+            vehicle,
+            src,
         )
         acks = [m for m in link.sent[before:] if m.get_type() == "COMMAND_ACK"]
         assert len(acks) <= 1
@@ -223,6 +236,29 @@ def free_port_config(n: int, *, gcs: bool = True, **overrides: Any) -> PortsConf
                 **overrides,
             )
     raise RuntimeError("no free UDP port range found")
+
+
+def _free_run(n: int, rng: random.Random, avoid: set[int]) -> int:
+    for _ in range(200):
+        base = rng.randrange(20000, 60000 - n - 10, 10)
+        run = set(range(base, base + n))
+        if not run & avoid and all(_udp_free(p) for p in run):
+            return base
+    raise RuntimeError("no free UDP port range found")
+
+
+def free_truth_stream(n: int, ports: PortsConfig, **overrides: Any) -> TruthStreamConfig:
+    """An enabled TruthStreamConfig whose ports are free right now and clear of ``ports``."""
+    rng = random.Random()
+    avoid = {
+        *range(ports.api_remote_base, ports.api_remote_port(n - 1) + 1),
+        *range(ports.resolved_api_local_base(n), ports.resolved_api_local_base(n) + n),
+        *range(ports.gcs_local_base, ports.gcs_local_base + n),
+        ports.gcs_remote_port,
+    }
+    local = _free_run(n, rng, avoid)
+    remote = _free_run(n, rng, avoid | set(range(local, local + n)))
+    return TruthStreamConfig(enabled=True, local_base=local, remote_base=remote, **overrides)
 
 
 class _ClientProtocol(asyncio.DatagramProtocol):
