@@ -5,6 +5,7 @@ Examples::
     sitl --vehicles 4                         # PX4 SITL ports: MAVSDK udpin://0.0.0.0:14540..14543
     sitl --vehicles 10 --speed 5 --tlog-dir runs/tlogs
     sitl --config emulator.yaml --api-port-base 24540   # beside a real PX4 SITL
+    sitl --vehicles 4 --sih-like              # clocks, GPS error and ground truth like PX4 SIH
 
 ``--config`` takes a YAML file holding :class:`sitl.config.EmulatorConfig` fields, or a scenario
 file with an ``emulator:`` section; command line options override it.
@@ -30,6 +31,20 @@ from sitl.emulator import Emulator
 from sitl.errors import SitlError
 
 logger = logging.getLogger("sitl")
+
+#: ``--sih-like``: what 4 real SIH instances did (measured 2026-12-01); see sitl/README.md.
+SIH_LIKE: dict[str, Any] = {
+    "clock": {"speed": 0.986, "unix_time": "host"},
+    "boot_clock": {"spread_s": 10.0},
+    "gps_error": {"bias_std_m": 0.2, "bias_time_constant_s": 30.0, "noise_std_m": 0.02},
+    "truth_stream": {"enabled": True},
+}
+#: Emulator sections that only the PX4-SIH fidelity options touch (clock and ports go apart).
+FIDELITY = ("boot_clock", "gps_error", "truth_stream")
+SIH_LIKE_SUMMARY = (
+    "speed 0.986 with SYSTEM_TIME on the host clock, boot clocks 0-10 s apart, GPS bias 0.2 m "
+    "(30 s) + 0.02 m noise, ground-truth stream"
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -80,7 +95,68 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --scenario: k = 0 this many seconds after start (default: on a start command)",
     )
     parser.add_argument("--tlog-dir", type=Path, help="record vehicle_<sysid>.tlog files here")
-    parser.add_argument("--seed", type=int, help="random seed (wind, odometry noise)")
+    parser.add_argument(
+        "--seed", type=int, help="random seed (wind, odometry noise, GPS error, boot offsets)"
+    )
+    sih = parser.add_argument_group("PX4 SIH fidelity")
+    sih.add_argument(
+        "--sih-like",
+        action="store_true",
+        help=f"what real PX4 SITL (SIH) does, as one preset: {SIH_LIKE_SUMMARY}; the options "
+        "below override parts of it",
+    )
+    sih.add_argument(
+        "--host-unix-time",
+        action="store_true",
+        help="SYSTEM_TIME's UNIX time follows the host's clock (realtime mode), like PX4 SITL",
+    )
+    sih.add_argument(
+        "--boot-offset-spread",
+        type=float,
+        metavar="S",
+        help="each vehicle's boot clock starts a random 0..S s before simulated time 0",
+    )
+    sih.add_argument(
+        "--boot-offsets",
+        type=float,
+        nargs="+",
+        metavar="S",
+        help="boot-clock offset of vehicle 0, 1, ... in s (one per vehicle)",
+    )
+    sih.add_argument(
+        "--gps-bias-std", type=float, metavar="M", help="GPS/EKF position bias per axis, m"
+    )
+    sih.add_argument(
+        "--gps-bias-time", type=float, metavar="S", help="correlation time of that bias, s"
+    )
+    sih.add_argument(
+        "--gps-noise-std", type=float, metavar="M", help="white noise on reported positions, m"
+    )
+    sih.add_argument(
+        "--truth-stream",
+        action="store_true",
+        help="send SIH's ground truth (HIL_STATE_QUATERNION) from 19450+i to 19410+i",
+    )
+    sih.add_argument("--truth-rate", type=float, metavar="HZ", help="ground-truth rate (25)")
+    sih.add_argument(
+        "--truth-port-base",
+        type=int,
+        metavar="PORT",
+        help="vehicle 0's ground-truth bind port (19450)",
+    )
+    sih.add_argument(
+        "--truth-remote-port-base",
+        type=int,
+        metavar="PORT",
+        help="vehicle 0's ground-truth client port (19410)",
+    )
+    sih.add_argument(
+        "--deny-arming",
+        action="append",
+        metavar="INDEX[:COUNT]",
+        help="refuse vehicle INDEX's first COUNT (default 1) arm attempts like PX4's health "
+        "checks do; repeatable",
+    )
     parser.add_argument(
         "--log-level",
         default="INFO",
@@ -99,6 +175,9 @@ def load_config(args: argparse.Namespace) -> EmulatorConfig:
             raise ValueError(f"{args.config}: expected a mapping at the top level")
         data = loaded.get("emulator", loaded) if "emulator" in loaded else loaded
         data = dict(data)
+    if args.sih_like:
+        for section, values in SIH_LIKE.items():
+            data[section] = {**values, **dict(data.get(section) or {})}
     if args.vehicles is not None:
         data["vehicles"] = args.vehicles
     if args.seed is not None:
@@ -125,7 +204,65 @@ def load_config(args: argparse.Namespace) -> EmulatorConfig:
     if args.px4_compat_ports:
         ports["px4_compat_ports"] = True
     data["ports"] = ports
+    _apply_sih_options(args, data)
     return EmulatorConfig.model_validate(data)
+
+
+def _fidelity_overrides(
+    config: EmulatorConfig, scenario_emulator: dict[str, Any]
+) -> dict[str, Any]:
+    """What the options and ``--config`` set of the PX4-SIH fidelity sections, for a scenario's
+    emulator settings: sections left at their defaults keep the scenario's, faults add up."""
+    defaults = EmulatorConfig()
+    overrides: dict[str, Any] = {
+        name: getattr(config, name).model_dump()
+        for name in FIDELITY
+        if getattr(config, name) != getattr(defaults, name)
+    }
+    if config.faults:
+        overrides["faults"] = [
+            *(scenario_emulator.get("faults") or []),
+            *(fault.model_dump() for fault in config.faults),
+        ]
+    return overrides
+
+
+def _apply_sih_options(args: argparse.Namespace, data: dict[str, Any]) -> None:
+    """The PX4-SIH fidelity options, on top of the file and ``--sih-like``."""
+
+    def section(name: str) -> dict[str, Any]:
+        data[name] = dict(data.get(name) or {})
+        return data[name]
+
+    if args.host_unix_time:
+        section("clock")["unix_time"] = "host"
+    if args.boot_offsets is not None:
+        section("boot_clock").update(offset_s=args.boot_offsets, spread_s=0.0)
+    if args.boot_offset_spread is not None:
+        section("boot_clock").update(spread_s=args.boot_offset_spread, offset_s=[])
+    for option, field in (
+        ("gps_bias_std", "bias_std_m"),
+        ("gps_bias_time", "bias_time_constant_s"),
+        ("gps_noise_std", "noise_std_m"),
+    ):
+        if getattr(args, option) is not None:
+            section("gps_error")[field] = getattr(args, option)
+    if args.truth_stream:
+        section("truth_stream")["enabled"] = True
+    for option, field in (
+        ("truth_rate", "rate_hz"),
+        ("truth_port_base", "local_base"),
+        ("truth_remote_port_base", "remote_base"),
+    ):
+        if getattr(args, option) is not None:
+            section("truth_stream")[field] = getattr(args, option)
+    for spec in args.deny_arming or []:
+        index, _, count = spec.partition(":")
+        try:
+            fault = {"kind": "deny_arming", "vehicle_index": int(index), "count": int(count or 1)}
+        except ValueError:
+            raise ValueError(f"--deny-arming {spec!r}: expected INDEX or INDEX:COUNT") from None
+        data["faults"] = [*(data.get("faults") or []), fault]
 
 
 async def run(config: EmulatorConfig, scenario=None, start_after_s=None) -> None:
@@ -148,6 +285,8 @@ async def run(config: EmulatorConfig, scenario=None, start_after_s=None) -> None
                         "ports": config.ports.model_dump(),
                         "clock": config.clock.model_dump(),
                         "tlog_dir": config.tlog_dir,
+                        **{name: getattr(config, name).model_dump() for name in FIDELITY},
+                        "faults": [fault.model_dump() for fault in config.faults],
                     },
                     start_after_s=start_after_s,
                 )
@@ -166,7 +305,15 @@ async def run(config: EmulatorConfig, scenario=None, start_after_s=None) -> None
                 if ep.gcs_local_port
                 else ""
             )
-            print(f"  sysid {ep.sysid}: MAVSDK {ep.mavsdk_url} (vehicle :{ep.api_local_port}){gcs}")
+            truth = (
+                f", ground truth :{ep.truth_local_port} -> :{ep.truth_remote_port}"
+                if ep.truth_local_port
+                else ""
+            )
+            print(
+                f"  sysid {ep.sysid}: MAVSDK {ep.mavsdk_url} "
+                f"(vehicle :{ep.api_local_port}){gcs}{truth}"
+            )
         if config.tlog_dir is not None:
             print(f"  recording tlogs in {config.tlog_dir}")
         sys.stdout.flush()
@@ -206,6 +353,7 @@ def main(argv: list[str] | None = None) -> int:
                 ports=config.ports.model_dump(),
                 clock=config.clock.model_dump(),
                 tlog_dir=config.tlog_dir,
+                **_fidelity_overrides(config, dict(scenario.flight.emulator or {})),
             )
     except MissionRunnerError as exc:
         print(f"sitl: {exc}", file=sys.stderr)

@@ -101,3 +101,93 @@ def test_runs_until_sigterm_and_writes_tlogs(tmp_path: Path) -> None:
     assert "stopped after" in out
     assert sorted(p.name for p in tmp_path.iterdir()) == ["vehicle_001.tlog", "vehicle_002.tlog"]
     assert (tmp_path / "vehicle_001.tlog").stat().st_size > 0
+
+
+def test_sih_fidelity_options() -> None:
+    args = build_parser().parse_args(
+        [
+            "--vehicles",
+            "3",
+            "--host-unix-time",
+            "--boot-offset-spread",
+            "12",
+            "--gps-bias-std",
+            "0.3",
+            "--gps-bias-time",
+            "45",
+            "--gps-noise-std",
+            "0.05",
+            "--truth-stream",
+            "--truth-rate",
+            "50",
+            "--truth-port-base",
+            "29450",
+            "--truth-remote-port-base",
+            "29410",
+            "--deny-arming",
+            "1",
+            "--deny-arming",
+            "2:3",
+        ]
+    )
+    config = load_config(args)
+    assert config.clock.unix_time == "host" and config.clock.speed == 1.0
+    assert config.boot_clock.spread_s == 12.0 and config.boot_clock.offset_s == []
+    gps = config.gps_error
+    assert (gps.bias_std_m, gps.bias_time_constant_s, gps.noise_std_m) == (0.3, 45.0, 0.05)
+    truth = config.truth_stream
+    assert (truth.enabled, truth.rate_hz, truth.local_base, truth.remote_base) == (
+        True,
+        50.0,
+        29450,
+        29410,
+    )
+    assert [(f.kind, f.vehicle_index, f.count) for f in config.faults] == [
+        ("deny_arming", 1, 1),
+        ("deny_arming", 2, 3),
+    ]
+    offsets = load_config(build_parser().parse_args(["-n", "2", "--boot-offsets", "0", "7.5"]))
+    assert offsets.boot_clock.offset_s == [0.0, 7.5]
+
+
+def test_sih_like_preset_under_file_and_options(tmp_path: Path) -> None:
+    plain = load_config(build_parser().parse_args([]))
+    assert plain.clock.unix_time == "simulated" and not plain.truth_stream.enabled
+    assert not plain.gps_error.active and plain.boot_clock.spread_s == 0.0
+    sih = load_config(build_parser().parse_args(["--sih-like"]))
+    assert sih.clock.speed == 0.986 and sih.clock.unix_time == "host"
+    assert sih.truth_stream.enabled and sih.gps_error.bias_std_m == 0.2
+    assert sih.boot_clock.spread_s == 10.0
+    settings = tmp_path / "emulator.yaml"
+    settings.write_text("gps_error: {bias_std_m: 0.5}\ntruth_stream: {rate_hz: 10}\n")
+    mixed = load_config(
+        build_parser().parse_args(
+            ["--config", str(settings), "--sih-like", "--speed", "2", "--boot-offsets", "3"]
+        )
+    )
+    assert mixed.gps_error.bias_std_m == 0.5  # the file wins over the preset
+    assert mixed.gps_error.bias_time_constant_s == 30.0  # the preset fills the rest
+    assert mixed.truth_stream.rate_hz == 10.0 and mixed.truth_stream.enabled
+    assert mixed.clock.speed == 2.0  # options win over both
+    assert mixed.boot_clock.offset_s == [3.0] and mixed.boot_clock.spread_s == 0.0
+
+
+def test_a_bad_deny_arming_option_exits_with_2(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--deny-arming", "one"]) == 2
+    assert "--deny-arming" in capsys.readouterr().err
+    assert main(["--deny-arming", "3"]) == 2  # only one vehicle
+    assert "vehicle_index" in capsys.readouterr().err
+
+
+def test_with_a_scenario_only_the_fidelity_options_given_override_its_emulator() -> None:
+    from sitl.cli import _fidelity_overrides
+
+    plain = load_config(build_parser().parse_args([]))
+    assert _fidelity_overrides(plain, {"faults": [{"kind": "kill"}]}) == {}
+    given = load_config(
+        build_parser().parse_args(["-n", "2", "--gps-bias-std", "0.3", "--deny-arming", "1"])
+    )
+    overrides = _fidelity_overrides(given, {"faults": [{"kind": "kill"}]})
+    assert set(overrides) == {"gps_error", "faults"}
+    assert overrides["gps_error"]["bias_std_m"] == 0.3
+    assert [f["kind"] for f in overrides["faults"]] == ["kill", "deny_arming"]
