@@ -32,7 +32,7 @@ def main(argv=None):
         format="%(levelname)s %(name)s: %(message)s",
     )
     try:
-        return arguments.handler(arguments)
+        return _unwrapped(arguments.handler, arguments)
     except RunnerError as error:
         print(f"error: {error}", file=sys.stderr)
         return EXIT_RUNTIME_FAILURE
@@ -42,6 +42,28 @@ def main(argv=None):
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+
+
+def _unwrapped(handler, arguments):
+    """Run ``handler``; an exception group (a task group's failure) is re-raised as its first
+    error of ours, so the user reads one line, not a tree of tracebacks."""
+    try:
+        return handler(arguments)
+    except BaseExceptionGroup as group:
+        leaves = []
+
+        def collect(error):
+            if isinstance(error, BaseExceptionGroup):
+                for inner in error.exceptions:
+                    collect(inner)
+            else:
+                leaves.append(error)
+
+        collect(group)
+        for leaf in leaves:
+            if isinstance(leaf, MissionRunnerError | KeyboardInterrupt):
+                raise leaf from group
+        raise
 
 
 def _parser():
@@ -89,7 +111,10 @@ def _parser():
         "--url", help="MAVSDK connection URL (default: the scenario's, else PX4 SITL's)"
     )
     vehicle.add_argument(
-        "--out", type=Path, default=None, help="output folder (default: out/<name>-vehicle-<id>)"
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder (default: out/<name>-mission/vehicle_<id>)",
     )
     vehicle.set_defaults(handler=_vehicle)
 
@@ -100,6 +125,14 @@ def _parser():
     ground.add_argument(
         "--start-delay", type=float, default=2.0, help="seconds from ready to k = 0"
     )
+    ground.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="mission folder where the vehicles and the range aid write (default: "
+        "out/<name>-mission): the ground station merges them into summary.json and figures",
+    )
+    ground.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     ground.set_defaults(handler=_ground)
 
     ranges = commands.add_parser(
@@ -124,6 +157,13 @@ def _parser():
         default=None,
         help="with --source gps: MAVSDK URL(s) where every vehicle is heard, e.g. a GCS link "
         "udpin://0.0.0.0:14550",
+    )
+    ranges.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="where the truth at every t_k is written, for scoring only "
+        "(default: out/<name>-mission/truth)",
     )
     ranges.set_defaults(handler=_ranges)
     return parser
@@ -214,18 +254,21 @@ def _vehicle(arguments):
     import asyncio  # noqa: PLC0415
 
     from .outputs import write_vehicle_run  # noqa: PLC0415
-    from .runner.process import run_vehicle  # noqa: PLC0415
+    from .runner.process import VehicleRun, run_vehicle  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
-    out_dir = arguments.out or Path("out") / f"{scenario.name}-vehicle-{arguments.id}"
-    run = asyncio.run(run_vehicle(scenario, arguments.id, url=arguments.url))
-    write_vehicle_run(run, out_dir, config_path=arguments.config)
+    out_dir = arguments.out or _mission_dir(scenario) / f"vehicle_{arguments.id}"
+    run = VehicleRun(arguments.id)
+    try:
+        asyncio.run(run_vehicle(scenario, arguments.id, url=arguments.url, run=run))
+    finally:
+        write_vehicle_run(run, out_dir, config_path=arguments.config)
     following = sum(record.state == "following" for record in run.records)
     print(
         f"vehicle {arguments.id}: {run.state}, {len(run.records)} steps, {following} following "
-        f"the law, {run.skipped_steps} skipped; autopilot clock {run.autopilot_clock_rate:.4f}x, "
-        f"mission clock {run.clock_rate:.4f}x; results in {out_dir}/"
-        + (f"\n  {run.detail}" if run.detail else "")
+        f"the law, {run.skipped_steps} skipped; autopilot clock "
+        f"{run.autopilot_clock_rate or 1:.4f}x, mission clock {run.clock_rate:.4f}x; "
+        f"results in {out_dir}/" + (f"\n  {run.detail}" if run.detail else "")
     )
     return EXIT_OK if run.state == "done" else EXIT_RUNTIME_FAILURE
 
@@ -233,7 +276,8 @@ def _vehicle(arguments):
 def _ground(arguments):
     import asyncio  # noqa: PLC0415
 
-    from .runner.process import run_ground  # noqa: PLC0415
+    from .outputs import write_results  # noqa: PLC0415
+    from .runner.process import run_ground, wait_and_merge  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
 
@@ -252,15 +296,34 @@ def _ground(arguments):
     )
     print(
         f"ground: mission {outcome.mission_id} over; {done} vehicle(s) done, lost: {lost or 'none'}"
-        f"; mission clock {outcome.clock_rate:.4f}x"
+        f"; mission clock {outcome.clock_rate:.4f}x",
+        flush=True,
     )
-    return EXIT_OK
+    mission_dir = arguments.out or _mission_dir(scenario)
+    result = asyncio.run(wait_and_merge(scenario, mission_dir, outcome))
+    if result is None:
+        print(
+            f"ground: no truth in {mission_dir}/truth/ (no simulator): tracking and estimate "
+            "errors unavailable; per-vehicle results in the vehicles' folders"
+        )
+        return EXIT_OK
+    document = write_results(
+        result, mission_dir, config_path=arguments.config, figures=not arguments.no_figures
+    )
+    print(_summary_text(document, mission_dir))
+    return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
+
+
+def _mission_dir(scenario):
+    """Where a mission of vehicle processes writes by default: one folder for all of them."""
+    return Path("out") / f"{scenario.name}-mission"
 
 
 def _ranges(arguments):
     import asyncio  # noqa: PLC0415
 
     from .runner.ranges import run_range_provider  # noqa: PLC0415
+    from .runner.scoring import write_truth_csv  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
     print(
@@ -277,6 +340,9 @@ def _ranges(arguments):
             seed=scenario.seed,
         )
     )
+    out_dir = arguments.out or _mission_dir(scenario) / "truth"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_truth_csv(stats.truth, [v.id for v in scenario.vehicles], out_dir / "truth.csv")
     lateness = ", ".join(f"{k} {v:.1f} ms" for k, v in stats.lateness_percentiles_ms().items())
     print(
         f"ranges: {stats.steps} steps, {stats.ranges} ranges published, "

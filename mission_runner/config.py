@@ -337,6 +337,26 @@ class Expectation(Model):
     min: float | None = Field(None, title="Minimum", description="Metric must be >= this.")
 
 
+class DisplacementTrackingConfig(Model):
+    """A PI correction that makes the vehicle realise the displacement the law commands."""
+
+    gain_1_s: NonNegativeFloat = Field(
+        0.0,
+        title="Proportional gain",
+        description="Velocity added per metre between the vehicle's odometry and where the law's "
+        "commands would have taken it [1/s] (0: off).",
+    )
+    integral_gain_1_s2: NonNegativeFloat = Field(
+        0.0,
+        title="Integral gain",
+        description="Velocity added per metre-second of that error [1/s^2]: removes a steady "
+        "shortfall, e.g. a velocity loop losing to drag (0: off).",
+    )
+    max_correction_m_s: PositiveFloat = Field(
+        2.0, title="Correction bound", description="Largest correction [m/s]."
+    )
+
+
 class FlightConfig(Model):
     """How ``mission-runner run`` flies the scenario (ignored by ``simulate``)."""
 
@@ -402,6 +422,13 @@ class FlightConfig(Model):
         title="Velocity lead",
         description="Command u + lead * du/dt to offset the vehicle's velocity response time and "
         "the command delay [s] (0: the paper's pure velocity command).",
+    )
+    displacement_tracking: DisplacementTrackingConfig = Field(
+        DisplacementTrackingConfig(),
+        title="Displacement tracking",
+        description="Close the loop on the own odometry so the vehicle moves T u(k) per step "
+        "as the paper's model assumes; needed on airframes whose velocity loop lags or loses "
+        "to drag (PX4 SIH), off by default.",
     )
     emulator: dict = Field(
         {},

@@ -193,6 +193,9 @@ def write_vehicle_run(run, out_dir, *, config_path=None):
             "consensus_east_m_s",
             "neighbours_used",
             "setpoint_lateness_s",
+            "odometry_north_m",
+            "odometry_east_m",
+            "odometry_down_m",
             *(f"estimate_{peer}_{axis}_m" for peer in peers for axis in ("north", "east")),
         ]
     )
@@ -211,6 +214,7 @@ def write_vehicle_run(run, out_dir, *, config_path=None):
                 *(f"{v:.6f}" for v in record.consensus_m_s),
                 " ".join(str(peer) for peer in record.neighbours_used),
                 f"{record.setpoint_sent_s - record.time_s:.6f}",
+                *(f"{v:.6f}" for v in record.odometry_m),
                 *estimates,
             ]
         )

@@ -200,6 +200,22 @@ class PhysicsConfig(_Model):
         title="Position gain",
         description="Proportional gain from position error to velocity command, 1/s.",
     )
+    airspeed_drag_1_s: float = Field(
+        0.0,
+        ge=0.0,
+        le=10.0,
+        title="Airspeed drag",
+        description="Horizontal deceleration per m/s of velocity in velocity and position "
+        "control, 1/s (0: none; PX4 SIH's quadrotor ~1).",
+    )
+    velocity_integral_gain_1_s2: float = Field(
+        0.0,
+        ge=0.0,
+        le=20.0,
+        title="Velocity integral gain",
+        description="Integral gain of the velocity loop that slowly wins back what drag takes, "
+        "1/s^2 (0: none; PX4's MPC_XY_VEL_I_ACC is 0.4).",
+    )
 
 
 class WindConfig(_Model):

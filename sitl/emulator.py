@@ -362,6 +362,8 @@ class Emulator:
             wind=wind if wind.active else None,
             wind_rejection_time_s=wind_cfg.rejection_time_s,
             drag_1_s=wind_cfg.drag_1_s,
+            airspeed_drag_1_s=config.physics.airspeed_drag_1_s,
+            velocity_integral_gain_1_s2=config.physics.velocity_integral_gain_1_s2,
         )
         odo = config.odometry
         self._odometry = Odometry(

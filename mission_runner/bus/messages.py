@@ -183,7 +183,8 @@ class StepMessage(Message):
     The ``target_*`` fields relay the target (Assumption 2: vehicles that sense the target
     broadcast it): the target's cumulative displacement in this vehicle's frame and its
     velocity. They are all None when this vehicle does not sense the target, and all set
-    otherwise.
+    otherwise. ``odometry_down_m`` is the sender's height (down, from its odometry origin on
+    the ground) at t_k, with which a receiver takes the height difference out of a 3-D range.
     """
 
     vehicle_id: int
@@ -196,6 +197,7 @@ class StepMessage(Message):
     target_odometry_east_m: float | None = None
     target_velocity_north_m_s: float | None = None
     target_velocity_east_m_s: float | None = None
+    odometry_down_m: float | None = None
 
     @property
     def has_target(self) -> bool:

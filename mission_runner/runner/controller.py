@@ -61,6 +61,9 @@ class ControllerSettings:
     max_vertical_speed_m_s: float = 1.0
     altitude_gain_per_s: float = 1.0
     velocity_lead_s: float = 0.0
+    tracking_gain_1_s: float = 0.0
+    tracking_integral_gain_1_s2: float = 0.0
+    tracking_max_correction_m_s: float = 2.0
 
 
 @dataclass
@@ -69,7 +72,8 @@ class StepRecord:
 
     setpoint_sent_s: mission-clock time at which the step's setpoint had been handed to the
     vehicle link (after ``set_velocity_ned`` returned); ``setpoint_sent_s - time_s`` is the
-    step's lateness, for timing figures only (NaN if not measured).
+    step's lateness, for timing figures only (NaN if not measured). odometry_m: the own odometry
+    (north, east, down) sampled at t_k (NaN if none).
     """
 
     step: int
@@ -81,6 +85,7 @@ class StepRecord:
     neighbours_used: tuple
     estimates_m: dict
     setpoint_sent_s: float = math.nan
+    odometry_m: tuple = (math.nan, math.nan, math.nan)
 
 
 class VehicleController:
@@ -132,6 +137,8 @@ class VehicleController:
         self._last_target = None
         self._last_fresh_s = None
         self._previous_command = None
+        self._reference = None  # where the law's commands so far would have taken the vehicle
+        self._tracking_integral = np.zeros(2)
         self._missed_odometry = 0
         self._known_target_velocity = None
         self.skipped_steps = 0
@@ -236,7 +243,15 @@ class VehicleController:
             # The target observation of step k is usually in by now; wait briefly if not.
             observation = await self._target_observation(k, t_k)
             message = self._with_target(
-                StepMessage(self.vehicle_id, k, t_k, phase, odometry[0], odometry[1]),
+                StepMessage(
+                    self.vehicle_id,
+                    k,
+                    t_k,
+                    phase,
+                    odometry[0],
+                    odometry[1],
+                    odometry_down_m=float(odometry[2]),
+                ),
                 observation,
             )
             await self._publish(self.topics.step(self.vehicle_id), message)
@@ -251,6 +266,7 @@ class VehicleController:
         if stale:
             velocity = (0.0, 0.0)
             self.state = "holding"
+            self._reference = None  # the vehicle holds: track afresh from where it is
             used, estimates, consensus = (), {}, (0.0, 0.0)
             self._turn_oscillator(k)
         else:
@@ -267,14 +283,25 @@ class VehicleController:
                 shape_now=self.shape(k),
                 shape_next=self.shape(k + 1),
             )
-            velocity = self._clamp(self._lead(command.velocity_m_s))
+            velocity = self._clamp(
+                self._lead(command.velocity_m_s) + self._tracking(command.velocity_m_s, odometry)
+            )
             used, estimates = command.neighbours_used, command.estimates_m
             consensus = tuple(float(c) for c in command.consensus_m_s)
         vertical = self._altitude_hold(odometry)
         await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
         sent_s = self.clock.now_s()
         record = StepRecord(
-            k, t_k, self.state, (*velocity, vertical), consensus, phase, used, estimates, sent_s
+            k,
+            t_k,
+            self.state,
+            (*velocity, vertical),
+            consensus,
+            phase,
+            used,
+            estimates,
+            sent_s,
+            (math.nan,) * 3 if odometry is None else tuple(odometry),
         )
         self.records.append(record)
         await self._publish_status(k, t_k)
@@ -298,6 +325,7 @@ class VehicleController:
         phase = self.law.phase_rad
         self._turn_oscillator(k)
         self.inbox.take(k)
+        self._reference = None
         self.skipped_steps += 1
         logger.warning(
             "vehicle %s: step %d skipped (%.3f s late)",
@@ -364,6 +392,7 @@ class VehicleController:
             target_odometry_east_m=float(self._target_odometry[1]),
             target_velocity_north_m_s=float(velocity[0]),
             target_velocity_east_m_s=float(velocity[1]),
+            odometry_down_m=message.odometry_down_m,
         )
 
     async def _wait_inputs(self, k, t_k):
@@ -372,12 +401,20 @@ class VehicleController:
             await self.inbox.wait_complete(k, wait_s)
 
     def _horizontal_ranges(self, data, odometry):
-        """UWB ranges are 3-D; the law is planar. Project with both vehicles' altitudes."""
+        """UWB ranges are 3-D; the law is planar. The height difference at t_k (own odometry and
+        the neighbour's step message; both odometry origins on the ground) is taken out:
+        h = sqrt(d^2 - dz^2). It cancels out of the cosine law only while constant, and a real
+        altitude hold wanders by decimetres (PX4 SIH: 0.11-0.14 m RMS), which between vehicles
+        3 m apart in height is worth ~0.1 m of range error. The target's range is horizontal."""
         ranges = {}
-        for peer, range_m in data.ranges_m.items():
+        for peer, measured_m in data.ranges_m.items():
             if peer == 0:
                 continue
-            ranges[peer] = range_m
+            neighbour = data.neighbours.get(peer)
+            height_m = 0.0
+            if neighbour is not None and neighbour.odometry_down_m is not None:
+                height_m = odometry[2] - neighbour.odometry_down_m
+            ranges[peer] = math.sqrt(max(measured_m * measured_m - height_m * height_m, 0.0))
         if data.target is not None:
             ranges[0] = data.target.range_m
         return ranges
@@ -414,6 +451,29 @@ class VehicleController:
         return (
             velocity + self.settings.velocity_lead_s * (velocity - previous) / self.settings.step_s
         )
+
+    def _tracking(self, velocity, odometry):
+        """Displacement tracking: a PI correction towards where the law's commands would have
+        taken a vehicle that realised them exactly (the paper's p(k+1) = p(k) + T u(k)), from the
+        own odometry. A real multicopter's velocity loop lags and loses to drag (PX4 SIH: ~30 %
+        of a 3 m/s command on a circle); the law's saturated consensus cannot make that up, the
+        formation then trails the target. Off when both gains are 0 (the paper's pure command)."""
+        settings = self.settings
+        if settings.tracking_gain_1_s == 0 and settings.tracking_integral_gain_1_s2 == 0:
+            return np.zeros(2)
+        here = np.asarray(odometry[:2], dtype=float)
+        if self._reference is None:
+            self._reference = here.copy()
+        error = self._reference - here
+        limit = settings.tracking_max_correction_m_s
+        correction = settings.tracking_gain_1_s * error + self._tracking_integral
+        if np.hypot(*correction) < limit:  # no wind-up while saturated
+            self._tracking_integral = self._tracking_integral + (
+                settings.tracking_integral_gain_1_s2 * error * settings.step_s
+            )
+        scale = min(1.0, limit / max(float(np.hypot(*correction)), 1e-12))
+        self._reference = self._reference + settings.step_s * np.asarray(velocity, dtype=float)
+        return correction * scale
 
     def _clamp(self, velocity):
         limit = self.settings.max_horizontal_speed_m_s

@@ -35,6 +35,8 @@ logger = logging.getLogger(__name__)
 
 ODOMETRY_RATE_HZ = 50.0
 SYSTEM_TIME_RATE_HZ = 2.0
+#: Height above which a vehicle taking off is airborne enough to be handed to OFFBOARD.
+TAKEOFF_CLEAR_M = 2.0
 MAVLINK_MSG_ID_SYSTEM_TIME = 2
 _mavsdk_logging_routed = False
 _REASON_SEVERITIES = frozenset({"EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING"})
@@ -309,20 +311,41 @@ class MavsdkVehicle:
         raise VehicleConnectionError(f"vehicle {self.system_id}: telemetry ended ({what})")
 
     async def take_off(self, altitude_m, *, timeout_s=60.0):
-        """Wait for health, arm, take off and climb to ``altitude_m`` above home. A refusal
-        raises :class:`VehicleCommandError` with the autopilot's own reason (its STATUSTEXT)."""
+        """Wait for health, arm, take off towards ``altitude_m`` above home and return once the
+        vehicle is clearly airborne (above ``min(altitude_m, TAKEOFF_CLEAR_M)``). The final
+        altitude is reached in OFFBOARD (the controller's altitude hold): PX4 may apply its
+        take-off altitude parameter after the take-off command, or keep its own. A refusal raises
+        :class:`VehicleCommandError` with the autopilot's own reason (its STATUSTEXT)."""
         await self._first(
             self.telemetry.subscribe_health_all_ok(), bool, "health (is it armable?)", timeout_s
         )
         await self._commanded(self.action.set_takeoff_altitude(altitude_m), "takeoff altitude")
         await self._commanded(self.action.arm(), "arm")
         await self._commanded(self.action.takeoff(), "takeoff")
+        clear_m = min(altitude_m - 0.3, TAKEOFF_CLEAR_M)
         await self._first(
             self.telemetry.subscribe_position(),
-            lambda p: p.relative_altitude_m > altitude_m - 0.3,
-            f"climb to {altitude_m:g} m",
+            lambda p: p.relative_altitude_m > clear_m,
+            f"climb above {clear_m:g} m",
             timeout_s,
         )
+
+    async def wait_altitude(self, altitude_m, *, tolerance_m=0.3, timeout_s=30.0):
+        """Wait until the odometry's height is within ``tolerance_m`` of ``altitude_m`` (while a
+        controller's altitude hold drives it there)."""
+
+        def reached():
+            sample = self.track.latest
+            return sample is not None and abs(-sample.down_m - altitude_m) <= tolerance_m
+
+        try:
+            async with asyncio.timeout(timeout_s):
+                while not reached():
+                    await self.odometry_updated()
+        except TimeoutError:
+            raise RunnerTimeoutError(
+                f"vehicle {self.system_id}: climb to {altitude_m:g} m", timeout_s
+            ) from None
 
     async def _commanded(self, awaitable, what):
         """Run a MAVSDK command; a refusal becomes a VehicleCommandError naming the command, the

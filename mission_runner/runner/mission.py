@@ -22,10 +22,10 @@ import numpy as np
 
 from ..bus import lost_vehicle_will, open_bus
 from ..config import emulator_config
-from ..sim.simulator import score
 from .clock import EmulatorClock
 from .errors import RunnerError
 from .links import MavsdkVehicle, connected_vehicles
+from .scoring import score_flight, worst_estimate
 from .wiring import altitude_of, autopilot_params, build_controller, shape_schedule
 
 logger = logging.getLogger(__name__)
@@ -73,7 +73,7 @@ class _ProgressAggregator:
         if sample is not None and sample.alive.any():
             centroid = sample.positions_m[sample.alive].mean(axis=0)
             tracking = float(np.hypot(*(centroid - sample.target_m)))
-            localization = _worst_estimate(self.ids, records, sample)
+            localization = worst_estimate(self.ids, records, sample)
         self.callback(
             Progress(
                 record.step,
@@ -84,17 +84,6 @@ class _ProgressAggregator:
                 localization,
             )
         )
-
-
-def _worst_estimate(ids, records, sample):
-    """max |phat_ij - p_ij| over the estimates in ``records`` against truth ``sample``."""
-    worst = 0.0
-    for vehicle_id, record in records.items():
-        own = sample.positions_m[ids.index(vehicle_id)]
-        for peer, estimate in record.estimates_m.items():
-            other = sample.target_m if peer == 0 else sample.positions_m[ids.index(peer)]
-            worst = max(worst, float(np.hypot(*(estimate - (own - other)))))
-    return worst
 
 
 @dataclass
@@ -193,9 +182,10 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
                 for controller in controllers
             ]
             async with asyncio.TaskGroup() as entering:
-                for vehicle in vehicles:
+                for vehicle, controller in zip(vehicles, controllers, strict=True):
                     entering.create_task(
-                        vehicle.start_offboard(), name=f"offboard-{vehicle.system_id}"
+                        _enter_offboard(vehicle, controller.altitude_m),
+                        name=f"offboard-{vehicle.system_id}",
                     )
             start_s = math.ceil((emulator.time_s + flight.start_delay_s) / step_s) * step_s
             world.start(start_s)
@@ -213,10 +203,23 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
                     )
         stats = emulator.stats()
         disarmed = int(np.sum(~np.asarray(emulator.truth.armed)))
-        result = _scored(scenario, world.samples, records, controllers, disarmed)
+        result = score_flight(
+            scenario,
+            world.samples,
+            records,
+            disarmed,
+            final_phases={c.vehicle_id: c.law.phase_rad for c in controllers},
+        )
     return FlightOutcome(
         result, records, start_s, time.perf_counter() - started, mission_wall, stats
     )
+
+
+async def _enter_offboard(vehicle, altitude_m):
+    """OFFBOARD, then the climb to the vehicle's own altitude (its controller's altitude hold):
+    ranges are 3-D, and a height difference cancels out of the estimator only while constant."""
+    await vehicle.start_offboard()
+    await vehicle.wait_altitude(altitude_m)
 
 
 async def _prepare(vehicle, params, altitude_m):
@@ -289,60 +292,3 @@ def _schedule_events(scenario, emulator, world, start_s):
             world.fail_sensor(index, event.sensor, at_s=at_s, duration_s=event.duration_s)
         else:
             raise RunnerError(f"event {event.kind} cannot be flown (simulate it instead)")
-
-
-def _scored(scenario, samples, records, controllers, disarmed):
-    """Score a flight from the world's truth samples and the controllers' records.
-
-    A vehicle counts in the formation at step k when it is alive and its controller followed
-    the law at k (not holding on stale data, not failed safe).
-    """
-    steps = scenario.timing.steps
-    samples = samples[: steps + 1]
-    ids = [vehicle.id for vehicle in scenario.vehicles]
-    n, count = len(ids), len(samples)
-    positions = np.stack([s.positions_m for s in samples])[None]
-    live = np.stack([s.alive for s in samples])[None]
-    following = np.zeros_like(live)
-    target = np.stack([s.target_m for s in samples])
-    phases = np.full((1, count, n), np.nan)
-    commands = np.zeros((1, max(count - 1, 0), n, 2))
-    consensus = np.zeros((1, max(count - 1, 0)))
-    localization = np.zeros((1, max(count - 1, 0)))
-    truth_by_step = {s.step: s for s in samples}
-    for column, vehicle_id in enumerate(ids):
-        for record in records.get(vehicle_id, []):
-            k = record.step
-            if k >= count:
-                continue
-            phases[0, k, column] = record.phase_rad
-            following[0, k, column] = record.state == "following"
-            if k < count - 1:
-                commands[0, k, column] = record.velocity_ned_m_s[:2]
-                consensus[0, k] = max(consensus[0, k], float(np.hypot(*record.consensus_m_s)))
-                worst = _worst_estimate(ids, {vehicle_id: record}, truth_by_step[k])
-                localization[0, k] = max(localization[0, k], worst)
-    for column, controller in enumerate(controllers):
-        if count == steps + 1 and np.isnan(phases[0, steps, column]):
-            phases[0, steps, column] = controller.law.phase_rad
-            following[0, steps, column] = following[0, steps - 1, column]
-    live &= following
-    phases = np.where(live, phases, np.nan)
-    gaps = positions[..., :, None, :] - positions[..., None, :, :]
-    distance = np.sqrt(np.sum(gaps * gaps, axis=-1))
-    pair = live[..., :, None] & live[..., None, :] & ~np.eye(n, dtype=bool)
-    out = {
-        "positions_m": positions,
-        "phases_rad": phases,
-        "commands_m_s": commands,
-        "live": live,
-        "localization_error_m": localization,
-        "consensus_speed_m_s": consensus,
-        "separation_m": np.where(pair, distance, np.inf).min(axis=(-1, -2)),
-    }
-    times = np.array([s.time_s for s in samples]) - samples[0].time_s
-    extra = {
-        "vehicles_disarmed_at_end": np.array([disarmed]),
-        "vehicles_in_formation_at_end": np.array([int(live[0, -1].sum())]),
-    }
-    return score(scenario, times, target, out, extra)

@@ -28,6 +28,8 @@ import time
 import uuid
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from ..bus import (
     BusError,
     ControlCommand,
@@ -105,9 +107,12 @@ class _Reporter:
             )
 
 
-async def run_vehicle(scenario, vehicle_id, *, url=None, ready_timeout_s=180.0, on_step=None):
+async def run_vehicle(
+    scenario, vehicle_id, *, url=None, ready_timeout_s=180.0, on_step=None, run=None
+):
     """Fly vehicle ``vehicle_id`` of ``scenario`` as its own process. Returns its
-    :class:`VehicleRun`; raises :class:`RunnerError` when it could not fly (after reporting it
+    :class:`VehicleRun` (``run``, if given, is filled in as the flight goes, so the caller has it
+    even when this raises); raises :class:`RunnerError` when it could not fly (after reporting it
     and putting the vehicle in a safe state)."""
     if scenario.bus.kind != "mqtt":
         raise RunnerError("a vehicle process talks to the others over MQTT: set bus.kind: mqtt")
@@ -118,7 +123,7 @@ async def run_vehicle(scenario, vehicle_id, *, url=None, ready_timeout_s=180.0, 
     url = url or config.url or default_url(scenario, vehicle_id)
     topics = scenario.bus.topics(scenario.name)
     mission_time = MissionTime()
-    run = VehicleRun(vehicle_id)
+    run = run or VehicleRun(vehicle_id)
     async with contextlib.AsyncExitStack() as stack:
         systems = await stack.enter_async_context(connected_vehicles([url], [vehicle_id]))
         vehicle = await stack.enter_async_context(MavsdkVehicle(systems[vehicle_id], vehicle_id))
@@ -181,6 +186,7 @@ async def _fly(scenario, vehicle, controller, control, report, run, mapping, mis
         )
         try:
             await vehicle.start_offboard()
+            await vehicle.wait_altitude(controller.altitude_m)
             command = await _until_start(control, report, run, mapping, scenario)
         except BaseException:
             hovering.cancel()
@@ -388,3 +394,28 @@ async def run_ground(scenario, *, start_delay_s=2.0, ready_timeout_s=180.0, on_s
             with contextlib.suppress(BusError):
                 await bus.publish(topics.control(), b"", retain=True, timeout=2.0)
     return GroundOutcome(mission_id, started["at"], rate, latest)
+
+
+async def wait_and_merge(scenario, mission_dir, outcome, *, timeout_s=20.0):
+    """After the mission: wait (up to ``timeout_s``) for every vehicle that finished to write its
+    ``steps.csv`` and for the range aid's truth under ``mission_dir``, then score the mission
+    (:func:`.scoring.merge_mission`); None when there is no truth to score against.
+    ``vehicles_disarmed_at_end`` counts the vehicles that reported done after landing."""
+    from pathlib import Path  # noqa: PLC0415
+
+    from .scoring import merge_mission  # noqa: PLC0415
+
+    mission_dir = Path(mission_dir)
+    wanted = [mission_dir / "truth" / "truth.csv"] + [
+        mission_dir / f"vehicle_{i}" / "summary.json"
+        for i, status in outcome.statuses.items()
+        if status.state == "done"
+    ]
+    deadline = time.monotonic() + timeout_s
+    while not all(path.exists() for path in wanted) and time.monotonic() < deadline:
+        await asyncio.sleep(0.2)  # files written by other processes: nothing to wait on but disk
+    result = merge_mission(scenario, mission_dir)
+    if result is not None and scenario.flight.end_action == "land":
+        landed = sum(status.state == "done" for status in outcome.statuses.values())
+        result.extra_metrics["vehicles_disarmed_at_end"] = np.array([landed])
+    return result

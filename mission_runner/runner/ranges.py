@@ -39,6 +39,7 @@ from ..sensors import measure_ranges
 from .errors import RunnerError, RunnerTimeoutError
 from .links import MavsdkVehicle, connected_vehicles
 from .odometry import OdometrySample, OdometryTrack
+from .scoring import TruthSample
 from .timesync import MissionTime
 
 logger = logging.getLogger(__name__)
@@ -100,6 +101,7 @@ class RangeStats:
     ranges: int = 0
     missing_vehicles: int = 0
     lateness_s: list = field(default_factory=list)
+    truth: list = field(default_factory=list)  # TruthSample per step, for scoring only
 
     def lateness_percentiles_ms(self):
         if not self.lateness_s:
@@ -287,14 +289,15 @@ async def _publish_step(bus, topics, scenario, positions_m, k, t_k, start_s, rng
     ids = [v.id for v in scenario.vehicles]
     missing = np.isnan(positions_m[:, 0])
     stats.steps += 1
+    elapsed = np.array([t_k - start_s, t_k - start_s + 1e-3])
+    target = target_positions(scenario.target.path, elapsed)
+    stats.truth.append(TruthSample(k, t_k, target[0], positions_m[:, :2].copy(), ~missing))
     stats.missing_vehicles += int(missing.sum())
     ranges = measure_ranges(positions_m, scenario.sensors, rng)
     for i, j in zip(*np.nonzero(np.isfinite(ranges)), strict=True):
         message = RangeMessage(ids[i], ids[j], t_k, float(ranges[i, j]), step=k)
         await bus.publish_message(topics.range(ids[i], ids[j]), message, timeout=0.1)
         stats.ranges += 1
-    elapsed = np.array([t_k - start_s, t_k - start_s + 1e-3])
-    target = target_positions(scenario.target.path, elapsed)
     velocity = (target[1] - target[0]) / 1e-3
     noise = scenario.sensors.range_noise_std_m
     for i, vehicle in enumerate(scenario.vehicles):

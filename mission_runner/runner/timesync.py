@@ -59,8 +59,8 @@ class ClockMapping:
     window_s: boot seconds of pairs kept for the fit (long enough to average the millisecond
     quantisation, short enough to follow a rate that wanders). jump_s: a pair this far from the
     current fit is an outlier; ``jumps_to_refit`` outliers in a row mean the autopilot's clock was
-    stepped, and the fit restarts from them. Until two pairs span ``min_span_s`` the rate is
-    taken as ``nominal_rate``.
+    stepped, and the fit restarts from them. Until the pairs span ``min_span_s`` the rate is
+    taken as ``nominal_rate`` and no pair is judged an outlier (the rate may be far from 1).
     """
 
     def __init__(
@@ -80,6 +80,7 @@ class ClockMapping:
         self._pairs: deque[tuple[float, float]] = deque()
         self._outliers: list[tuple[float, float]] = []
         self._fit: ClockFit | None = None
+        self._rate_measured = False  # until then a pair cannot be judged an outlier
         self.rejected = 0
         self.refits = 0
 
@@ -104,7 +105,7 @@ class ClockMapping:
                 self._restart([(boot_s, unix_s)])
                 return True
             return False
-        if self._fit is not None and abs(self._fit.unix_s(boot_s) - unix_s) > self.jump_s:
+        if self._rate_measured and abs(self._fit.unix_s(boot_s) - unix_s) > self.jump_s:
             self._outliers.append((boot_s, unix_s))
             if len(self._outliers) < self.jumps_to_refit:
                 self.rejected += 1
@@ -131,7 +132,8 @@ class ClockMapping:
         mean_boot, mean_unix = sum(boots) / count, sum(unixes) / count
         span = boots[-1] - boots[0]
         rate = self.nominal_rate
-        if span >= self.min_span_s:
+        self._rate_measured = span >= self.min_span_s
+        if self._rate_measured:
             sxx = sum((b - mean_boot) ** 2 for b in boots)
             sxy = sum((b - mean_boot) * (u - mean_unix) for b, u in self._pairs)
             fitted = sxy / sxx

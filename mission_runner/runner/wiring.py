@@ -27,6 +27,9 @@ def controller_settings(scenario, vehicle):
         max_horizontal_speed_m_s=vehicle.speed_limit_m_s,
         max_vertical_speed_m_s=flight.max_vertical_speed_m_s,
         velocity_lead_s=flight.velocity_lead_s,
+        tracking_gain_1_s=flight.displacement_tracking.gain_1_s,
+        tracking_integral_gain_1_s2=flight.displacement_tracking.integral_gain_1_s2,
+        tracking_max_correction_m_s=flight.displacement_tracking.max_correction_m_s,
     )
 
 

@@ -11,12 +11,14 @@ CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 def flight_configs():
-    """Bundled scenarios that carry a ``flight:`` block: the ones meant to be flown."""
-    return sorted(
-        path.stem
-        for path in CONFIGS.glob("*.yaml")
-        if "flight" in (yaml.safe_load(path.read_text()) or {})
-    )
+    """Bundled scenarios that carry a ``flight:`` block and fly in one process (the ones on an
+    MQTT bus are for vehicle processes: ``test_px4_like_processes.py`` flies them)."""
+    names = []
+    for path in sorted(CONFIGS.glob("*.yaml")):
+        data = yaml.safe_load(path.read_text()) or {}
+        if "flight" in data and (data.get("bus") or {}).get("kind") != "mqtt":
+            names.append(path.stem)
+    return names
 
 
 def load(name):

@@ -1,0 +1,189 @@
+"""Scoring a flight against ground truth, the same way for every flight path: the in-process
+mission (the emulator's world samples) and vehicle processes (the range aid's truth from SIH or the
+emulator, and each vehicle's ``steps.csv``). The truth is used only here, after the fact; no
+controller ever reads it.
+"""
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..sim.simulator import score
+from .controller import StepRecord
+
+
+@dataclass(frozen=True)
+class TruthSample:
+    """Ground truth at t_k: target_m ``(2,)``, positions_m ``(n, 2)`` north/east [m], alive
+    ``(n,)`` (False where the vehicle's position is unknown at t_k)."""
+
+    step: int
+    time_s: float
+    target_m: np.ndarray
+    positions_m: np.ndarray
+    alive: np.ndarray
+
+
+def worst_estimate(ids, records, sample):
+    """max |phat_ij - p_ij| over the estimates in ``records`` against truth ``sample``."""
+    worst = 0.0
+    for vehicle_id, record in records.items():
+        own = sample.positions_m[ids.index(vehicle_id)]
+        for peer, estimate in record.estimates_m.items():
+            other = sample.target_m if peer == 0 else sample.positions_m[ids.index(peer)]
+            worst = max(worst, float(np.hypot(*(estimate - (own - other)))))
+    return worst
+
+
+def score_flight(scenario, samples, records, disarmed, *, final_phases=None):
+    """Score a flight from truth samples (``step``, ``time_s``, ``target_m (2,)``,
+    ``positions_m (n, 2)``, ``alive (n,)``) and the controllers' records ``{id: [StepRecord]}``;
+    ``disarmed``: vehicles disarmed at the end (None: unknown); ``final_phases``: each
+    controller's phase after its last step, ``{id: rad}``.
+
+    A vehicle counts in the formation at step k when it is alive and its controller followed
+    the law at k (not holding on stale data, not failed safe).
+    """
+    steps = scenario.timing.steps
+    samples = samples[: steps + 1]
+    ids = [vehicle.id for vehicle in scenario.vehicles]
+    n, count = len(ids), len(samples)
+    positions = np.stack([s.positions_m for s in samples])[None]
+    live = np.stack([s.alive for s in samples])[None]
+    following = np.zeros_like(live)
+    target = np.stack([s.target_m for s in samples])
+    phases = np.full((1, count, n), np.nan)
+    commands = np.zeros((1, max(count - 1, 0), n, 2))
+    consensus = np.zeros((1, max(count - 1, 0)))
+    localization = np.zeros((1, max(count - 1, 0)))
+    truth_by_step = {s.step: s for s in samples}
+    for column, vehicle_id in enumerate(ids):
+        for record in records.get(vehicle_id, []):
+            k = record.step
+            if k >= count:
+                continue
+            phases[0, k, column] = record.phase_rad
+            following[0, k, column] = record.state == "following"
+            if k < count - 1:
+                commands[0, k, column] = record.velocity_ned_m_s[:2]
+                consensus[0, k] = max(consensus[0, k], float(np.hypot(*record.consensus_m_s)))
+                worst = worst_estimate(ids, {vehicle_id: record}, truth_by_step[k])
+                localization[0, k] = max(localization[0, k], worst)
+    for column, vehicle_id in enumerate(ids):
+        final = (final_phases or {}).get(vehicle_id)
+        if final is not None and count == steps + 1 and np.isnan(phases[0, steps, column]):
+            phases[0, steps, column] = final
+            following[0, steps, column] = following[0, steps - 1, column]
+    live &= following
+    phases = np.where(live, phases, np.nan)
+    gaps = positions[..., :, None, :] - positions[..., None, :, :]
+    distance = np.sqrt(np.sum(gaps * gaps, axis=-1))
+    pair = live[..., :, None] & live[..., None, :] & ~np.eye(n, dtype=bool)
+    out = {
+        "positions_m": positions,
+        "phases_rad": phases,
+        "commands_m_s": commands,
+        "live": live,
+        "localization_error_m": localization,
+        "consensus_speed_m_s": consensus,
+        "separation_m": np.where(pair, distance, np.inf).min(axis=(-1, -2)),
+    }
+    times = np.array([s.time_s for s in samples]) - samples[0].time_s
+    extra = {"vehicles_in_formation_at_end": np.array([int(live[0, -1].sum())])}
+    if disarmed is not None:
+        extra["vehicles_disarmed_at_end"] = np.array([disarmed])
+    return score(scenario, times, target, out, extra)
+
+
+def write_truth_csv(samples, ids, path):
+    """Truth samples as CSV: step, time_s, target_north_m, target_east_m, then per vehicle
+    ``v<id>_north_m``, ``v<id>_east_m`` (empty where unknown)."""
+    from ..outputs import write_atomic  # noqa: PLC0415
+
+    lines = [
+        ",".join(
+            ["step", "time_s", "target_north_m", "target_east_m"]
+            + [f"v{i}_{axis}_m" for i in ids for axis in ("north", "east")]
+        )
+    ]
+    for sample in samples:
+        row = [str(sample.step), f"{sample.time_s:.6f}", *(f"{v:.6f}" for v in sample.target_m)]
+        for position, alive in zip(sample.positions_m, sample.alive, strict=True):
+            row += [f"{v:.6f}" for v in position] if alive else ["", ""]
+        lines.append(",".join(row))
+    write_atomic(path, "\n".join(lines) + "\n")
+
+
+def read_truth_csv(path, ids):
+    """The samples written by :func:`write_truth_csv`."""
+    samples = []
+    with open(path, newline="", encoding="utf-8") as handle:
+        for row in csv.DictReader(handle):
+            positions, alive = [], []
+            for i in ids:
+                north, east = row[f"v{i}_north_m"], row[f"v{i}_east_m"]
+                alive.append(north != "")
+                positions.append((float(north or "nan"), float(east or "nan")))
+            samples.append(
+                TruthSample(
+                    int(row["step"]),
+                    float(row["time_s"]),
+                    np.array([float(row["target_north_m"]), float(row["target_east_m"])]),
+                    np.array(positions),
+                    np.array(alive),
+                )
+            )
+    return samples
+
+
+def read_steps_csv(path):
+    """A vehicle process's ``steps.csv`` back as :class:`StepRecord` objects."""
+    records = []
+    with open(path, newline="", encoding="utf-8") as handle:
+        reader = csv.DictReader(handle)
+        peers = sorted(
+            {int(name.split("_")[1]) for name in reader.fieldnames if name.startswith("estimate_")}
+        )
+        for row in reader:
+            estimates = {}
+            for peer in peers:
+                north = row[f"estimate_{peer}_north_m"]
+                if north != "":
+                    estimates[peer] = np.array(
+                        [float(north), float(row[f"estimate_{peer}_east_m"])]
+                    )
+            used = tuple(int(p) for p in row["neighbours_used"].split())
+            records.append(
+                StepRecord(
+                    int(row["step"]),
+                    float(row["time_s"]),
+                    row["state"],
+                    tuple(float(row[f"velocity_{a}_m_s"]) for a in ("north", "east", "down")),
+                    tuple(float(row[f"consensus_{a}_m_s"]) for a in ("north", "east")),
+                    float(row["phase_rad"]),
+                    used,
+                    estimates,
+                    float(row["time_s"]) + float(row["setpoint_lateness_s"]),
+                    tuple(float(row[f"odometry_{a}_m"]) for a in ("north", "east", "down")),
+                )
+            )
+    return records
+
+
+def merge_mission(scenario, mission_dir):
+    """Score a mission of vehicle processes from what they wrote under ``mission_dir``
+    (``vehicle_<id>/steps.csv``, ``truth/truth.csv``). Returns a SimulationResult, or None when
+    the truth is not there (a mission without a simulator has no truth to score against)."""
+    mission_dir = Path(mission_dir)
+    ids = [v.id for v in scenario.vehicles]
+    truth = mission_dir / "truth" / "truth.csv"
+    if not truth.exists():
+        return None
+    records = {}
+    for vehicle_id in ids:
+        steps = mission_dir / f"vehicle_{vehicle_id}" / "steps.csv"
+        if steps.exists():
+            records[vehicle_id] = read_steps_csv(steps)
+    return score_flight(scenario, read_truth_csv(truth, ids), records, None)

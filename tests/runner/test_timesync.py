@@ -1,0 +1,135 @@
+"""The autopilot clock mapping: rate and offset from SYSTEM_TIME pairs, as PX4 SITL's clock
+behaves (a boot clock at 0.986x or 1.93x the host's), with quantisation, outliers and jumps."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mission_runner.runner.timesync import ClockMapping, ClockMappingError, MissionTime
+
+UNIX_AT_BOOT = 1_764_000_000.0
+
+
+def pairs(boot_rate, seconds, *, every_s=1.0, boot_offset_s=37.2, jitter_s=0.0, seed=0):
+    """SYSTEM_TIME pairs of an autopilot whose boot clock runs ``boot_rate`` boot seconds per
+    UNIX second, with time_boot_ms quantised to the millisecond like the message."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for unix in np.arange(0.0, seconds, every_s):
+        unix_s = UNIX_AT_BOOT + unix + (rng.normal(scale=jitter_s) if jitter_s else 0.0)
+        boot_s = math.floor((boot_offset_s + boot_rate * unix) * 1000.0) / 1000.0
+        out.append((boot_s, unix_s))
+    return out
+
+
+@pytest.mark.parametrize("boot_rate", [0.986, 1.0, 1.93, 5.0])
+def test_the_fit_follows_a_boot_clock_far_from_wall_speed(boot_rate):
+    mapping = ClockMapping()
+    for boot_s, unix_s in pairs(boot_rate, 30.0):
+        assert mapping.add(boot_s, unix_s)
+    assert mapping.fit.boot_rate == pytest.approx(boot_rate, rel=1e-4)
+    # A sample half a second after the last pair maps to within a millisecond.
+    boot_s = 37.2 + boot_rate * 29.5
+    assert mapping.unix_s(boot_s) == pytest.approx(UNIX_AT_BOOT + 29.5, abs=1e-3)
+    assert mapping.boot_s(mapping.unix_s(boot_s)) == pytest.approx(boot_s, abs=1e-9)
+
+
+def test_an_offset_estimated_once_drifts_where_the_fit_does_not():
+    """The failure seen on PX4 SIH: 14 ms per second of drift with a one-time offset."""
+    history = pairs(0.986, 60.0)
+    once = ClockMapping(window_s=1e-3)  # keeps one pair: what a one-time offset does
+    once.add(*history[0])
+    fitted = ClockMapping()
+    for boot_s, unix_s in history:
+        fitted.add(boot_s, unix_s)
+    boot_s = 37.2 + 0.986 * 59.0
+    truth = UNIX_AT_BOOT + 59.0
+    assert abs(once.unix_s(boot_s) - truth) > 0.5  # ~0.8 s off after a minute
+    assert fitted.unix_s(boot_s) == pytest.approx(truth, abs=1e-3)
+
+
+def test_a_lone_outlier_is_rejected_and_counted():
+    mapping = ClockMapping()
+    history = pairs(1.0, 20.0)
+    for boot_s, unix_s in history[:10]:
+        mapping.add(boot_s, unix_s)
+    rate = mapping.fit.rate
+    assert not mapping.add(history[10][0], history[10][1] + 5.0)
+    assert mapping.rejected == 1
+    for boot_s, unix_s in history[11:]:
+        assert mapping.add(boot_s, unix_s)
+    assert mapping.fit.rate == pytest.approx(rate, rel=1e-6)
+    assert mapping.refits == 0
+
+
+def test_a_stepped_unix_clock_is_followed_after_three_pairs():
+    mapping = ClockMapping()
+    history = pairs(1.0, 30.0)
+    for boot_s, unix_s in history[:10]:
+        mapping.add(boot_s, unix_s)
+    stepped = [(boot_s, unix_s + 3600.0) for boot_s, unix_s in history[10:]]
+    assert not mapping.add(*stepped[0])
+    assert not mapping.add(*stepped[1])
+    assert mapping.add(*stepped[2])
+    assert mapping.refits == 1
+    assert mapping.unix_s(stepped[2][0]) == pytest.approx(stepped[2][1], abs=1e-3)
+
+
+def test_a_reboot_restarts_the_fit():
+    mapping = ClockMapping()
+    for boot_s, unix_s in pairs(1.0, 40.0):
+        mapping.add(boot_s, unix_s)
+    assert mapping.add(0.5, UNIX_AT_BOOT + 100.0)  # boot clock back near zero
+    assert mapping.unix_s(0.5) == pytest.approx(UNIX_AT_BOOT + 100.0)
+
+
+def test_impossible_pairs_are_rejected():
+    mapping = ClockMapping()
+    for bad in [(math.nan, 1.0), (1.0, math.inf), (-1.0, UNIX_AT_BOOT), (1.0, 0.0)]:
+        assert not mapping.add(*bad)
+    assert mapping.rejected == 4
+    with pytest.raises(ClockMappingError, match="no SYSTEM_TIME pair"):
+        mapping.unix_s(1.0)
+
+
+def test_before_the_pairs_span_enough_the_rate_is_nominal():
+    mapping = ClockMapping(nominal_rate=1.0)
+    mapping.add(10.0, UNIX_AT_BOOT)
+    mapping.add(10.5, UNIX_AT_BOOT + 0.55)  # 0.5 s apart: too short to trust a rate
+    assert mapping.fit.rate == 1.0
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    boot_rate=st.floats(0.2, 10.0),
+    jitter_s=st.floats(0.0, 0.005),
+    seed=st.integers(0, 2**31),
+)
+def test_the_fit_is_within_the_jitter_for_any_rate(boot_rate, jitter_s, seed):
+    mapping = ClockMapping()
+    for boot_s, unix_s in pairs(boot_rate, 20.0, every_s=0.5, jitter_s=jitter_s, seed=seed):
+        mapping.add(boot_s, unix_s)
+    boot_s = 37.2 + boot_rate * 19.0
+    assert mapping.unix_s(boot_s) == pytest.approx(UNIX_AT_BOOT + 19.0, abs=3 * jitter_s + 2e-3)
+
+
+def test_mission_time_scales_unix_time_around_its_reference():
+    now = {"unix": 1000.0}
+    time = MissionTime(unix=lambda: now["unix"])
+    assert time.now_s() == 1000.0
+    time.set(1.93, reference_s=1000.0)
+    now["unix"] = 1010.0
+    assert time.now_s() == pytest.approx(1019.3)
+    assert time.to_unix(time.from_unix(1234.5)) == pytest.approx(1234.5)
+    with pytest.raises(ClockMappingError, match="rate"):
+        time.set(0.0, 1000.0)
+
+
+def test_the_mission_clock_rate_is_the_autopilots_median_or_exactly_one():
+    assert MissionTime.rate_for([0.986, 0.985, 0.987, 0.990]) == pytest.approx(0.9865)
+    assert MissionTime.rate_for([1.93, 1.92, 1.94]) == 1.93
+    assert MissionTime.rate_for([1.00004, 0.99997]) == 1.0  # hardware crystals: UNIX time
+    assert MissionTime.rate_for([]) == 1.0
