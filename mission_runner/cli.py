@@ -5,6 +5,7 @@
     mission-runner vehicle CONFIG --id N [--url URL] [--out DIR]   one vehicle's controller (MQTT)
     mission-runner ground CONFIG [--start-delay S]       prepare, start and watch vehicle processes
     mission-runner ranges CONFIG [--source sih|gps]      synthesised UWB ranges (simulation aid)
+    mission-runner px4-sitl CONFIG --px4-dir DIR         real PX4 SITL (SIH), one per vehicle
 
 Exit codes: 0 success (and every ``expect:`` bound met), 1 an expectation failed, 2 bad input
 (the message names the problem and, for configs, the YAML path), 3 a runtime failure (a vehicle
@@ -166,6 +167,14 @@ def _parser():
         "(default: out/<name>-mission/truth)",
     )
     ranges.set_defaults(handler=_ranges)
+
+    from . import px4sitl  # noqa: PLC0415 - only its argument definitions
+
+    px4 = commands.add_parser(
+        "px4-sitl",
+        help="start real PX4 SITL (SIH), one instance per vehicle of the scenario, until Ctrl-C",
+    )
+    px4sitl.add_arguments(px4)
     return parser
 
 

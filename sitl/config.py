@@ -216,6 +216,14 @@ class PhysicsConfig(_Model):
         description="Integral gain of the velocity loop that slowly wins back what drag takes, "
         "1/s^2 (0: none; PX4's MPC_XY_VEL_I_ACC is 0.4).",
     )
+    tilt_time_constant_s: float = Field(
+        0.0,
+        ge=0.0,
+        le=2.0,
+        title="Tilt time constant",
+        description="Lag of the horizontal acceleration behind the velocity loop's demand (the "
+        "attitude change that produces it), s (0: none; PX4 SIH ~0.2).",
+    )
 
 
 class WindConfig(_Model):

@@ -364,6 +364,7 @@ class Emulator:
             drag_1_s=wind_cfg.drag_1_s,
             airspeed_drag_1_s=config.physics.airspeed_drag_1_s,
             velocity_integral_gain_1_s2=config.physics.velocity_integral_gain_1_s2,
+            tilt_time_constant_s=config.physics.tilt_time_constant_s,
         )
         odo = config.odometry
         self._odometry = Odometry(

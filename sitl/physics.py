@@ -108,6 +108,7 @@ class MulticopterPhysics:
         drag_1_s: float = 0.3,
         airspeed_drag_1_s: float = 0.0,
         velocity_integral_gain_1_s2: float = 0.0,
+        tilt_time_constant_s: float = 0.0,
     ) -> None:
         pos = np.array(initial_position_ned_m, dtype=float)
         if pos.ndim != 2 or pos.shape[1] != 3:
@@ -150,6 +151,8 @@ class MulticopterPhysics:
         self.airspeed_drag_1_s = float(airspeed_drag_1_s)
         self.velocity_integral_gain_1_s2 = float(velocity_integral_gain_1_s2)
         self.velocity_integral_ned_m_s2: FloatArray = np.zeros((n, 3))
+        self.tilt_time_constant_s = float(tilt_time_constant_s)
+        self.horizontal_accel_ned_m_s2: FloatArray = np.zeros((n, 3))
         self.wind_learnt_ned_m_s: FloatArray = np.zeros((n, 3))
         if wind is not None:
             self.wind_learnt_ned_m_s[:] = wind.velocity_ned_m_s
@@ -189,6 +192,14 @@ class MulticopterPhysics:
             drag = self.airspeed_drag_1_s * vel
             drag[:, 2] = 0.0
             accel[flying] -= drag[flying]
+        if self.tilt_time_constant_s > 0:
+            # The horizontal acceleration comes from tilting, which takes time (PX4 SIH: a
+            # velocity step starts to show ~0.2 s later).
+            blend = dt / (self.tilt_time_constant_s + dt)
+            self.horizontal_accel_ned_m_s2[:, :2] += blend * (
+                accel[:, :2] - self.horizontal_accel_ned_m_s2[:, :2]
+            )
+            accel[:, :2] = self.horizontal_accel_ned_m_s2[:, :2]
         accelerating = mode == ACCELERATION
         if accelerating.any():
             accel[accelerating] = self.acceleration_setpoint_ned_m_s2[accelerating]

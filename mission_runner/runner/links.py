@@ -34,7 +34,7 @@ from .timesync import ClockMapping, ClockMappingError
 logger = logging.getLogger(__name__)
 
 ODOMETRY_RATE_HZ = 50.0
-SYSTEM_TIME_RATE_HZ = 2.0
+SYSTEM_TIME_RATE_HZ = 10.0  # pairs to interpolate a jittery simulated clock between
 #: Height above which a vehicle taking off is airborne enough to be handed to OFFBOARD.
 TAKEOFF_CLEAR_M = 2.0
 MAVLINK_MSG_ID_SYSTEM_TIME = 2

@@ -133,3 +133,18 @@ def test_the_mission_clock_rate_is_the_autopilots_median_or_exactly_one():
     assert MissionTime.rate_for([1.93, 1.92, 1.94]) == 1.93
     assert MissionTime.rate_for([1.00004, 0.99997]) == 1.0  # hardware crystals: UNIX time
     assert MissionTime.rate_for([]) == 1.0
+
+
+def test_a_jittery_simulated_clock_is_followed_between_pairs():
+    """PX4 SIH on a loaded machine: its boot clock strays tens of ms from any line."""
+    mapping = ClockMapping()
+
+    def boot_at(unix):  # 0.986x with a 30 ms wobble
+        return 5.0 + 0.986 * unix + 0.03 * math.sin(2 * math.pi * unix / 3.7)
+
+    for unix in np.arange(0.0, 20.0, 0.1):
+        mapping.add(round(boot_at(unix), 3), UNIX_AT_BOOT + unix)
+    assert mapping.fit.residual_s > 0.015  # no line fits it
+    for unix in np.arange(5.03, 19.9, 0.37):
+        assert mapping.unix_s(boot_at(unix)) == pytest.approx(UNIX_AT_BOOT + unix, abs=2e-3)
+        assert mapping.boot_s(UNIX_AT_BOOT + unix) == pytest.approx(boot_at(unix), abs=2e-3)
