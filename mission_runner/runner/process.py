@@ -329,12 +329,8 @@ async def run_ground(scenario, *, start_delay_s=2.0, ready_timeout_s=180.0, on_s
                     async for _, status in statuses.messages(VehicleStatus):
                         if status.vehicle_id not in ids or not ours(status):
                             continue
-                        if latest.get(status.vehicle_id) and latest[status.vehicle_id].state in (
-                            "lost",
-                            "failed",
-                            "aborted",
-                        ):
-                            continue  # final: a lost vehicle stays lost
+                        if _final_already(latest.get(status.vehicle_id), status):
+                            continue
                         latest[status.vehicle_id] = status
                         if on_status is not None:
                             on_status(status)
@@ -394,6 +390,14 @@ async def run_ground(scenario, *, start_delay_s=2.0, ready_timeout_s=180.0, on_s
             with contextlib.suppress(BusError):
                 await bus.publish(topics.control(), b"", retain=True, timeout=2.0)
     return GroundOutcome(mission_id, started["at"], rate, latest)
+
+
+def _final_already(last, status):
+    """Whether ``last`` was final (lost, failed, aborted) so ``status`` changes nothing: a lost
+    vehicle stays lost; only its reason may still arrive (the controller's own status first)."""
+    if last is None or last.state not in ("lost", "failed", "aborted"):
+        return False
+    return status.state != last.state or not status.detail or bool(last.detail)
 
 
 async def wait_and_merge(scenario, mission_dir, outcome, *, timeout_s=20.0):
