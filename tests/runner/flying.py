@@ -1,5 +1,8 @@
 """Helpers for tests that fly scenarios through the full stack (MAVSDK + UDP + emulator)."""
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import yaml
@@ -28,3 +31,14 @@ def load(name):
 def free_ports(scenario):
     """Emulator overrides that put every vehicle on free UDP ports (tests run beside real SITL)."""
     return {"ports": free_port_config(len(scenario.vehicles), gcs=False).model_dump()}
+
+
+def start(*arguments):
+    """``python -m <arguments>`` as a child process, output (both streams) as text lines."""
+    return subprocess.Popen(
+        [sys.executable, "-m", *arguments],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        text=True,
+    )

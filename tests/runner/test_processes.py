@@ -2,18 +2,15 @@
 (``sitl --scenario``), one ``mission-runner vehicle`` process per drone and a ``mission-runner
 ground`` station, talking only over a real mosquitto, each on its own clock (UNIX time)."""
 
-import os
 import re
 import signal
-import subprocess
-import sys
 
 import pytest
 import yaml
 
 from tests.sitl.helpers import free_port_config
 
-from .flying import CONFIGS
+from .flying import CONFIGS, start
 
 pytestmark = [pytest.mark.mavsdk, pytest.mark.mqtt, pytest.mark.slow]
 
@@ -28,16 +25,6 @@ def scenario_file(tmp_path, broker):
     path = tmp_path / "swarm.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
-
-
-def start(*arguments):
-    return subprocess.Popen(
-        [sys.executable, "-m", *arguments],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        text=True,
-    )
 
 
 @pytest.mark.timeout(240)

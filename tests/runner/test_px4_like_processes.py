@@ -10,18 +10,15 @@ vehicle, a refused arm leaving the others hovering) fails here.
 """
 
 import json
-import os
 import re
 import signal
-import subprocess
-import sys
 
 import pytest
 import yaml
 
 from tests.sitl.helpers import free_port_config, free_truth_stream
 
-from .flying import CONFIGS
+from .flying import CONFIGS, start
 
 pytestmark = [pytest.mark.mavsdk, pytest.mark.mqtt, pytest.mark.slow]
 
@@ -63,16 +60,6 @@ def emulator_file(tmp_path, data):
     path = tmp_path / "emulator.yaml"
     path.write_text(yaml.safe_dump({"placement": {"positions": positions}, **SIH_EMULATOR}))
     return path
-
-
-def start(*arguments):
-    return subprocess.Popen(
-        [sys.executable, "-m", *arguments],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        text=True,
-    )
 
 
 class Swarm:
