@@ -37,12 +37,24 @@ def main(argv=None):
     except RunnerError as error:
         print(f"error: {error}", file=sys.stderr)
         return EXIT_RUNTIME_FAILURE
+    except _emulator_errors() as error:  # e.g. a port already taken: one line naming the setting
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_RUNTIME_FAILURE
     except MissionRunnerError as error:
         print(f"error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+
+
+def _emulator_errors():
+    """The bundled emulator's error base (a separate package: absent errors match nothing)."""
+    try:
+        from sitl.errors import SitlError  # noqa: PLC0415
+    except ImportError:
+        return ()
+    return (SitlError,)
 
 
 def _unwrapped(handler, arguments):
@@ -62,7 +74,7 @@ def _unwrapped(handler, arguments):
 
         collect(group)
         for leaf in leaves:
-            if isinstance(leaf, MissionRunnerError | KeyboardInterrupt):
+            if isinstance(leaf, (MissionRunnerError, KeyboardInterrupt, *_emulator_errors())):
                 raise leaf from group
         raise
 
