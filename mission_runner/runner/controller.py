@@ -266,7 +266,11 @@ class VehicleController:
         if stale:
             velocity = (0.0, 0.0)
             self.state = "holding"
-            self._reference = None  # the vehicle holds: track afresh from where it is
+            # The vehicle holds: when it resumes, track afresh from where it is, and lead from
+            # nothing (a command change over the whole hold is not a rate to lead).
+            self._reference = None
+            self._previous_command = None
+            self._tracking_integral = np.zeros(2)
             used, estimates, consensus = (), {}, (0.0, 0.0)
             self._turn_oscillator(k)
         else:

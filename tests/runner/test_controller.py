@@ -492,13 +492,6 @@ async def test_velocity_lead_adds_lead_times_the_commands_rate_of_change():
         assert a.consensus_m_s == pytest.approx(b.consensus_m_s, abs=1e-12)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="VehicleController._lead keeps _previous_command through a hold (only _reference is "
-    "reset): the first setpoint after holding is u(k) + lead * (u(k) - u(last step before the "
-    "hold)) / T, a change over the whole hold divided by one step, against a command the vehicle "
-    "was not flying (it held at zero); here it points against the law's command",
-)
 @pytest.mark.asyncio
 async def test_after_a_hold_the_lead_does_not_difference_against_the_command_before_it():
     lead_s = 0.17
