@@ -1,5 +1,6 @@
-"""The GPS-based range provider (a simulation aid for vehicles without UWB) against emulated PX4
-vehicles reached on their GCS link, publishing over a real mosquitto."""
+"""The range aid (a simulation aid for vehicles without UWB) against emulated PX4 vehicles, from
+their GPS on the GCS link or from their SIH-like ground-truth stream, publishing over a real
+mosquitto once the ground station's start arrives."""
 
 import math
 import time
@@ -7,12 +8,18 @@ import time
 import numpy as np
 import pytest
 
-from mission_runner.bus import MqttBus, RangeMessage, TargetObservation
+from mission_runner.bus import (
+    ControlCommand,
+    MissionControl,
+    MqttBus,
+    RangeMessage,
+    TargetObservation,
+)
 from mission_runner.config import validate_scenario
 from mission_runner.runner.ranges import run_range_provider
 from sitl.config import ClockConfig, EmulatorConfig
 from sitl.emulator import Emulator
-from tests.sitl.helpers import free_port_config
+from tests.sitl.helpers import free_port_config, free_truth_stream
 
 from .flying import load
 
@@ -31,8 +38,9 @@ def scenario(broker):
     return validate_scenario(data)
 
 
-@pytest.mark.timeout(60)
-async def test_ranges_from_gps_match_the_true_distances_on_the_unix_step_grid(mosquitto):
+async def fly_aid(mosquitto, *, source, truth=False):
+    """Run the aid for 8 steps against three parked emulated vehicles; returns the start time,
+    the aid's stats and what it published."""
     mission = scenario(mosquitto)
     ports = free_port_config(3, gcs=True)
     config = EmulatorConfig(
@@ -40,6 +48,7 @@ async def test_ranges_from_gps_match_the_true_distances_on_the_unix_step_grid(mo
         ports=ports,
         clock=ClockConfig(speed=1.0),
         placement={"positions": [{"north_m": n, "east_m": e} for n, e in PLACES]},
+        truth_stream=free_truth_stream(3, ports) if truth else {},
     )
     topics = mission.bus.topics(mission.name)
     async with (
@@ -49,12 +58,31 @@ async def test_ranges_from_gps_match_the_true_distances_on_the_unix_step_grid(mo
         bus.subscribe(topics.all_targets(), queue_size=10_000) as targets,
     ):
         start_s = math.ceil((time.time() + 2.0) / STEP_S) * STEP_S
-        done = await run_range_provider(
-            mission, [f"udpin://0.0.0.0:{ports.gcs_remote_port}"], steps=8, start_s=start_s
+        # Retained, as the aid may subscribe after the ground station spoke.
+        start = MissionControl(ControlCommand.START, start_s, mission_id="m1")
+        await bus.publish_message(topics.control(), start, retain=True, timeout=5.0)
+        stats = await run_range_provider(
+            mission,
+            source=source,
+            urls=[f"udpin://0.0.0.0:{ports.gcs_remote_port}"],
+            truth_port_base=config.truth_stream.remote_base,
+            steps=8,
         )
-        assert done == 8
+        await bus.publish(topics.control(), b"", retain=True, timeout=5.0)
         measured = [m for _, m in ranges.drain_messages(RangeMessage)]
         observed = [m for _, m in targets.drain_messages(TargetObservation)]
+    return start_s, stats, measured, observed
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("source", ["gps", "sih"])
+async def test_ranges_match_the_true_distances_on_the_step_grid(mosquitto, source):
+    start_s, stats, measured, observed = await fly_aid(
+        mosquitto, source=source, truth=source == "sih"
+    )
+    assert stats.steps == 8
+    assert stats.ranges == len(measured) == 8 * 6
+    assert stats.missing_vehicles == 0
     assert {m.step for m in measured} == set(range(8))
     for message in measured:
         assert message.time_s == pytest.approx(start_s + message.step * STEP_S)
@@ -66,3 +94,8 @@ async def test_ranges_from_gps_match_the_true_distances_on_the_unix_step_grid(mo
     target_north = 0.8 * (first.time_s - start_s)
     assert first.range_m == pytest.approx(np.hypot(*PLACES[0]) + target_north, abs=0.05)
     assert first.velocity_north_m_s == pytest.approx(0.8, abs=1e-3)
+    # The truth recorded for scoring: every vehicle at its place at every step.
+    assert [sample.step for sample in stats.truth] == list(range(8))
+    for sample in stats.truth:
+        assert sample.alive.all()
+        assert sample.positions_m == pytest.approx(np.array(PLACES), abs=0.05)
