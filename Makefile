@@ -1,7 +1,7 @@
 # Small entry points; every target works on a fresh machine (Python 3.11 + pip).
 PYTHON ?= python3
 
-.PHONY: demo install test lint bench
+.PHONY: demo install test check lint bench
 
 ## Set up and fly the paper's tracking scenario on four emulated PX4 vehicles through MAVSDK
 ## (summary, figures and MAVLink logs in out/paper_tracking_flyable/).
@@ -19,6 +19,13 @@ test: install
 	    else echo "mosquitto missing: install it (e.g. sudo apt-get install mosquitto)"; exit 1; fi; }
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m pytest
+
+## The fast lane while developing (< 1 min): lint and every test that flies nothing and needs no
+## broker. `make test` (what CI runs) adds the flights, MAVSDK and mosquitto.
+check: install
+	$(PYTHON) -m ruff check .
+	$(PYTHON) -m ruff format --check .
+	$(PYTHON) -m pytest -q -m "not slow and not mavsdk and not mqtt"
 
 lint:
 	$(PYTHON) -m ruff check .
