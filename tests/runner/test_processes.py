@@ -14,7 +14,7 @@ from .flying import CONFIGS, start
 
 pytestmark = [pytest.mark.mavsdk, pytest.mark.mqtt, pytest.mark.slow]
 
-STEPS = 240  # 30 s of mission at T = 0.125 s
+STEPS = 320  # 40 s of mission at T = 0.125 s: converged with margin on a loaded machine
 
 
 def scenario_file(tmp_path, broker):
@@ -27,7 +27,7 @@ def scenario_file(tmp_path, broker):
     return path
 
 
-@pytest.mark.timeout(240)
+@pytest.mark.timeout(300)
 def test_four_vehicle_processes_a_ground_station_and_the_emulator_over_mosquitto(
     tmp_path, mosquitto
 ):
@@ -64,7 +64,7 @@ def test_four_vehicle_processes_a_ground_station_and_the_emulator_over_mosquitto
             for i in range(4)
         ]
         processes = [ground, *vehicles]
-        ground_out, _ = ground.communicate(timeout=200)
+        ground_out, _ = ground.communicate(timeout=260)
         outputs = [vehicle.communicate(timeout=60)[0] for vehicle in vehicles]
     finally:
         for process in processes:
