@@ -168,11 +168,16 @@ class MavsdkVehicle:
         await self._group.__aenter__()
         self._spawn(self._stream_odometry(), "odometry")
         self._spawn(self._collect_status_texts(), "statustext")
-        with contextlib.suppress(Exception):  # a vehicle may refuse rate changes; use its rate
-            await self._within(
-                self.telemetry.set_rate_position_velocity_ned(ODOMETRY_RATE_HZ), "odometry rate"
-            )
+        await self.request_rate(self.telemetry.set_rate_position_velocity_ned(ODOMETRY_RATE_HZ))
         return self
+
+    async def request_rate(self, request):
+        """A telemetry rate change, within the command timeout; a vehicle may refuse or ignore
+        it (then its own rate is used), which is logged, not fatal."""
+        try:
+            await self._within(request, "telemetry rate")
+        except (MavsdkError, RunnerTimeoutError) as error:
+            logger.info("vehicle %s: rate change not taken (%s)", self.system_id, error)
 
     async def __aexit__(self, *exc_info):
         for task in self._tasks:

@@ -205,8 +205,7 @@ async def _gps_source(stack, positions, urls, mission_time, group):
     systems = await stack.enter_async_context(connected_vehicles(urls, ids))
     for vehicle_id in ids:
         vehicle = await stack.enter_async_context(MavsdkVehicle(systems[vehicle_id], vehicle_id))
-        with contextlib.suppress(Exception):
-            await vehicle.telemetry.set_rate_position(POSITION_RATE_HZ)
+        await vehicle.request_rate(vehicle.telemetry.set_rate_position(POSITION_RATE_HZ))
         mapping = await vehicle.follow_clock(mission_time)
         tasks.append(
             group.create_task(_gps_stream(vehicle, mapping, positions), name=f"gps-{vehicle_id}")
