@@ -6,6 +6,7 @@
     mission-runner ground CONFIG [--start-delay S]       prepare, start and watch vehicle processes
     mission-runner ranges CONFIG [--source sih|gps]      synthesised UWB ranges (simulation aid)
     mission-runner px4-sitl CONFIG --px4-dir DIR         real PX4 SITL (SIH), one per vehicle
+    mission-runner emulate CONFIG [sitl options]         emulated vehicles + the scenario's world
 
 Exit codes: 0 success (and every ``expect:`` bound met), 1 an expectation failed, 2 bad input
 (the message names the problem and, for configs, the YAML path), 3 a runtime failure (a vehicle
@@ -181,6 +182,14 @@ def _parser():
     ranges.set_defaults(handler=_ranges)
 
     from . import px4sitl  # noqa: PLC0415 - only its argument definitions
+    from .world import emulated  # noqa: PLC0415
+
+    emulate = commands.add_parser(
+        "emulate",
+        help="emulated PX4 vehicles with the scenario's target and UWB ranging on its bus, for "
+        "vehicle processes (what 'sitl --scenario' did)",
+    )
+    emulated.add_arguments(emulate)
 
     px4 = commands.add_parser(
         "px4-sitl",

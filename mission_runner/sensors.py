@@ -1,30 +1,60 @@
-"""The UWB-like range sensor model: true positions in, measured ranges out (numpy only).
+"""The sensor models: true positions in, what a UWB radio, a target tracker and an odometry
+source would report out (numpy only).
 
-One model for every place that synthesises ranges (the range aid of :mod:`.runner.ranges`; the
-simulator and the emulator's world draw from the same settings, ``scenario.sensors``): Gaussian
-noise, random dropouts and a maximum range.
+One model for every place that synthesises measurements: the numeric simulator
+(:mod:`.sim.simulator`, batched), the emulated world (:mod:`.world`) and the range aid for real
+autopilots (:mod:`.runner.ranges`) all call these functions with the scenario's ``sensors:``
+settings, so a noise, dropout or range limit means the same everywhere.
+
+``rng`` is a numpy ``Generator`` or anything with its ``normal(scale=, size=)`` and
+``uniform(size=)`` (the simulator's batch streams).
 """
 
 import numpy as np
 
 
-def measure_ranges(positions_m, sensors, rng):
-    """Ranges between every pair of vehicles.
+def measure_ranges(from_m, sensors, rng, *, to_m=None, measured=None):
+    """Ranges from every point of ``from_m`` to every point of ``to_m``: Gaussian noise
+    (``range_noise_std_m``, reported as its absolute value), random dropouts
+    (``range_dropout_probability``) and a maximum range (``range_max_m``).
 
-    positions_m: ``(n, d)`` true positions (NaN rows: vehicles not measured this time).
-    sensors: a :class:`mission_runner.config.SensorConfig`. rng: a numpy ``Generator``.
-    Returns ``(n, n)`` ranges [m], NaN where no range is measured (the diagonal, a missing
-    vehicle, a dropout, beyond ``range_max_m``).
+    from_m: ``(..., n, d)`` true positions [m] (NaN rows: not measured this time).
+    to_m: ``(..., m, d)``; default ``from_m`` (then a point is never ranged to itself).
+    measured: ``(..., n, m)`` bool, the pairs that are ranged at all (default: every pair).
+    sensors: a :class:`mission_runner.config.SensorConfig`.
+    Returns ``(..., n, m)`` ranges [m], NaN where nothing is measured. Noise and dropout are drawn
+    for every pair, measured or not, so that one pair's fate does not shift another's draws.
     """
-    positions_m = np.asarray(positions_m, dtype=float)
-    n = len(positions_m)
-    gaps = positions_m[:, None, :] - positions_m[None, :, :]
+    from_m = np.asarray(from_m, dtype=float)
+    to_m = from_m if to_m is None else np.asarray(to_m, dtype=float)
+    gaps = from_m[..., :, None, :] - to_m[..., None, :, :]
     ranges = np.sqrt(np.sum(gaps * gaps, axis=-1))
+    kept = np.isfinite(ranges)
+    if measured is not None:
+        kept &= measured
+    if to_m is from_m:
+        kept &= ~np.eye(ranges.shape[-1], dtype=bool)
     if sensors.range_noise_std_m > 0:
-        ranges = np.abs(ranges + rng.normal(scale=sensors.range_noise_std_m, size=ranges.shape))
-    kept = ~np.eye(n, dtype=bool) & np.isfinite(ranges)
+        ranges = ranges + rng.normal(scale=sensors.range_noise_std_m, size=ranges.shape)
     if sensors.range_dropout_probability > 0:
         kept &= rng.uniform(size=ranges.shape) >= sensors.range_dropout_probability
     if sensors.range_max_m is not None:
         kept &= ranges <= sensors.range_max_m
-    return np.where(kept, ranges, np.nan)
+    return np.where(kept, np.abs(ranges), np.nan)
+
+
+def odometry_drift(sensors, rng, shape):
+    """A constant drift velocity [m/s] per vehicle, ``shape + (2,)``: ``displacement_drift_m_s``
+    in a random direction (zeros without drift)."""
+    if sensors.displacement_drift_m_s <= 0:
+        return np.zeros((*shape, 2))
+    angle = rng.uniform(low=0, high=2 * np.pi, size=shape)
+    return sensors.displacement_drift_m_s * np.stack([np.cos(angle), np.sin(angle)], -1)
+
+
+def odometry_error_step(sensors, rng, error_m):
+    """The odometry error after one more step: a random walk of ``displacement_noise_std_m`` per
+    step. error_m: ``(..., 2)`` [m], returned unchanged without noise."""
+    if sensors.displacement_noise_std_m <= 0:
+        return error_m
+    return error_m + rng.normal(scale=sensors.displacement_noise_std_m, size=error_m.shape)

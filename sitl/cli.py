@@ -25,7 +25,6 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
-from mission_runner.errors import MissionRunnerError
 from sitl.config import EmulatorConfig
 from sitl.emulator import Emulator
 from sitl.errors import SitlError
@@ -53,6 +52,21 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run N lightweight PX4-like vehicles that MAVSDK, QGroundControl and "
         "MAVProxy talk to as to PX4 SITL.",
     )
+    add_emulator_options(parser)
+    parser.add_argument("--scenario", type=Path, help=argparse.SUPPRESS)  # moved, see main()
+    parser.add_argument(
+        "--log-level",
+        default="INFO",
+        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+        help="logging level (default INFO)",
+    )
+    return parser
+
+
+def add_emulator_options(parser: argparse.ArgumentParser) -> None:
+    """The emulator's options (vehicles, clock, ports, settings file, PX4-SIH fidelity), for this
+    command and for tools that run the emulator for their own purpose; :func:`load_config` reads
+    them back."""
     parser.add_argument("--vehicles", "-n", type=int, help="number of vehicles (default 1)")
     parser.add_argument("--speed", type=float, help="simulated seconds per wall second")
     parser.add_argument(
@@ -83,17 +97,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="like PX4 SITL, vehicles with index > 9 all send to api-port-base + 9",
     )
     parser.add_argument("--config", type=Path, help="emulator settings (YAML)")
-    parser.add_argument(
-        "--scenario",
-        type=Path,
-        help="a mission scenario: its vehicles, target and UWB ranging, published on its bus "
-        "(UNIX time) for controllers in other processes",
-    )
-    parser.add_argument(
-        "--start-after",
-        type=float,
-        help="with --scenario: k = 0 this many seconds after start (default: on a start command)",
-    )
     parser.add_argument("--tlog-dir", type=Path, help="record vehicle_<sysid>.tlog files here")
     parser.add_argument(
         "--seed", type=int, help="random seed (wind, odometry noise, GPS error, boot offsets)"
@@ -157,13 +160,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="refuse vehicle INDEX's first COUNT (default 1) arm attempts like PX4's health "
         "checks do; repeatable",
     )
-    parser.add_argument(
-        "--log-level",
-        default="INFO",
-        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
-        help="logging level (default INFO)",
-    )
-    return parser
 
 
 def load_config(args: argparse.Namespace) -> EmulatorConfig:
@@ -208,9 +204,7 @@ def load_config(args: argparse.Namespace) -> EmulatorConfig:
     return EmulatorConfig.model_validate(data)
 
 
-def _fidelity_overrides(
-    config: EmulatorConfig, scenario_emulator: dict[str, Any]
-) -> dict[str, Any]:
+def fidelity_overrides(config: EmulatorConfig, scenario_emulator: dict[str, Any]) -> dict[str, Any]:
     """What the options and ``--config`` set of the PX4-SIH fidelity sections, for a scenario's
     emulator settings: sections left at their defaults keep the scenario's, faults add up."""
     defaults = EmulatorConfig()
@@ -265,74 +259,54 @@ def _apply_sih_options(args: argparse.Namespace, data: dict[str, Any]) -> None:
         data["faults"] = [*(data.get("faults") or []), fault]
 
 
-async def run(config: EmulatorConfig, scenario=None, start_after_s=None) -> None:
-    """Run the emulator (and the scenario's world) until SIGINT or SIGTERM."""
+async def until_stopped() -> None:
+    """Return on SIGINT or SIGTERM."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError):
             loop.add_signal_handler(sig, stop.set)
-    async with contextlib.AsyncExitStack() as stack:
-        if scenario is None:
-            emulator = await stack.enter_async_context(Emulator(config))
-        else:
-            from sitl.scenario_world import scenario_world  # noqa: PLC0415
+    await stop.wait()
 
-            emulator, world = await stack.enter_async_context(
-                scenario_world(
-                    scenario,
-                    overrides={
-                        "ports": config.ports.model_dump(),
-                        "clock": config.clock.model_dump(),
-                        "tlog_dir": config.tlog_dir,
-                        **{name: getattr(config, name).model_dump() for name in FIDELITY},
-                        "faults": [fault.model_dump() for fault in config.faults],
-                    },
-                    start_after_s=start_after_s,
-                )
-            )
-            prefix = scenario.bus.topics(scenario.name).prefix
-            print(
-                f"sitl: scenario {scenario.name}: world on the {scenario.bus.kind} bus, {prefix}/"
-            )
+
+def describe(emulator: Emulator, config: EmulatorConfig) -> None:
+    """Print the vehicles' endpoints, for the user to connect MAVSDK, QGroundControl or MAVProxy."""
+    print(
+        f"sitl: {config.vehicles} vehicle(s) ready, clock {config.clock.mode} "
+        f"x{config.clock.speed:g}"
+    )
+    for ep in emulator.endpoints:
+        gcs = (
+            f", GCS link :{ep.gcs_local_port} -> :{ep.gcs_remote_port}" if ep.gcs_local_port else ""
+        )
+        truth = (
+            f", ground truth :{ep.truth_local_port} -> :{ep.truth_remote_port}"
+            if ep.truth_local_port
+            else ""
+        )
         print(
-            f"sitl: {config.vehicles} vehicle(s) ready, clock {config.clock.mode} "
-            f"x{config.clock.speed:g}"
+            f"  sysid {ep.sysid}: MAVSDK {ep.mavsdk_url} (vehicle :{ep.api_local_port}){gcs}{truth}"
         )
-        for ep in emulator.endpoints:
-            gcs = (
-                f", GCS link :{ep.gcs_local_port} -> :{ep.gcs_remote_port}"
-                if ep.gcs_local_port
-                else ""
-            )
-            truth = (
-                f", ground truth :{ep.truth_local_port} -> :{ep.truth_remote_port}"
-                if ep.truth_local_port
-                else ""
-            )
-            print(
-                f"  sysid {ep.sysid}: MAVSDK {ep.mavsdk_url} "
-                f"(vehicle :{ep.api_local_port}){gcs}{truth}"
-            )
-        if config.tlog_dir is not None:
-            print(f"  recording tlogs in {config.tlog_dir}")
-        sys.stdout.flush()
-        await stop.wait()
-        print("sitl: stopping")
-        in_mission = (
-            [s for s in world.samples if s.step <= scenario.timing.steps] if scenario else []
-        )
-        if in_mission:
-            last = in_mission[-1]
-            alive = last.alive
-            centroid = last.positions_m[alive].mean(axis=0) if alive.any() else last.target_m
-            error = float(((centroid - last.target_m) ** 2).sum() ** 0.5)
-            print(f"sitl: mission step {last.step}: formation centre {error:.3f} m from the target")
+    if config.tlog_dir is not None:
+        print(f"  recording tlogs in {config.tlog_dir}")
+    sys.stdout.flush()
+
+
+def describe_stop(emulator: Emulator) -> None:
     stats = emulator.stats()
     print(
         f"sitl: stopped after {stats.sim_time_s:.1f} s simulated in {stats.wall_time_s:.1f} s; "
         f"{stats.rx_packets} packets in, {stats.tx_packets} out"
     )
+
+
+async def run(config: EmulatorConfig) -> None:
+    """Run the emulator until SIGINT or SIGTERM."""
+    async with Emulator(config) as emulator:
+        describe(emulator, config)
+        await until_stopped()
+        print("sitl: stopping")
+    describe_stop(emulator)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -341,23 +315,15 @@ def main(argv: list[str] | None = None) -> int:
         level=getattr(logging, args.log_level),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    scenario = None
+    if args.scenario is not None:
+        print(
+            "sitl: --scenario moved to the mission runner (the world around the vehicles is "
+            f"mission code): run 'mission-runner emulate {args.scenario}' with the same options",
+            file=sys.stderr,
+        )
+        return 2
     try:
         config = load_config(args)
-        if args.scenario is not None:
-            from mission_runner.config import emulator_config, load_scenario  # noqa: PLC0415
-
-            scenario = load_scenario(args.scenario)
-            config = emulator_config(
-                scenario,
-                ports=config.ports.model_dump(),
-                clock=config.clock.model_dump(),
-                tlog_dir=config.tlog_dir,
-                **_fidelity_overrides(config, dict(scenario.flight.emulator or {})),
-            )
-    except MissionRunnerError as exc:
-        print(f"sitl: {exc}", file=sys.stderr)
-        return 2
     except ValidationError as exc:
         print(f"sitl: invalid settings:\n{exc}", file=sys.stderr)
         return 2
@@ -365,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sitl: cannot read settings: {exc}", file=sys.stderr)
         return 2
     try:
-        asyncio.run(run(config, scenario, args.start_after))
+        asyncio.run(run(config))
     except SitlError as exc:
         print(f"sitl: {exc}", file=sys.stderr)
         return 1

@@ -22,6 +22,8 @@ import numpy as np
 
 from ..bus import lost_vehicle_will, open_bus
 from ..config import emulator_config
+from ..sim.metrics import tracking_error
+from ..world import World
 from .clock import EmulatorClock
 from .errors import RunnerError
 from .links import MavsdkVehicle, connected_vehicles
@@ -71,8 +73,7 @@ class _ProgressAggregator:
         sample = next((s for s in reversed(self.world.samples) if s.step == record.step), None)
         tracking = localization = float("nan")
         if sample is not None and sample.alive.any():
-            centroid = sample.positions_m[sample.alive].mean(axis=0)
-            tracking = float(np.hypot(*(centroid - sample.target_m)))
+            tracking = float(tracking_error(sample.positions_m, sample.alive, sample.target_m))
             localization = worst_estimate(self.ids, records, sample)
         self.callback(
             Progress(
@@ -105,7 +106,6 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
     the whole swarm.
     """
     from sitl.emulator import Emulator  # noqa: PLC0415 - real-vehicle runs do not need it
-    from sitl.world import World  # noqa: PLC0415
 
     if any(vehicle.url for vehicle in scenario.vehicles):
         raise RunnerError("vehicles with a url fly on real PX4: use 'mission-runner vehicle'")

@@ -38,8 +38,10 @@ from ..bus import (
     lost_vehicle_will,
     open_bus,
 )
+from ..tasks import first_completed
 from .clock import WallClock
 from .errors import RunnerError, RunnerTimeoutError
+from .handshake import next_command
 from .links import MavsdkVehicle, connected_vehicles
 from .timesync import MissionTime
 from .wiring import altitude_of, autopilot_params, build_controller
@@ -138,7 +140,7 @@ async def run_vehicle(
         control = await stack.enter_async_context(bus.subscribe(topics.control()))
         report = _Reporter(bus, topics, run)
         await report("waiting", detail="waiting for the ground station's prepare")
-        prepare = await _next_command(control, {ControlCommand.PREPARE}, None, ready_timeout_s)
+        prepare = await next_command(control, {ControlCommand.PREPARE}, timeout_s=ready_timeout_s)
         run.mission_id = prepare.mission_id
         try:
             run.params = await vehicle.apply_params(autopilot_params(scenario))
@@ -200,20 +202,19 @@ async def _fly(scenario, vehicle, controller, control, report, run, mapping, mis
         run.clock_rate, run.start_s = rate, command.time_s
         controller.mission_id = run.mission_id
         start.set_result(command.time_s)
-    flying = asyncio.ensure_future(controller.run(run.start_s, steps))
-    watching = asyncio.ensure_future(
-        _next_command(control, {ControlCommand.LAND, ControlCommand.STOP}, run.mission_id, None)
+    # Whichever ends first: the controller's last step, or the ground station's land/stop (a
+    # controller failure propagates and lands the vehicle, see run_vehicle).
+    ended_by, command = await first_completed(
+        {
+            f"vehicle-{run.vehicle_id}-fly": controller.run(run.start_s, steps),
+            f"vehicle-{run.vehicle_id}-watch": next_command(
+                control, {ControlCommand.LAND, ControlCommand.STOP}, mission_id=run.mission_id
+            ),
+        }
     )
-    try:
-        done, _ = await asyncio.wait({flying, watching}, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        for task in (flying, watching):
-            task.cancel()
-        await asyncio.gather(flying, watching, return_exceptions=True)
-    if watching in done:
-        await _abort(vehicle, report, run, scenario, watching.result())
+    if ended_by.endswith("watch"):
+        await _abort(vehicle, report, run, scenario, command)
         return
-    flying.result()  # a controller failure propagates (and lands the vehicle, see run_vehicle)
     last = controller.records[-1].step if controller.records else 0
     if controller.state == "lost":
         await report("lost", step=last, detail="own odometry stopped: no longer driven")
@@ -242,7 +243,7 @@ async def _until_start(control, report, run, mapping, scenario):
     }
     while True:
         await report("ready", clock_rate=mapping.fit.boot_rate)
-        command = await _next_command(control, wanted, None, None)
+        command = await next_command(control, wanted)
         if command.command is ControlCommand.PREPARE:
             run.mission_id = command.mission_id
             continue
@@ -256,22 +257,6 @@ async def _until_start(control, report, run, mapping, scenario):
             )
             continue
         return command
-
-
-async def _next_command(control, commands, mission_id, timeout_s):
-    """The next control message whose command is in ``commands`` (and, if ``mission_id`` is
-    given, of that mission)."""
-    try:
-        async with asyncio.timeout(timeout_s):
-            async for _, message in control.messages(MissionControl):
-                if message.command in commands and (
-                    mission_id is None or message.mission_id == mission_id
-                ):
-                    return message
-    except TimeoutError:
-        names = "/".join(sorted(c.value for c in commands))
-        raise RunnerTimeoutError(f"the ground station's {names}", timeout_s) from None
-    raise RunnerError("the bus closed while waiting for the ground station")
 
 
 @dataclass

@@ -33,13 +33,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from ..bus import ControlCommand, MissionControl, RangeMessage, TargetObservation, open_bus
+from ..bus import RangeMessage, open_bus
 from ..scenario import target_positions
-from ..sensors import measure_ranges
-from .errors import RunnerError, RunnerTimeoutError
+from ..sim.metrics import TruthSample
+from ..world.world import step_measurements
+from .errors import RunnerError
+from .handshake import start_command
 from .links import MavsdkVehicle, connected_vehicles
 from .odometry import OdometrySample, OdometryTrack
-from .scoring import TruthSample
 from .timesync import MissionTime
 
 logger = logging.getLogger(__name__)
@@ -261,7 +262,7 @@ async def run_range_provider(
             await _sih_source(stack, positions, scenario, truth_port_base)
         else:
             await _gps_source(stack, positions, list(urls), mission_time, group)
-        start = await _start_command(control, start_timeout_s)
+        start = await start_command(control, timeout_s=start_timeout_s)
         mission_time.set(start.clock_rate or 1.0, start.clock_reference_s or start.time_s)
         for k in range(steps):
             t_k = start.time_s + k * scenario.timing.step_s
@@ -273,37 +274,27 @@ async def run_range_provider(
     return stats
 
 
-async def _start_command(control, timeout_s):
-    try:
-        async with asyncio.timeout(timeout_s):
-            async for _, message in control.messages(MissionControl):
-                if message.command is ControlCommand.START:
-                    return message
-    except TimeoutError:
-        raise RunnerTimeoutError("the ground station's start command", timeout_s) from None
-    raise RunnerError("the bus closed before the start command")
-
-
 async def _publish_step(bus, topics, scenario, positions_m, k, t_k, start_s, rng, stats):  # noqa: PLR0917
     ids = [v.id for v in scenario.vehicles]
-    missing = np.isnan(positions_m[:, 0])
+    known = ~np.isnan(positions_m[:, 0])
     stats.steps += 1
     elapsed = np.array([t_k - start_s, t_k - start_s + 1e-3])
     target = target_positions(scenario.target.path, elapsed)
-    stats.truth.append(TruthSample(k, t_k, target[0], positions_m[:, :2].copy(), ~missing))
-    stats.missing_vehicles += int(missing.sum())
-    ranges = measure_ranges(positions_m, scenario.sensors, rng)
-    for i, j in zip(*np.nonzero(np.isfinite(ranges)), strict=True):
-        message = RangeMessage(ids[i], ids[j], t_k, float(ranges[i, j]), step=k)
-        await bus.publish_message(topics.range(ids[i], ids[j]), message, timeout=0.1)
-        stats.ranges += 1
-    velocity = (target[1] - target[0]) / 1e-3
-    noise = scenario.sensors.range_noise_std_m
-    for i, vehicle in enumerate(scenario.vehicles):
-        if not vehicle.senses_target or missing[i]:
-            continue
-        horizontal = math.hypot(*(positions_m[i, :2] - target[0]))
-        if noise:
-            horizontal = abs(horizontal + rng.normal(scale=noise))
-        observation = TargetObservation(ids[i], t_k, horizontal, *map(float, velocity))
-        await bus.publish_message(topics.target(ids[i]), observation, timeout=0.1)
+    stats.truth.append(TruthSample(k, t_k, target[0], positions_m[:, :2].copy(), known))
+    stats.missing_vehicles += int((~known).sum())
+    measured = step_measurements(
+        k,
+        t_k,
+        ids=ids,
+        topics=topics,
+        positions_m=positions_m,
+        ranging=known,
+        tracking=known & [vehicle.senses_target for vehicle in scenario.vehicles],
+        target_m=target[0],
+        target_velocity_m_s=(target[1] - target[0]) / 1e-3,
+        sensors=scenario.sensors,
+        rng=rng,
+    )
+    for topic, message in measured:
+        await bus.publish_message(topic, message, timeout=0.1)
+        stats.ranges += isinstance(message, RangeMessage)

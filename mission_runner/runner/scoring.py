@@ -5,25 +5,13 @@ controller ever reads it.
 """
 
 import csv
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ..sim.metrics import TruthSample, closest_pair
 from ..sim.simulator import score
 from .controller import StepRecord
-
-
-@dataclass(frozen=True)
-class TruthSample:
-    """Ground truth at t_k: target_m ``(2,)``, positions_m ``(n, 2)`` north/east [m], alive
-    ``(n,)`` (False where the vehicle's position is unknown at t_k)."""
-
-    step: int
-    time_s: float
-    target_m: np.ndarray
-    positions_m: np.ndarray
-    alive: np.ndarray
 
 
 def worst_estimate(ids, records, sample):
@@ -80,7 +68,6 @@ def score_flight(scenario, samples, records, disarmed, *, final_phases=None):
     phases = np.where(live, phases, np.nan)
     gaps = positions[..., :, None, :] - positions[..., None, :, :]
     distance = np.sqrt(np.sum(gaps * gaps, axis=-1))
-    pair = live[..., :, None] & live[..., None, :] & ~np.eye(n, dtype=bool)
     out = {
         "positions_m": positions,
         "phases_rad": phases,
@@ -88,7 +75,7 @@ def score_flight(scenario, samples, records, disarmed, *, final_phases=None):
         "live": live,
         "localization_error_m": localization,
         "consensus_speed_m_s": consensus,
-        "separation_m": np.where(pair, distance, np.inf).min(axis=(-1, -2)),
+        "separation_m": closest_pair(distance, live),
     }
     times = np.array([s.time_s for s in samples]) - samples[0].time_s
     extra = {"vehicles_in_formation_at_end": np.array([int(live[0, -1].sum())])}

@@ -2,6 +2,8 @@
 scenario's pass/fail expectations.
 """
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..config import FLIGHT_METRICS
@@ -107,3 +109,37 @@ def check_expectations(expect, metrics):
         if bound.min is not None and value < bound.min:
             failures.append(f"{name} = {value:.6g} < min {bound.min:g}")
     return failures
+
+
+@dataclass(frozen=True)
+class TruthSample:
+    """Ground truth at t_k, for scoring only (never given to a controller): target_m ``(2,)``,
+    positions_m ``(n, 2)`` north/east [m], alive ``(n,)`` (False where the vehicle's position is
+    unknown at t_k)."""
+
+    step: int
+    time_s: float
+    target_m: np.ndarray
+    positions_m: np.ndarray
+    alive: np.ndarray
+
+
+def formation_centre(positions_m, live):
+    """Centroid of the live vehicles: positions_m ``(..., n, 2)``, live ``(..., n)`` -> ``(..., 2)``
+    (the origin where none is live)."""
+    total = np.sum(np.where(live[..., None], positions_m, 0.0), axis=-2)
+    return total / np.maximum(live.sum(axis=-1, keepdims=True), 1)
+
+
+def tracking_error(positions_m, live, target_m):
+    """Distance [m] from the formation's centre to the target: positions_m ``(..., n, 2)``, live
+    ``(..., n)``, target_m ``(..., 2)`` -> ``(...)``."""
+    gap = formation_centre(positions_m, live) - target_m
+    return np.sqrt(np.sum(gap * gap, axis=-1))
+
+
+def closest_pair(distance_m, live):
+    """Smallest distance between two live vehicles: distance_m ``(..., n, n)``, live ``(..., n)``
+    -> ``(...)`` (inf with fewer than two)."""
+    pair = live[..., :, None] & live[..., None, :] & ~np.eye(live.shape[-1], dtype=bool)
+    return np.where(pair, distance_m, np.inf).min(axis=(-1, -2))

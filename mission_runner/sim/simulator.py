@@ -15,6 +15,8 @@ from ..config import Scenario
 from ..enclosing import EnclosingParams, SwarmEnclosing, splay_spacing_error
 from ..errors import SimulationError
 from ..scenario import shape_matrices, target_positions
+from ..sensors import measure_ranges, odometry_drift, odometry_error_step
+from .metrics import closest_pair, tracking_error
 
 
 @dataclass(frozen=True)
@@ -86,7 +88,13 @@ class _Noise:
         self._first = np.random.default_rng([seed, 0])
         self._rest = np.random.default_rng([seed, 2]) if runs > 1 else None
 
-    def draw(self, method, shape, **kwargs):
+    def normal(self, scale=1.0, size=()):
+        return self._draw("normal", size, scale=scale)
+
+    def uniform(self, low=0.0, high=1.0, size=()):
+        return self._draw("uniform", size, low=low, high=high)
+
+    def _draw(self, method, shape, **kwargs):
         first = getattr(self._first, method)(size=(1, *shape[1:]), **kwargs)
         if self._rest is None:
             return first
@@ -138,10 +146,7 @@ def simulate(scenario, runs=1, on_step=None):
     origin = position.copy()
     swarm = SwarmEnclosing(params, phase, np.broadcast_to(omega, phase.shape))
     noise = _Noise(scenario.seed, runs)
-    drift = np.zeros((runs, n, 2))
-    if sensors.displacement_drift_m_s > 0:
-        angle = noise.draw("uniform", (runs, n), low=0, high=2 * np.pi)
-        drift = sensors.displacement_drift_m_s * np.stack([np.cos(angle), np.sin(angle)], -1)
+    drift = odometry_drift(sensors, noise, (runs, n))
     odometry_error = np.zeros((runs, n, 2))
 
     out = {
@@ -161,30 +166,14 @@ def simulate(scenario, runs=1, on_step=None):
         if not (live & senses).any(axis=-1).all():
             raise SimulationError(f"step {k}: no live vehicle senses the target")
         # True relative positions p_i - p_j on north/east planes (B, N, N+1), slot 0 the target.
-        truth_north = (
-            position[:, :, None, 0]
-            - np.concatenate([np.full((runs, 1), target[k, 0]), position[..., 0]], axis=1)[
-                :, None, :
-            ]
-        )
-        truth_east = (
-            position[:, :, None, 1]
-            - np.concatenate([np.full((runs, 1), target[k, 1]), position[..., 1]], axis=1)[
-                :, None, :
-            ]
-        )
+        ranged = np.concatenate([np.broadcast_to(target[k], (runs, 1, 2)), position], axis=1)
+        truth_north = position[:, :, None, 0] - ranged[:, None, :, 0]
+        truth_east = position[:, :, None, 1] - ranged[:, None, :, 1]
         true_ranges = np.sqrt(truth_north * truth_north + truth_east * truth_east)
-        out["separation_m"][:, k] = _closest_pair(true_ranges[..., 1:], live)
+        out["separation_m"][:, k] = closest_pair(true_ranges[..., 1:], live)
         measured = not_self & target_column & live[:, :, None]
         measured &= np.concatenate([np.ones((runs, 1), dtype=bool), live], axis=1)[:, None, :]
-        ranges = true_ranges
-        if sensors.range_noise_std_m > 0:
-            ranges = ranges + noise.draw("normal", ranges.shape, scale=sensors.range_noise_std_m)
-        if sensors.range_dropout_probability > 0:
-            measured &= noise.draw("uniform", ranges.shape) >= sensors.range_dropout_probability
-        if sensors.range_max_m is not None:
-            measured &= ranges <= sensors.range_max_m
-        ranges = np.where(measured, np.abs(ranges), np.nan)
+        ranges = measure_ranges(position, sensors, noise, to_m=ranged, measured=measured)
 
         odometry = position - origin + drift * times[k] + odometry_error
         odometry = np.where(live[..., None], odometry, np.nan)
@@ -218,10 +207,7 @@ def simulate(scenario, runs=1, on_step=None):
         out["positions_m"][:, k] = position
         out["live"][:, k] = live
         position = position + step_s * command
-        if sensors.displacement_noise_std_m > 0:
-            odometry_error += noise.draw(
-                "normal", position.shape, scale=sensors.displacement_noise_std_m
-            )
+        odometry_error = odometry_error_step(sensors, noise, odometry_error)
         if on_step is not None:
             on_step(k + 1, steps)
 
@@ -229,26 +215,17 @@ def simulate(scenario, runs=1, on_step=None):
     out["phases_rad"][:, steps] = swarm.phase_rad
     out["live"][:, steps] = live_at(steps)
     gaps = position[:, :, None, :] - position[:, None, :, :]
-    out["separation_m"][:, steps] = _closest_pair(
+    out["separation_m"][:, steps] = closest_pair(
         np.sqrt(np.sum(gaps * gaps, axis=-1)), out["live"][:, steps]
     )
     return score(scenario, times, target[: steps + 1], out)
-
-
-def _closest_pair(distance, live):
-    """Smallest distance between two live vehicles; ``distance`` ``(B, N, N)``, live ``(B, N)``."""
-    pair = live[:, :, None] & live[:, None, :] & ~np.eye(live.shape[-1], dtype=bool)
-    return np.where(pair, distance, np.inf).min(axis=(-1, -2))
 
 
 def score(scenario, times, target, out, extra_metrics=None):
     """A :class:`SimulationResult` from recorded series (simulated or flown): adds the tracking
     error (centroid of live vehicles to target) and the phase-spacing error."""
     positions, live = out["positions_m"], out["live"]
-    centroid = np.sum(np.where(live[..., None], positions, 0.0), axis=-2) / np.maximum(
-        live.sum(axis=-1, keepdims=True), 1
-    )
-    tracking = np.sqrt(np.sum((centroid - target) ** 2, axis=-1))
+    tracking = tracking_error(positions, live, target)
     spacing = splay_spacing_error(out["phases_rad"], live)
     return SimulationResult(
         scenario=scenario,

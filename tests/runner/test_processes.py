@@ -1,6 +1,7 @@
 """A swarm as separate processes, as it flies for real: the emulator and its world
-(``sitl --scenario``), one ``mission-runner vehicle`` process per drone and a ``mission-runner
-ground`` station, talking only over a real mosquitto, each on its own clock (UNIX time)."""
+(``mission-runner emulate``), one ``mission-runner vehicle`` process per drone and a
+``mission-runner ground`` station, talking only over a real mosquitto, each on its own clock
+(UNIX time)."""
 
 import re
 import signal
@@ -34,8 +35,8 @@ def test_four_vehicle_processes_a_ground_station_and_the_emulator_over_mosquitto
     scenario = str(scenario_file(tmp_path, mosquitto))
     ports = free_port_config(4, gcs=False)
     sitl = start(
-        "sitl",
-        "--scenario",
+        "mission_runner.cli",
+        "emulate",
         scenario,
         "--no-gcs",
         "--api-port-base",

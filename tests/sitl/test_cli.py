@@ -180,14 +180,22 @@ def test_a_bad_deny_arming_option_exits_with_2(capsys: pytest.CaptureFixture[str
 
 
 def test_with_a_scenario_only_the_fidelity_options_given_override_its_emulator() -> None:
-    from sitl.cli import _fidelity_overrides
+    from sitl.cli import fidelity_overrides
 
     plain = load_config(build_parser().parse_args([]))
-    assert _fidelity_overrides(plain, {"faults": [{"kind": "kill"}]}) == {}
+    assert fidelity_overrides(plain, {"faults": [{"kind": "kill"}]}) == {}
     given = load_config(
         build_parser().parse_args(["-n", "2", "--gps-bias-std", "0.3", "--deny-arming", "1"])
     )
-    overrides = _fidelity_overrides(given, {"faults": [{"kind": "kill"}]})
+    overrides = fidelity_overrides(given, {"faults": [{"kind": "kill"}]})
     assert set(overrides) == {"gps_error", "faults"}
     assert overrides["gps_error"]["bias_std_m"] == 0.3
     assert [f["kind"] for f in overrides["faults"]] == ["kill", "deny_arming"]
+
+
+def test_the_old_scenario_option_points_to_the_mission_runner(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["--scenario", "configs/paper_tracking_flyable.yaml"]) == 2
+    err = capsys.readouterr().err
+    assert "mission-runner emulate configs/paper_tracking_flyable.yaml" in err

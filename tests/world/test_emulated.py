@@ -1,4 +1,4 @@
-"""``sitl --scenario``: a mission's vehicles, target and UWB ranging for controllers in other
+"""``mission-runner emulate``: a mission's vehicles, target and UWB ranging for controllers in other
 processes, over a real mosquitto, in UNIX time, started by a start command on the bus."""
 
 import asyncio
@@ -45,8 +45,8 @@ async def test_world_process_publishes_ranges_on_the_unix_step_grid_after_start(
         [
             sys.executable,
             "-m",
-            "sitl",
-            "--scenario",
+            "mission_runner.cli",
+            "emulate",
             str(scenario_file(tmp_path, mosquitto)),
             "--api-port-base",
             str(ports.api_remote_base),

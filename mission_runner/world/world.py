@@ -16,30 +16,18 @@ with; a task owned by :class:`World` moves them onto the bus.
 """
 
 import asyncio
+import contextlib
 import logging
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
-from mission_runner.bus import BusError, RangeMessage, TargetObservation
-from mission_runner.scenario import target_positions
+from ..bus import BusError, RangeMessage, TargetObservation
+from ..scenario import target_positions
+from ..sensors import measure_ranges
+from ..sim.metrics import TruthSample
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class TruthSample:
-    """Ground truth at t_k, kept for scoring a flight (never given to a controller).
-
-    target_m ``(2,)``, positions_m ``(N, 2)`` north/east, alive ``(N,)``.
-    """
-
-    step: int
-    time_s: float
-    target_m: np.ndarray
-    positions_m: np.ndarray
-    alive: np.ndarray
 
 
 def _step_of(message, world):
@@ -49,14 +37,15 @@ def _step_of(message, world):
 
 
 class World:
-    """Target + UWB + tracker for an :class:`sitl.emulator.Emulator`. Use as ``async with``.
+    """Target + UWB + tracker around an :class:`sitl.emulator.Emulator` (its physics-step hook and
+    ground truth). Use as ``async with``; it owns the task that publishes.
 
-    vehicle_ids: the scenario id of emulator vehicle index i is ``vehicle_ids[i]``.
-    time_offset_s: mission time = simulated time + offset (0 in-process; the emulator's UNIX
-    epoch when vehicles in other processes keep UNIX time). Every time the world takes or
-    stamps is mission time.
-    senses_target: ``(N,)`` bool. sensors: the scenario's ``SensorConfig``. The first vehicle
-    position the emulator places is the scenario's frame origin, so ``target_path`` shares it.
+        vehicle_ids: the scenario id of emulator vehicle index i is ``vehicle_ids[i]``.
+        time_offset_s: mission time = simulated time + offset (0 in-process; the emulator's UNIX
+        epoch when vehicles in other processes keep UNIX time). Every time the world takes or
+        stamps is mission time.
+        senses_target: ``(N,)`` bool. sensors: the scenario's ``SensorConfig``. The first vehicle
+        position the emulator places is the scenario's frame origin, so ``target_path`` shares it.
     """
 
     def __init__(
@@ -89,29 +78,31 @@ class World:
         self._rng = np.random.default_rng([seed, 7])
         self._down = {}  # (vehicle index, sensor) -> (from_s, until_s)
         self._queue = asyncio.Queue()
-        self._remove_listener = None
-        self._group = None
+        self._stack = contextlib.AsyncExitStack()
         self._task = None
         self._closing = False
         self.published = 0
         self.samples = []  # TruthSample per step, for scoring only
 
     async def __aenter__(self):
-        self._group = asyncio.TaskGroup()
-        await self._group.__aenter__()
-        self._remove_listener = self.emulator.add_step_listener(self._on_step)
-        self._task = self._group.create_task(self._publish(), name="world-publisher")
+        async with contextlib.AsyncExitStack() as stack:
+            group = await stack.enter_async_context(asyncio.TaskGroup())
+            stack.push_async_callback(self._stop_publishing)
+            stack.callback(self.emulator.add_step_listener(self._on_step))
+            self._task = group.create_task(self._publish(), name="world-publisher")
+            self._stack = stack.pop_all()
         return self
 
     async def __aexit__(self, *exc_info):
-        self._remove_listener()
+        return await self._stack.__aexit__(*exc_info)
+
+    async def _stop_publishing(self):
         self._closing = True
         # Python 3.11's asyncio.wait_for (inside the MQTT client's publish) can swallow a
         # cancellation that races with its completion: cancel until the task is really done.
         while not self._task.done():
             self._task.cancel()
             await asyncio.wait({self._task}, timeout=0.05)
-        await self._group.__aexit__(*exc_info)
 
     @classmethod
     def for_scenario(cls, emulator, scenario, bus, *, time_offset_s=0.0):
@@ -173,42 +164,28 @@ class World:
         self._next_step += 1
 
     def _sample(self, k, t_k, truth):
-        sensors = self.sensors
         position = np.array(truth.position_ned_m, dtype=float)
-        alive = np.array(truth.alive) & np.array(
-            [self._working(i, "uwb", t_k) for i in range(len(self.vehicle_ids))]
-        )
+        alive = np.array(truth.alive)
+        count = len(self.vehicle_ids)
         target = self.target_position(t_k)
-        self.samples.append(
-            TruthSample(k, t_k, target.copy(), position[:, :2].copy(), np.array(truth.alive))
+        self.samples.append(TruthSample(k, t_k, target.copy(), position[:, :2].copy(), alive))
+        measured = step_measurements(
+            k,
+            t_k,
+            ids=self.vehicle_ids,
+            topics=self.topics,
+            positions_m=position,
+            ranging=alive & [self._working(i, "uwb", t_k) for i in range(count)],
+            tracking=self.senses_target
+            & alive
+            & [self._working(i, "tracker", t_k) for i in range(count)],
+            target_m=target,
+            target_velocity_m_s=self.target_velocity(t_k),
+            sensors=self.sensors,
+            rng=self._rng,
         )
-        n = len(self.vehicle_ids)
-        gaps = position[:, None, :] - position[None, :, :]
-        ranges = np.sqrt(np.sum(gaps * gaps, axis=-1))
-        if sensors.range_noise_std_m > 0:
-            ranges = ranges + self._rng.normal(scale=sensors.range_noise_std_m, size=ranges.shape)
-        kept = alive[:, None] & alive[None, :] & ~np.eye(n, dtype=bool)
-        if sensors.range_dropout_probability > 0:
-            kept &= self._rng.uniform(size=ranges.shape) >= sensors.range_dropout_probability
-        if sensors.range_max_m is not None:
-            kept &= ranges <= sensors.range_max_m
-        for i, j in zip(*np.nonzero(kept), strict=True):
-            message = RangeMessage(
-                self.vehicle_ids[i], self.vehicle_ids[j], t_k, float(abs(ranges[i, j])), step=k
-            )
-            self._queue.put_nowait(
-                (self.topics.range(self.vehicle_ids[i], self.vehicle_ids[j]), message)
-            )
-        velocity = self.target_velocity(t_k)
-        tracking = [self._working(i, "tracker", t_k) for i in range(len(self.vehicle_ids))]
-        for i in np.flatnonzero(self.senses_target & np.array(truth.alive) & tracking):
-            horizontal = float(np.hypot(*(position[i, :2] - target)))
-            if sensors.range_noise_std_m > 0:
-                horizontal = abs(horizontal + self._rng.normal(scale=sensors.range_noise_std_m))
-            observation = TargetObservation(
-                self.vehicle_ids[i], t_k, horizontal, float(velocity[0]), float(velocity[1])
-            )
-            self._queue.put_nowait((self.topics.target(self.vehicle_ids[i]), observation))
+        for item in measured:
+            self._queue.put_nowait(item)
 
     async def _publish(self):
         while not self._closing:
@@ -220,3 +197,48 @@ class World:
                 self.published += 1
             except BusError as error:
                 logger.warning("world: could not publish %s: %s", topic, error)
+
+
+def step_measurements(
+    k,
+    t_k,
+    *,
+    ids,
+    topics,
+    positions_m,
+    ranging,
+    tracking,
+    target_m,
+    target_velocity_m_s,
+    sensors,
+    rng,
+):
+    """What the UWB radios and target trackers report for step ``k`` (time ``t_k``), as
+    ``(topic, message)`` pairs: a :class:`RangeMessage` per ranged ordered pair, a
+    :class:`TargetObservation` (horizontal range and the target's velocity) per tracking vehicle.
+
+    positions_m: ``(n, 3)`` true NED positions [m] (NaN rows: unknown); ranging ``(n,)`` bool:
+    radios that work; tracking ``(n,)`` bool: vehicles whose tracker sees the target; target_m
+    ``(2,)``, target_velocity_m_s ``(2,)`` north/east; sensors: the scenario's ``SensorConfig``.
+    """
+    positions_m = np.asarray(positions_m, dtype=float)
+    ranging = np.asarray(ranging, dtype=bool)
+    ranges = measure_ranges(np.where(ranging[:, None], positions_m, np.nan), sensors, rng)
+    messages = [
+        (
+            topics.range(ids[i], ids[j]),
+            RangeMessage(ids[i], ids[j], t_k, float(ranges[i, j]), step=k),
+        )
+        for i, j in zip(*np.nonzero(np.isfinite(ranges)), strict=True)
+    ]
+    sensing = np.flatnonzero(tracking)
+    horizontal = measure_ranges(
+        positions_m[sensing, :2], sensors, rng, to_m=np.asarray(target_m, dtype=float)[None, :2]
+    )[:, 0]
+    north_m_s, east_m_s = (float(v) for v in target_velocity_m_s)
+    messages += [
+        (topics.target(ids[i]), TargetObservation(ids[i], t_k, float(r), north_m_s, east_m_s))
+        for i, r in zip(sensing, horizontal, strict=True)
+        if np.isfinite(r)
+    ]
+    return messages

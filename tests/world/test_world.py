@@ -7,9 +7,9 @@ import pytest
 
 from mission_runner.bus import InProcessBus, RangeMessage, TargetObservation, Topics
 from mission_runner.config import CirclePath, SensorConfig
+from mission_runner.world import World
 from sitl.config import ClockConfig, EmulatorConfig
 from sitl.emulator import Emulator
-from sitl.world import World
 from tests.sitl.helpers import free_port_config
 
 pytestmark = pytest.mark.asyncio
