@@ -5,10 +5,20 @@ simulator and the emulator's world draw from the same settings, ``scenario.senso
 noise, random dropouts and a maximum range.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+if TYPE_CHECKING:
+    from .config import SensorConfig
 
 
-def measure_ranges(positions_m, sensors, rng):
+def measure_ranges(
+    positions_m: ArrayLike, sensors: SensorConfig, rng: np.random.Generator
+) -> NDArray[np.float64]:
     """Ranges between every pair of vehicles.
 
     positions_m: ``(n, d)`` true positions (NaN rows: vehicles not measured this time).
