@@ -2,12 +2,24 @@
 scenario's pass/fail expectations.
 """
 
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
-from ..config import FLIGHT_METRICS
+from ..config import FLIGHT_METRICS, Expectation
+
+if TYPE_CHECKING:
+    from .simulator import SimulationResult
+
+#: One run's value of a metric (a Python or numpy number; None where there is none).
+MetricValue = float | np.floating[Any] | np.integer[Any] | None
 
 
-def converged_step(error, tolerance):
+def converged_step(error: NDArray[np.float64], tolerance: float) -> NDArray[np.int_]:
     """First step from which ``error`` ``(B, K)`` stays <= tolerance; -1 where it never does."""
     above = ~(error <= tolerance)  # NaN counts as not converged
     last_above = np.where(
@@ -17,7 +29,7 @@ def converged_step(error, tolerance):
     return np.where(step >= error.shape[-1], -1, step)
 
 
-def run_metrics(result):
+def run_metrics(result: SimulationResult) -> dict[str, NDArray[Any]]:
     """Headline metrics of every run: ``{name: (B,) array}``, names as in ``config.METRICS``."""
     tolerances = result.scenario.metrics
     commands = result.commands_m_s
@@ -55,7 +67,7 @@ def run_metrics(result):
 LOWER_IS_WORSE = {"min_separation_m", "final_live_vehicles"}
 
 
-def distribution(values, name):
+def distribution(values: ArrayLike, name: str) -> dict[str, float | int | None]:
     """Median, p95 and worst of one metric over runs. Convergence steps of -1 count as never."""
     values = np.asarray(values, dtype=float)
     if name.endswith("_converged_step"):
@@ -85,7 +97,9 @@ def distribution(values, name):
     }
 
 
-def check_expectations(expect, metrics):
+def check_expectations(
+    expect: Mapping[str, Expectation], metrics: Mapping[str, MetricValue]
+) -> list[str]:
     """Failed expectations as readable strings (empty when the run passes).
 
     expect: the scenario's ``expect`` mapping; metrics: ``{name: scalar}`` of one run. A
