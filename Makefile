@@ -18,18 +18,21 @@ test: install
 	      (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto) >/dev/null; \
 	    else echo "mosquitto missing: install it (e.g. sudo apt-get install mosquitto)"; exit 1; fi; }
 	$(PYTHON) -m ruff check .
+	$(PYTHON) -m mypy
 	$(PYTHON) -m pytest
 
-## The fast lane while developing (< 1 min): lint and every test that flies nothing and needs no
-## broker. `make test` (what CI runs) adds the flights, MAVSDK and mosquitto.
+## The fast lane while developing (< 1 min): lint, types and every test that flies nothing and
+## needs no broker. `make test` (what CI runs) adds the flights, MAVSDK and mosquitto.
 check: install
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m ruff format --check .
+	$(PYTHON) -m mypy
 	$(PYTHON) -m pytest -q -m "not slow and not mavsdk and not mqtt"
 
 lint:
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m ruff format --check .
+	$(PYTHON) -m mypy
 
 bench: install
 	$(PYTHON) bench/sim_bench.py

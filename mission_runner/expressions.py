@@ -7,10 +7,17 @@ functions are accepted. The result evaluates element-wise on numpy arrays of tim
 
 import ast
 import operator
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
-FUNCTIONS = {
+#: A compiled sub-expression: times ``(...)`` [s] -> its value, an array of the same shape or a
+#: number (a constant does not depend on t).
+Evaluator = Callable[[NDArray[np.float64]], Any]
+
+FUNCTIONS: dict[str, Callable[..., Any]] = {
     "sin": np.sin,
     "cos": np.cos,
     "tan": np.tan,
@@ -27,7 +34,7 @@ FUNCTIONS = {
     "where": np.where,
 }
 CONSTANTS = {"pi": np.pi, "e": np.e}
-BINARY = {
+BINARY: dict[type[ast.operator], Callable[[Any, Any], Any]] = {
     ast.Add: operator.add,
     ast.Sub: operator.sub,
     ast.Mult: operator.mul,
@@ -35,8 +42,11 @@ BINARY = {
     ast.Pow: operator.pow,
     ast.Mod: operator.mod,
 }
-UNARY = {ast.USub: operator.neg, ast.UAdd: operator.pos}
-COMPARE = {
+UNARY: dict[type[ast.unaryop], Callable[[Any], Any]] = {
+    ast.USub: operator.neg,
+    ast.UAdd: operator.pos,
+}
+COMPARE: dict[type[ast.cmpop], Callable[[Any, Any], Any]] = {
     ast.Lt: operator.lt,
     ast.LtE: operator.le,
     ast.Gt: operator.gt,
@@ -49,7 +59,7 @@ class ExpressionError(ValueError):
     """The text is not an allowed expression; the message says what is not allowed."""
 
 
-def compile_expression(text):
+def compile_expression(text: str) -> Callable[[ArrayLike], NDArray[np.float64]]:
     """Parse ``text`` into a function of time ``t`` (float or array, seconds).
 
     Raises :class:`ExpressionError` naming the offending construct.
@@ -62,18 +72,19 @@ def compile_expression(text):
         raise ExpressionError(f"not a valid expression: {error.msg}") from None
     evaluate = _compile(tree.body)
 
-    def function(t):
-        t = np.asarray(t, dtype=float)
+    def function(t: ArrayLike) -> NDArray[np.float64]:
+        times = np.asarray(t, dtype=float)
         with np.errstate(all="ignore"):
-            return np.broadcast_to(np.asarray(evaluate(t), dtype=float), t.shape).copy()
+            return np.broadcast_to(np.asarray(evaluate(times), dtype=float), times.shape).copy()
 
     function(np.linspace(0.0, 1.0, 3))  # catches wrong arities and the like at load time
     return function
 
 
-def _compile(node):
-    if isinstance(node, ast.Constant) and type(node.value) in (int, float):
-        value = float(node.value)
+def _compile(node: ast.expr) -> Evaluator:
+    constant = node.value if isinstance(node, ast.Constant) else None
+    if isinstance(constant, int | float) and not isinstance(constant, bool):
+        value = float(constant)
         return lambda t: value
     if isinstance(node, ast.Name):
         if node.id == "t":
@@ -86,24 +97,25 @@ def _compile(node):
         op, left, right = BINARY[type(node.op)], _compile(node.left), _compile(node.right)
         return lambda t: op(left(t), right(t))
     if isinstance(node, ast.UnaryOp) and type(node.op) in UNARY:
-        op, operand = UNARY[type(node.op)], _compile(node.operand)
-        return lambda t: op(operand(t))
+        unary, operand = UNARY[type(node.op)], _compile(node.operand)
+        return lambda t: unary(operand(t))
     if isinstance(node, ast.Compare) and len(node.ops) == 1 and type(node.ops[0]) in COMPARE:
         op, left = COMPARE[type(node.ops[0])], _compile(node.left)
         right = _compile(node.comparators[0])
         return lambda t: op(left(t), right(t))
     if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and not node.keywords:
-        if node.func.id not in FUNCTIONS:
+        name = node.func.id
+        if name not in FUNCTIONS:
             allowed = ", ".join(FUNCTIONS)
-            raise ExpressionError(f"unknown function {node.func.id!r}; allowed: {allowed}")
-        function = FUNCTIONS[node.func.id]
+            raise ExpressionError(f"unknown function {name!r}; allowed: {allowed}")
+        function = FUNCTIONS[name]
         arguments = [_compile(argument) for argument in node.args]
 
-        def call(t):
+        def call(t: NDArray[np.float64]) -> Any:
             try:
                 return function(*(argument(t) for argument in arguments))
             except TypeError as error:
-                raise ExpressionError(f"{node.func.id}(): {error}") from None
+                raise ExpressionError(f"{name}(): {error}") from None
 
         return call
     raise ExpressionError(f"{type(node).__name__} is not allowed in an expression")

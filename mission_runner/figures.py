@@ -3,18 +3,26 @@
 Rendered with matplotlib's non-interactive Agg backend straight to PNG files.
 """
 
+from __future__ import annotations
+
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
+from numpy.typing import NDArray
 
-from .outputs import write_atomic
+from .outputs import PathName, write_atomic
+
+if TYPE_CHECKING:
+    from .sim.simulator import SimulationResult
 
 
-def write_figures(result, out_dir, run=0):
+def write_figures(result: SimulationResult, out_dir: PathName, run: int = 0) -> list[str]:
     """Write the figures of run ``run`` (and the batch band if there are several runs).
 
     Returns the list of file names written.
@@ -36,7 +44,7 @@ def write_figures(result, out_dir, run=0):
     return names
 
 
-def _save(figure, path):
+def _save(figure: Figure, path: Path) -> None:
     import io  # noqa: PLC0415
 
     buffer = io.BytesIO()
@@ -45,11 +53,11 @@ def _save(figure, path):
     write_atomic(path, buffer.getvalue())
 
 
-def _labels(result):
+def _labels(result: SimulationResult) -> list[str]:
     return [f"vehicle {vehicle.id}" for vehicle in result.scenario.vehicles]
 
 
-def _xy(result, run):
+def _xy(result: SimulationResult, run: int) -> Figure:
     figure, axes = plt.subplots(figsize=(7, 5.5), layout="constrained")
     positions, live = result.positions_m[run], result.live[run]
     colours = plt.cm.tab10(np.arange(positions.shape[1]) % 10)
@@ -76,7 +84,7 @@ def _xy(result, run):
     return figure
 
 
-def _phases(result, run):
+def _phases(result: SimulationResult, run: int) -> Figure:
     figure, axes = plt.subplots(figsize=(7, 4), layout="constrained")
     omega = np.array(
         [v.omega_rad_s or result.scenario.algorithm.omega_rad_s for v in result.scenario.vehicles]
@@ -93,7 +101,9 @@ def _phases(result, run):
     return figure
 
 
-def _log_plot(times, values, title, ylabel):
+def _log_plot(
+    times: NDArray[np.float64], values: NDArray[np.float64], title: str, ylabel: str
+) -> Figure:
     figure, axes = plt.subplots(figsize=(7, 4), layout="constrained")
     axes.semilogy(times, np.maximum(values, 1e-16))
     axes.set_xlabel("time [s]")
@@ -103,7 +113,7 @@ def _log_plot(times, values, title, ylabel):
     return figure
 
 
-def _localization(result, run):
+def _localization(result: SimulationResult, run: int) -> Figure:
     return _log_plot(
         result.times_s[:-1],
         result.localization_error_m[run],
@@ -112,7 +122,7 @@ def _localization(result, run):
     )
 
 
-def _tracking(result, run):
+def _tracking(result: SimulationResult, run: int) -> Figure:
     return _log_plot(
         result.times_s,
         result.tracking_error_m[run],
@@ -121,7 +131,7 @@ def _tracking(result, run):
     )
 
 
-def _batch(result):
+def _batch(result: SimulationResult) -> Figure:
     figure, axes = plt.subplots(figsize=(7, 4), layout="constrained")
     error = np.maximum(result.tracking_error_m, 1e-16)
     low, median, high = np.percentile(error, [5, 50, 95], axis=0)

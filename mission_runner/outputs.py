@@ -4,6 +4,8 @@ Every file is written to a temporary name and renamed into place, so a crash or 
 a half-written result that looks complete.
 """
 
+from __future__ import annotations
+
 import csv
 import io
 import json
@@ -11,14 +13,22 @@ import os
 import platform
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from . import __version__
-from .sim.metrics import check_expectations, distribution, run_metrics
+from .sim.metrics import MetricValue, check_expectations, distribution, run_metrics
+
+if TYPE_CHECKING:
+    from .runner.process import VehicleRun
+    from .sim.simulator import SimulationResult
+
+#: A file or folder name as callers hold it.
+PathName = str | os.PathLike[str]
 
 
-def write_atomic(path, data):
+def write_atomic(path: PathName, data: str | bytes) -> None:
     """Write ``data`` (str or bytes) to ``path`` via a temporary file and an atomic rename."""
     path = Path(path)
     temporary = path.with_name(f".{path.name}.partial")
@@ -30,7 +40,7 @@ def write_atomic(path, data):
     os.replace(temporary, path)
 
 
-def versions():
+def versions() -> dict[str, str]:
     """Versions that matter to reproduce a result."""
     return {
         "mission_runner": __version__,
@@ -40,7 +50,7 @@ def versions():
     }
 
 
-def timeseries_csv(result, run=0):
+def timeseries_csv(result: SimulationResult, run: int = 0) -> str:
     """CSV text of one run: one row per step k = 0..K."""
     ids = [vehicle.id for vehicle in result.scenario.vehicles]
     header = [
@@ -67,7 +77,7 @@ def timeseries_csv(result, run=0):
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(header)
 
-    def number(value):
+    def number(value: float | None) -> str:
         return "" if value is None or not np.isfinite(value) else f"{value:.9g}"
 
     for k in range(steps + 1):
@@ -84,20 +94,25 @@ def timeseries_csv(result, run=0):
         ]
         for index in range(len(ids)):
             position = result.positions_m[run, k, index]
-            command = None if last else result.commands_m_s[run, k, index]
+            command = (None, None) if last else result.commands_m_s[run, k, index]
             row += [
                 number(position[0]),
                 number(position[1]),
                 number(result.phases_rad[run, k, index]),
-                None if last else number(command[0]),
-                None if last else number(command[1]),
+                number(command[0]),
+                number(command[1]),
                 int(result.live[run, k, index]),
             ]
         writer.writerow(["" if value is None else value for value in row])
     return buffer.getvalue()
 
 
-def summary(result, *, config_path=None, wall_time_s=None):
+def summary(
+    result: SimulationResult,
+    *,
+    config_path: PathName | None = None,
+    wall_time_s: float | None = None,
+) -> dict[str, Any]:
     """The summary dict: run 0's metrics, expectations, batch distribution, parameters, versions."""
     scenario = result.scenario
     metrics = run_metrics(result)
@@ -134,14 +149,23 @@ def summary(result, *, config_path=None, wall_time_s=None):
     return document
 
 
-def _plain(value):
-    value = value.item() if hasattr(value, "item") else value
+def _plain(value: MetricValue) -> float | int | None:
+    """A number for JSON: numpy scalars as Python numbers, NaN and infinities as None."""
+    if isinstance(value, np.generic):
+        value = value.item()
     if isinstance(value, float) and not np.isfinite(value):
         return None
     return value
 
 
-def write_results(result, out_dir, *, config_path=None, wall_time_s=None, figures=True):
+def write_results(
+    result: SimulationResult,
+    out_dir: PathName,
+    *,
+    config_path: PathName | None = None,
+    wall_time_s: float | None = None,
+    figures: bool = True,
+) -> dict[str, Any]:
     """Write timeseries.csv, summary.json and (optionally) the figures into ``out_dir``.
 
     Returns the summary dict.
@@ -160,7 +184,7 @@ def write_results(result, out_dir, *, config_path=None, wall_time_s=None, figure
     return document
 
 
-def batch_csv(result):
+def batch_csv(result: SimulationResult) -> str:
     """One row per run with its headline metrics."""
     metrics = run_metrics(result)
     buffer = io.StringIO()
@@ -171,7 +195,9 @@ def batch_csv(result):
     return buffer.getvalue()
 
 
-def write_vehicle_run(run, out_dir, *, config_path=None):
+def write_vehicle_run(
+    run: VehicleRun, out_dir: PathName, *, config_path: PathName | None = None
+) -> dict[str, Any]:
     """One vehicle process's outputs: ``steps.csv`` (per step: state, phase, command, consensus,
     neighbours used, lateness of the setpoint, every estimate) and ``summary.json`` (final state,
     counts, the autopilot's clock fit, parameters applied). Written atomically."""
@@ -219,7 +245,7 @@ def write_vehicle_run(run, out_dir, *, config_path=None):
             ]
         )
     write_atomic(out_dir / "steps.csv", buffer.getvalue())
-    states = {}
+    states: dict[str, int] = {}
     for record in run.records:
         states[record.state] = states.get(record.state, 0) + 1
     lateness = [r.setpoint_sent_s - r.time_s for r in run.records if np.isfinite(r.setpoint_sent_s)]

@@ -5,6 +5,7 @@ part of the system sees the same target and the same shape at the same instant.
 """
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from .config import (
     CirclePath,
@@ -12,8 +13,11 @@ from .config import (
     ExpressionPath,
     ExpressionSignal,
     LinePath,
+    ShapeConfig,
+    Signal,
     SinusoidPath,
     SinusoidSignal,
+    TargetPath,
     WaypointPath,
     WaypointSignal,
 )
@@ -21,7 +25,7 @@ from .enclosing import affine_matrix
 from .expressions import compile_expression
 
 
-def signal_values(signal, times_s):
+def signal_values(signal: Signal, times_s: ArrayLike) -> NDArray[np.float64]:
     """Values of a signal (a number or a signal model) at ``times_s`` ``(K,)`` -> ``(K,)``."""
     times_s = np.asarray(times_s, dtype=float)
     if isinstance(signal, int | float):
@@ -39,7 +43,7 @@ def signal_values(signal, times_s):
     raise TypeError(f"not a signal: {signal!r}")
 
 
-def target_positions(path, times_s):
+def target_positions(path: TargetPath, times_s: ArrayLike) -> NDArray[np.float64]:
     """The target's ``[north, east]`` at ``times_s`` ``(K,)`` -> ``(K, 2)`` [m]."""
     t = np.asarray(times_s, dtype=float)[:, None]
     if isinstance(path, LinePath):
@@ -64,10 +68,10 @@ def target_positions(path, times_s):
     raise TypeError(f"not a target path: {path!r}")
 
 
-def shape_matrices(shape, times_s):
+def shape_matrices(shape: ShapeConfig, times_s: ArrayLike) -> NDArray[np.float64]:
     """Affine shape matrices at ``times_s`` ``(K,)`` -> ``(K, 3, 3)``."""
 
-    def pair(first, second):
+    def pair(first: Signal, second: Signal) -> NDArray[np.float64]:
         return np.stack([signal_values(first, times_s), signal_values(second, times_s)], axis=-1)
 
     return affine_matrix(

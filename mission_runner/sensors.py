@@ -10,10 +10,34 @@ settings, so a noise, dropout or range limit means the same everywhere.
 ``uniform(size=)`` (the simulator's batch streams).
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Protocol
+
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+if TYPE_CHECKING:
+    from .config import SensorConfig
 
 
-def measure_ranges(from_m, sensors, rng, *, to_m=None, measured=None):
+class Rng(Protocol):
+    """What the models draw from: a numpy ``Generator``, or the simulator's batch streams (called
+    with keywords only)."""
+
+    def normal(self, *, scale: float, size: Any) -> Any: ...
+
+    def uniform(self, *, low: float = ..., high: float = ..., size: Any) -> Any: ...
+
+
+def measure_ranges(
+    from_m: ArrayLike,
+    sensors: SensorConfig,
+    rng: Rng,
+    *,
+    to_m: ArrayLike | None = None,
+    measured: NDArray[np.bool_] | None = None,
+) -> NDArray[np.float64]:
     """Ranges from every point of ``from_m`` to every point of ``to_m``: Gaussian noise
     (``range_noise_std_m``, reported as its absolute value), random dropouts
     (``range_dropout_probability``) and a maximum range (``range_max_m``).
@@ -25,14 +49,14 @@ def measure_ranges(from_m, sensors, rng, *, to_m=None, measured=None):
     Returns ``(..., n, m)`` ranges [m], NaN where nothing is measured. Noise and dropout are drawn
     for every pair, measured or not, so that one pair's fate does not shift another's draws.
     """
-    from_m = np.asarray(from_m, dtype=float)
-    to_m = from_m if to_m is None else np.asarray(to_m, dtype=float)
-    gaps = from_m[..., :, None, :] - to_m[..., None, :, :]
+    points = np.asarray(from_m, dtype=float)
+    others = points if to_m is None else np.asarray(to_m, dtype=float)
+    gaps = points[..., :, None, :] - others[..., None, :, :]
     ranges = np.sqrt(np.sum(gaps * gaps, axis=-1))
     kept = np.isfinite(ranges)
     if measured is not None:
         kept &= measured
-    if to_m is from_m:
+    if others is points:
         kept &= ~np.eye(ranges.shape[-1], dtype=bool)
     if sensors.range_noise_std_m > 0:
         ranges = ranges + rng.normal(scale=sensors.range_noise_std_m, size=ranges.shape)
@@ -43,7 +67,7 @@ def measure_ranges(from_m, sensors, rng, *, to_m=None, measured=None):
     return np.where(kept, np.abs(ranges), np.nan)
 
 
-def odometry_drift(sensors, rng, shape):
+def odometry_drift(sensors: SensorConfig, rng: Rng, shape: tuple[int, ...]) -> NDArray[np.float64]:
     """A constant drift velocity [m/s] per vehicle, ``shape + (2,)``: ``displacement_drift_m_s``
     in a random direction (zeros without drift)."""
     if sensors.displacement_drift_m_s <= 0:
@@ -52,7 +76,9 @@ def odometry_drift(sensors, rng, shape):
     return sensors.displacement_drift_m_s * np.stack([np.cos(angle), np.sin(angle)], -1)
 
 
-def odometry_error_step(sensors, rng, error_m):
+def odometry_error_step(
+    sensors: SensorConfig, rng: Rng, error_m: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """The odometry error after one more step: a random walk of ``displacement_noise_std_m`` per
     step. error_m: ``(..., 2)`` [m], returned unchanged without noise."""
     if sensors.displacement_noise_std_m <= 0:

@@ -9,6 +9,7 @@ message id; the same builder answers REQUEST_MESSAGE.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -412,6 +413,7 @@ class TelemetryBuilder:
         p, q, r, accel, wind = ap.truth_rates()
         lat, lon, alt_m = ap.true_global_position()
         vn, ve, vd = ap.velocity_ned()
+        to_int: Callable[[float], int]
         if self.truth_fields == "px4":
             time_usec = 0
             to_int = math.trunc

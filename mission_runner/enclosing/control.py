@@ -7,15 +7,21 @@ any common origin (the paper's remark after the law); vehicles share orientation
 """
 
 import numpy as np
+from numpy.typing import NDArray
 
 
-def saturate(velocity_m_s, limit_m_s):
+def saturate(velocity_m_s: NDArray[np.float64], limit_m_s: float) -> NDArray[np.float64]:
     """sat_U(u) = u U / max(U, |u|) over the last axis. ``velocity_m_s``: ``(..., 2)``."""
     norm = np.sqrt(np.sum(velocity_m_s * velocity_m_s, axis=-1, keepdims=True))
     return velocity_m_s * (limit_m_s / np.maximum(limit_m_s, norm))
 
 
-def consensus_velocity(error_north_m, error_east_m, weights, beta):
+def consensus_velocity(
+    error_north_m: NDArray[np.float64],
+    error_east_m: NDArray[np.float64],
+    weights: NDArray[np.float64],
+    beta: float,
+) -> NDArray[np.float64]:
     """ubar_i = -beta sum_j abar_ij (phat_ij - r_ij).
 
     error_north_m, error_east_m: ``(..., R, S)`` phat_ij - r_ij [m], may be NaN where the weight
@@ -28,7 +34,7 @@ def consensus_velocity(error_north_m, error_east_m, weights, beta):
     return -beta * np.stack([north, east], axis=-1)
 
 
-def row_normalised(mask):
+def row_normalised(mask: NDArray[np.bool_]) -> NDArray[np.float64]:
     """abar_ij = 1 / |N_i| over the True entries of each row of ``mask`` ``(..., R, S)``."""
     count = mask.sum(axis=-1, keepdims=True)
     return np.where(mask, 1.0 / np.maximum(count, 1), 0.0)

@@ -15,9 +15,12 @@ and for a whole swarm or a batch of swarms (leading axes).
 """
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 
-def harmonic_gains(n_live, n_harmonics, gain, gain_last):
+def harmonic_gains(
+    n_live: ArrayLike, n_harmonics: int, gain: float, gain_last: float
+) -> NDArray[np.float64]:
     """Gains K_1..K_L for ``n_live`` vehicles: ``gain`` for l < n, ``gain_last`` for l = n, 0 above.
 
     n_live: int array ``(...)``; returns ``(..., n_harmonics)``. A swarm of one has no coupling.
@@ -28,7 +31,12 @@ def harmonic_gains(n_live, n_harmonics, gain, gain_last):
     return np.where((order == n_live) & (n_live > 1), gain_last, gains)
 
 
-def coupling_rate(phase_rows, phase_slots, weights, gains):
+def coupling_rate(
+    phase_rows: NDArray[np.float64],
+    phase_slots: NDArray[np.float64],
+    weights: NDArray[np.float64],
+    gains: NDArray[np.float64],
+) -> NDArray[np.float64]:
     """The coupling term sum_j a_ij sum_l (K_l / l) sin(l (theta_i - theta_j)), in rad/s per unit T.
 
     phase_rows: ``(..., R)`` phases of the computing vehicles [rad].
@@ -47,12 +55,17 @@ def coupling_rate(phase_rows, phase_slots, weights, gains):
     return np.sum((gains / order) * terms, axis=-1)
 
 
-def advance_phase(phase_rows, omega_rad_s, coupling, step_s):
+def advance_phase(
+    phase_rows: NDArray[np.float64],
+    omega_rad_s: NDArray[np.float64],
+    coupling: NDArray[np.float64],
+    step_s: float,
+) -> NDArray[np.float64]:
     """theta(k+1) from theta(k), the natural frequency and the coupling. Shapes ``(..., R)``."""
     return phase_rows + step_s * (omega_rad_s + coupling)
 
 
-def splay_spacing_error(phases, live):
+def splay_spacing_error(phases: ArrayLike, live: ArrayLike) -> NDArray[np.float64]:
     """Largest deviation of neighbouring phase gaps from 2 pi / n among live vehicles [rad].
 
     phases: ``(..., N)`` [rad]; live: ``(..., N)`` bool. Returns ``(...)``; 0 in the splay state,

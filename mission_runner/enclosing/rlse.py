@@ -20,8 +20,10 @@ trailing axes for the large swarms the simulator runs.
 """
 
 from dataclasses import dataclass
+from typing import Self
 
 import numpy as np
+from numpy.typing import NDArray
 
 
 @dataclass(frozen=True)
@@ -34,17 +36,17 @@ class EdgeEstimates:
     anchor_north_m, anchor_east_m: relative odometry o_i - o_j at the anchor [m].
     """
 
-    estimate_north_m: np.ndarray
-    estimate_east_m: np.ndarray
-    gain_nn: np.ndarray
-    gain_ne: np.ndarray
-    gain_ee: np.ndarray
-    anchor_range_m: np.ndarray
-    anchor_north_m: np.ndarray
-    anchor_east_m: np.ndarray
+    estimate_north_m: NDArray[np.float64]
+    estimate_east_m: NDArray[np.float64]
+    gain_nn: NDArray[np.float64]
+    gain_ne: NDArray[np.float64]
+    gain_ee: NDArray[np.float64]
+    anchor_range_m: NDArray[np.float64]
+    anchor_north_m: NDArray[np.float64]
+    anchor_east_m: NDArray[np.float64]
 
     @classmethod
-    def initial(cls, shape, initial_gain=1.0):
+    def initial(cls, shape: tuple[int, ...], initial_gain: float = 1.0) -> Self:
         """The paper's phat = 0, Gamma = initial_gain * I; no anchor. ``shape``: ``(..., R, S)``."""
         return cls(
             estimate_north_m=np.zeros(shape),
@@ -58,22 +60,24 @@ class EdgeEstimates:
         )
 
     @property
-    def anchored(self):
+    def anchored(self) -> NDArray[np.bool_]:
         """``(..., R, S)`` bool: the edge has had at least one range with both odometries."""
         return np.isfinite(self.anchor_range_m)
 
     @property
-    def estimate_m(self):
+    def estimate_m(self) -> NDArray[np.float64]:
         """phat at the anchor as ``(..., R, S, 2)``."""
         return np.stack([self.estimate_north_m, self.estimate_east_m], axis=-1)
 
     @property
-    def gain(self):
+    def gain(self) -> NDArray[np.float64]:
         """Gamma at the anchor as ``(..., R, S, 2, 2)``."""
         rows = [[self.gain_nn, self.gain_ne], [self.gain_ne, self.gain_ee]]
         return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
-    def current(self, relative_north_m, relative_east_m):
+    def current(
+        self, relative_north_m: NDArray[np.float64], relative_east_m: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """phat now: the anchor estimate carried forward by the odometry since the anchor.
 
         relative_north_m, relative_east_m: ``(..., R, S)`` o_i - o_j now (NaN where unknown).
@@ -85,7 +89,13 @@ class EdgeEstimates:
         return np.where(anchored, north, np.nan), np.where(anchored, east, np.nan)
 
 
-def rlse_update(estimates, range_m, relative_north_m, relative_east_m, forgetting_factor):
+def rlse_update(
+    estimates: EdgeEstimates,
+    range_m: NDArray[np.float64],
+    relative_north_m: NDArray[np.float64],
+    relative_east_m: NDArray[np.float64],
+    forgetting_factor: float,
+) -> EdgeEstimates:
     """One estimator update for every edge whose range and relative odometry are known now.
 
     range_m: ``(..., R, S)`` d_ij now [m], NaN where not measured (or not an edge).

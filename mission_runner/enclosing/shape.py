@@ -7,9 +7,12 @@ Offsets are planar, in the shared north-east orientation, in metres.
 """
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 
-def affine_matrix(translate_m, scale, shear):
+def affine_matrix(
+    translate_m: ArrayLike, scale: ArrayLike, shear: ArrayLike
+) -> NDArray[np.float64]:
     """Homogeneous 3x3 matrix T @ H @ S.
 
     translate_m: ``(..., 2)`` [T_x, T_y] in metres; scale: ``(..., 2)`` [S_x, S_y] (> 0);
@@ -33,7 +36,9 @@ def affine_matrix(translate_m, scale, shear):
 IDENTITY = affine_matrix(np.zeros(2), np.ones(2), np.zeros(2))
 
 
-def desired_offsets(phase_rad, radius_m, shape):
+def desired_offsets(
+    phase_rad: NDArray[np.float64], radius_m: float, shape: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """Desired offsets from the target, r = A [rho cos theta, rho sin theta, 1].
 
     phase_rad: ``(..., N)``; radius_m: scalar; shape: ``(..., 3, 3)`` broadcastable against the

@@ -19,8 +19,10 @@ sums, whose weights are re-normalised over the neighbours that are there.
 """
 
 from dataclasses import dataclass
+from typing import Self
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from .control import consensus_velocity, row_normalised, saturate
 from .errors import EnclosingError
@@ -49,7 +51,7 @@ class EnclosingParams:
     radius_m: float
     initial_gain: float = 1.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         rules = [
             (self.step_s > 0, "step_s must be > 0"),
             (0 < self.beta < 1 / self.step_s, "beta must be in (0, 1/step_s)"),
@@ -71,11 +73,11 @@ class EnclosingState:
     """
 
     step: int
-    phase_rad: np.ndarray
+    phase_rad: NDArray[np.float64]
     edges: EdgeEstimates
 
     @classmethod
-    def initial(cls, params, phase_rad, n_slots):
+    def initial(cls, params: EnclosingParams, phase_rad: ArrayLike, n_slots: int) -> Self:
         """State at k = 0 for rows with phases ``(..., R)`` and ``n_slots`` slots."""
         phase_rad = np.asarray(phase_rad, dtype=float)
         edges = EdgeEstimates.initial((*phase_rad.shape, n_slots), params.initial_gain)
@@ -98,14 +100,14 @@ class StepInputs:
     omega_rad_s: ``(..., R)`` each row's natural frequency.
     """
 
-    odometry_m: np.ndarray
-    phase_rad: np.ndarray
-    range_m: np.ndarray
-    member: np.ndarray
-    target_velocity_m_s: np.ndarray
-    shape_now: np.ndarray
-    shape_next: np.ndarray
-    omega_rad_s: np.ndarray
+    odometry_m: NDArray[np.float64]
+    phase_rad: NDArray[np.float64]
+    range_m: NDArray[np.float64]
+    member: NDArray[np.bool_]
+    target_velocity_m_s: NDArray[np.float64]
+    shape_now: NDArray[np.float64]
+    shape_next: NDArray[np.float64]
+    omega_rad_s: NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -119,19 +121,21 @@ class StepOutputs:
     consensus_weights: ``(..., R, S)`` abar_ij used this step.
     """
 
-    velocity_m_s: np.ndarray
-    consensus_m_s: np.ndarray
-    estimate_north_m: np.ndarray
-    estimate_east_m: np.ndarray
-    consensus_weights: np.ndarray
+    velocity_m_s: NDArray[np.float64]
+    consensus_m_s: NDArray[np.float64]
+    estimate_north_m: NDArray[np.float64]
+    estimate_east_m: NDArray[np.float64]
+    consensus_weights: NDArray[np.float64]
 
     @property
-    def estimate_m(self):
+    def estimate_m(self) -> NDArray[np.float64]:
         """phat_ij(k) as ``(..., R, S, 2)``."""
         return np.stack([self.estimate_north_m, self.estimate_east_m], axis=-1)
 
 
-def enclosing_step(params, row_slots, state, inputs):
+def enclosing_step(
+    params: EnclosingParams, row_slots: ArrayLike, state: EnclosingState, inputs: StepInputs
+) -> tuple[EnclosingState, StepOutputs]:
     """Advance the rows ``row_slots`` ``(R,)`` from step k to k+1. Returns ``(state, outputs)``."""
     row_slots = np.asarray(row_slots)
     n_slots = inputs.phase_rad.shape[-1]

@@ -3,8 +3,9 @@ one :func:`.step.enclosing_step` call, with optional leading batch axes (many ru
 """
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
-from .step import EnclosingState, StepInputs, enclosing_step
+from .step import EnclosingParams, EnclosingState, StepInputs, StepOutputs, enclosing_step
 
 
 class SwarmEnclosing:
@@ -13,7 +14,9 @@ class SwarmEnclosing:
     initial_phase_rad, omega_rad_s: ``(..., N)``.
     """
 
-    def __init__(self, params, initial_phase_rad, omega_rad_s):
+    def __init__(
+        self, params: EnclosingParams, initial_phase_rad: ArrayLike, omega_rad_s: ArrayLike
+    ) -> None:
         self.params = params
         self.omega_rad_s = np.asarray(omega_rad_s, dtype=float)
         phase = np.asarray(initial_phase_rad, dtype=float)
@@ -22,11 +25,20 @@ class SwarmEnclosing:
         self.state = EnclosingState.initial(params, phase, self.n_vehicles + 1)
 
     @property
-    def phase_rad(self):
+    def phase_rad(self) -> NDArray[np.float64]:
         """``(..., N)`` theta_i(k) of every vehicle."""
         return self.state.phase_rad
 
-    def step(self, *, odometry_m, range_m, live, target_velocity_m_s, shape_now, shape_next):
+    def step(
+        self,
+        *,
+        odometry_m: NDArray[np.float64],
+        range_m: NDArray[np.float64],
+        live: ArrayLike,
+        target_velocity_m_s: NDArray[np.float64],
+        shape_now: NDArray[np.float64],
+        shape_next: NDArray[np.float64],
+    ) -> StepOutputs:
         """One step for every vehicle.
 
         odometry_m: ``(..., N+1, 2)`` slot 0 the target; NaN for lost vehicles.

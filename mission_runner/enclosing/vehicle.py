@@ -3,14 +3,15 @@ neighbours' messages. The flying controller calls this; it is :func:`.step.enclo
 single row, plus the bookkeeping from vehicle ids to slots.
 """
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from .errors import EnclosingError
 from .shape import IDENTITY
-from .step import TARGET_SLOT, EnclosingState, StepInputs, enclosing_step
+from .step import TARGET_SLOT, EnclosingParams, EnclosingState, StepInputs, enclosing_step
 
 
 @dataclass(frozen=True)
@@ -42,9 +43,9 @@ class VehicleCommand:
     (0 = target) for the edges estimated this step. neighbours_used: peer ids in this step's sum.
     """
 
-    velocity_m_s: np.ndarray
-    consensus_m_s: np.ndarray
-    estimates_m: dict[int, np.ndarray]
+    velocity_m_s: NDArray[np.float64]
+    consensus_m_s: NDArray[np.float64]
+    estimates_m: dict[int, NDArray[np.float64]]
     neighbours_used: tuple[int, ...]
 
 
@@ -56,7 +57,14 @@ class VehicleEnclosing:
     the odometry before calling :meth:`step`.
     """
 
-    def __init__(self, params, vehicle_id, vehicle_ids, initial_phase_rad, omega_rad_s):
+    def __init__(
+        self,
+        params: EnclosingParams,
+        vehicle_id: int,
+        vehicle_ids: Iterable[int],
+        initial_phase_rad: float,
+        omega_rad_s: float,
+    ) -> None:
         ids = list(vehicle_ids)
         if vehicle_id not in ids:
             raise EnclosingError(f"vehicle {vehicle_id} is not among the swarm's ids {ids}")
@@ -72,26 +80,26 @@ class VehicleEnclosing:
         self.state = EnclosingState.initial(params, [initial_phase_rad], self._n_slots)
 
     @property
-    def phase_rad(self):
+    def phase_rad(self) -> float:
         """theta_i at the current step."""
         return float(self.state.phase_rad[0])
 
     @property
-    def step_index(self):
+    def step_index(self) -> int:
         """k: how many steps this vehicle has taken."""
         return self.state.step
 
     def step(
         self,
         *,
-        own_odometry_m,
+        own_odometry_m: ArrayLike,
         neighbours: Mapping[int, NeighbourReport],
         ranges_m: Mapping[int, float],
         target: TargetReport | None,
-        members,
-        shape_now=IDENTITY,
-        shape_next=IDENTITY,
-    ):
+        members: Iterable[int],
+        shape_now: ArrayLike = IDENTITY,
+        shape_next: ArrayLike = IDENTITY,
+    ) -> VehicleCommand:
         """Advance from step k to k+1 and return the command for step k.
 
         own_odometry_m: ``(2,)`` own cumulative displacement at k [m]. neighbours: the step-k
@@ -129,8 +137,8 @@ class VehicleEnclosing:
         )
         self.state, out = enclosing_step(self.params, self._row, self.state, inputs)
         peers = {slot: peer for peer, slot in self._slot_of.items()}
-        used = np.flatnonzero(out.consensus_weights[0] > 0)
-        estimated = np.flatnonzero(np.isfinite(out.estimate_north_m[0]))
+        used = np.flatnonzero(out.consensus_weights[0] > 0).tolist()
+        estimated = np.flatnonzero(np.isfinite(out.estimate_north_m[0])).tolist()
         estimate = out.estimate_m[0]
         return VehicleCommand(
             velocity_m_s=out.velocity_m_s[0],
@@ -139,7 +147,7 @@ class VehicleEnclosing:
             neighbours_used=tuple(peers[s] for s in used),
         )
 
-    def _slot(self, peer):
+    def _slot(self, peer: int) -> int:
         try:
             return self._slot_of[peer]
         except KeyError:

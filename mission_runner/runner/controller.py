@@ -22,18 +22,24 @@ import asyncio
 import contextlib
 import logging
 import math
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from ..bus import (
+    Message,
     RangeMessage,
     StepMessage,
     TargetObservation,
+    Topics,
     VehicleStatus,
 )
 from ..enclosing import NeighbourReport, TargetReport, VehicleEnclosing
-from .inbox import StepInbox
+from .inbox import StepData, StepInbox
+from .ports import ControllerBus, ControllerClock, ControllerLink, MessageSource
 
 logger = logging.getLogger(__name__)
 
@@ -73,48 +79,50 @@ class StepRecord:
     setpoint_sent_s: mission-clock time at which the step's setpoint had been handed to the
     vehicle link (after ``set_velocity_ned`` returned); ``setpoint_sent_s - time_s`` is the
     step's lateness, for timing figures only (NaN if not measured). odometry_m: the own odometry
-    (north, east, down) sampled at t_k (NaN if none).
+    (north, east, down) sampled at t_k (NaN if none). estimates_m: phat_ij ``(2,)`` [m] by peer
+    id (0 = target).
     """
 
     step: int
     time_s: float
     state: str
-    velocity_ned_m_s: tuple
-    consensus_m_s: tuple
+    velocity_ned_m_s: tuple[float, float, float]
+    consensus_m_s: tuple[float, float]
     phase_rad: float
-    neighbours_used: tuple
-    estimates_m: dict
+    neighbours_used: tuple[int, ...]
+    estimates_m: dict[int, NDArray[np.float64]]
     setpoint_sent_s: float = math.nan
-    odometry_m: tuple = (math.nan, math.nan, math.nan)
+    odometry_m: tuple[float, float, float] = (math.nan, math.nan, math.nan)
 
 
 class VehicleController:
     """The enclosing loop of vehicle ``vehicle_id``.
 
-    law: its :class:`VehicleEnclosing`. link: the vehicle (see :class:`VehicleLinkProtocol` in
-    :mod:`.links`). bus + topics: the message bus. clock: the mission clock (``now_s()``,
-    ``sleep_until(t)``, ``release(t)``). shape(k): the affine shape matrix at step k.
-    altitude_m: the altitude this vehicle holds (up, metres above home).
+    law: its :class:`VehicleEnclosing`. link: the vehicle (:class:`.ports.ControllerLink`, e.g.
+    :class:`.links.MavsdkVehicle`). bus + topics: the message bus. clock: the mission clock
+    (:class:`.ports.ControllerClock`). shape(k): the affine shape matrix ``(3, 3)`` at step k.
+    altitude_m: the altitude this vehicle holds (up, metres above home). on_step(vehicle_id,
+    record) sees every step's record.
     """
 
     def __init__(
         self,
         *,
-        vehicle_id,
-        vehicle_ids,
-        law,
-        senses_target,
-        link,
-        bus,
-        topics,
-        clock,
-        settings,
-        shape,
-        altitude_m,
-        on_step=None,
-    ):
+        vehicle_id: int,
+        vehicle_ids: Iterable[int],
+        law: VehicleEnclosing,
+        senses_target: bool,
+        link: ControllerLink,
+        bus: ControllerBus,
+        topics: Topics,
+        clock: ControllerClock,
+        settings: ControllerSettings,
+        shape: Callable[[int], NDArray[np.float64]],
+        altitude_m: float,
+        on_step: Callable[[int, StepRecord], None] | None = None,
+    ) -> None:
         self.vehicle_id = vehicle_id
-        self.law: VehicleEnclosing = law
+        self.law = law
         self.senses_target = senses_target
         self.link = link
         self.bus = bus
@@ -125,7 +133,7 @@ class VehicleController:
         self.altitude_m = altitude_m
         self.on_step = on_step
         self.state = "waiting"
-        self.start_s = None
+        self.start_s: float | None = None
         self.inbox = StepInbox(
             vehicle_id,
             vehicle_ids,
@@ -134,25 +142,26 @@ class VehicleController:
             member_timeout_steps=settings.member_timeout_steps,
         )
         self._target_odometry = np.zeros(2)
-        self._last_target = None
-        self._last_fresh_s = None
-        self._previous_command = None
-        self._reference = None  # where the law's commands so far would have taken the vehicle
+        self._last_target: tuple[float, NDArray[np.float64]] | None = None
+        self._last_fresh_s = -math.inf  # nothing heard yet; run() starts the silence at k = 0
+        self._previous_command: NDArray[np.float64] | None = None
+        # Where the law's commands so far would have taken the vehicle.
+        self._reference: NDArray[np.float64] | None = None
         self._tracking_integral = np.zeros(2)
         self._missed_odometry = 0
-        self._known_target_velocity = None
+        self._known_target_velocity: tuple[int, tuple[float, float]] | None = None
         self.skipped_steps = 0
-        self.mission_id = None  # carried by every status (vehicle processes set it)
-        self.records = []
+        self.mission_id: str | None = None  # carried by every status (vehicle processes set it)
+        self.records: list[StepRecord] = []
 
-    def _step_of(self, time_s):
+    def _step_of(self, time_s: float) -> int | None:
         if self.start_s is None:
             return None
         k = round((time_s - self.start_s) / self.settings.step_s)
         t_k = self.start_s + k * self.settings.step_s
         return k if k >= 0 and abs(time_s - t_k) <= self.settings.step_s / 4 else None
 
-    async def hover_until(self, start):
+    async def hover_until(self, start: asyncio.Future[float]) -> float:
         """Hold altitude with zero horizontal velocity on the step grid until the mission's
         k = 0 (``start``: a future of the start time). Streams setpoints, so OFFBOARD may be
         entered meanwhile, and releases the clock step by step (lockstep)."""
@@ -170,7 +179,7 @@ class VehicleController:
             t += step_s
         return start.result()
 
-    async def run(self, start_s, steps):
+    async def run(self, start_s: float, steps: int) -> list[StepRecord]:
         """Fly ``steps`` steps starting at mission time ``start_s``. Returns the records."""
         self.start_s = start_s
         self._last_fresh_s = start_s
@@ -190,27 +199,27 @@ class VehicleController:
                 )
                 try:
                     for k in range(steps):
-                        await self._step(k)
+                        await self._step(k, start_s + k * self.settings.step_s)
                         if self._missed_odometry >= self.settings.lost_after_missed_steps:
                             # Dead vehicle or dead link: stop driving it; PX4's offboard-loss
                             # failsafe holds or lands it, and the others re-balance without it.
                             self.state = "lost"
                             logger.warning("vehicle %s: lost at step %d", self.vehicle_id, k)
-                            await self._publish_status(k, self.start_s + k * self.settings.step_s)
+                            await self._publish_status(k, start_s + k * self.settings.step_s)
                             break
                 finally:
                     pump.cancel()
         return self.records
 
-    async def _pump(self, subscriptions):
+    async def _pump(self, subscriptions: Sequence[MessageSource]) -> None:
         """Feed the inbox from the bus subscriptions (decode errors are dropped, not fatal)."""
-        handlers = {
+        handlers: dict[type[Message], Callable[[Any], None]] = {
             StepMessage: self.inbox.add_step,
             RangeMessage: self.inbox.add_range,
             TargetObservation: self.inbox.add_target,
         }
 
-        async def drain(subscription, message_type):
+        async def drain(subscription: MessageSource, message_type: type[Message]) -> None:
             async for _, message in subscription.messages(message_type):
                 handlers[message_type](message)
 
@@ -223,9 +232,8 @@ class VehicleController:
                     name=f"vehicle-{self.vehicle_id}-{message_type.__name__}",
                 )
 
-    async def _step(self, k):
+    async def _step(self, k: int, t_k: float) -> None:
         settings = self.settings
-        t_k = self.start_s + k * settings.step_s
         if not self.clock.lockstep and self.clock.now_s() >= t_k + settings.step_s:
             # Step k's instant is a whole step in the past (a stall, a slow machine): its
             # inputs are stale and a command for it would be late. Skip it, keeping the
@@ -262,8 +270,10 @@ class VehicleController:
         now = self.clock.now_s()
         if data.neighbours:
             self._last_fresh_s = now
-        stale = odometry is None or now - self._last_fresh_s > settings.silence_timeout_s
-        if stale:
+        used: tuple[int, ...]
+        estimates: dict[int, NDArray[np.float64]]
+        consensus: tuple[float, float]
+        if odometry is None or now - self._last_fresh_s > settings.silence_timeout_s:  # stale
             velocity = (0.0, 0.0)
             self.state = "holding"
             # The vehicle holds: when it resumes, track afresh from where it is, and lead from
@@ -291,7 +301,7 @@ class VehicleController:
                 self._lead(command.velocity_m_s) + self._tracking(command.velocity_m_s, odometry)
             )
             used, estimates = command.neighbours_used, command.estimates_m
-            consensus = tuple(float(c) for c in command.consensus_m_s)
+            consensus = (float(command.consensus_m_s[0]), float(command.consensus_m_s[1]))
         vertical = self._altitude_hold(odometry)
         await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
         sent_s = self.clock.now_s()
@@ -305,14 +315,14 @@ class VehicleController:
             used,
             estimates,
             sent_s,
-            (math.nan,) * 3 if odometry is None else tuple(odometry),
+            (math.nan, math.nan, math.nan) if odometry is None else odometry,
         )
         self.records.append(record)
         await self._publish_status(k, t_k)
         if self.on_step is not None:
             self.on_step(self.vehicle_id, record)
 
-    def _turn_oscillator(self, k):
+    def _turn_oscillator(self, k: int) -> None:
         """Advance the law through step k with no data: the oscillator keeps turning so the
         phase stays on the grid (and meaningful when data returns); no estimate changes."""
         self.law.step(
@@ -325,7 +335,7 @@ class VehicleController:
             shape_next=self.shape(k + 1),
         )
 
-    def _skip(self, k, t_k):
+    def _skip(self, k: int, t_k: float) -> None:
         phase = self.law.phase_rad
         self._turn_oscillator(k)
         self.inbox.take(k)
@@ -342,7 +352,7 @@ class VehicleController:
         if self.on_step is not None:
             self.on_step(self.vehicle_id, record)
 
-    async def _odometry_at(self, t_k):
+    async def _odometry_at(self, t_k: float) -> tuple[float, float, float] | None:
         """Own odometry (north, east, down) at t_k, or None if telemetry stopped."""
         track = self.link.odometry
         try:
@@ -354,7 +364,7 @@ class VehicleController:
             return None
         return sample
 
-    async def _target_observation(self, k, t_k):
+    async def _target_observation(self, k: int, t_k: float) -> TargetObservation | None:
         """This vehicle's step-k target observation, awaited no longer than the step's own
         deadline: one that never comes must not cost more than the step has."""
         if not self.senses_target:
@@ -364,7 +374,7 @@ class VehicleController:
         )
         return self.inbox.pending_target(k)
 
-    def _wait_s(self, t_k):
+    def _wait_s(self, t_k: float) -> float:
         """Wall seconds left until step k's deadline (in lockstep, where the mission clock
         stands still while controllers wait, a fixed wall-clock bound)."""
         if self.clock.lockstep:
@@ -372,7 +382,9 @@ class VehicleController:
         remaining = t_k + self.settings.step_deadline_s - self.clock.now_s()
         return max(remaining, 0.0) / self.clock.rate
 
-    def _with_target(self, message, observation):
+    def _with_target(
+        self, message: StepMessage, observation: TargetObservation | None
+    ) -> StepMessage:
         """Integrate the observed target velocity (trapezoid over the time since the previous
         observation, so a gap in observations is bridged, not lost) and relay it."""
         if observation is None:
@@ -399,18 +411,20 @@ class VehicleController:
             odometry_down_m=message.odometry_down_m,
         )
 
-    async def _wait_inputs(self, k, t_k):
+    async def _wait_inputs(self, k: int, t_k: float) -> None:
         wait_s = self._wait_s(t_k)
         if wait_s > 0:
             await self.inbox.wait_complete(k, wait_s)
 
-    def _horizontal_ranges(self, data, odometry):
+    def _horizontal_ranges(
+        self, data: StepData, odometry: tuple[float, float, float]
+    ) -> dict[int, float]:
         """UWB ranges are 3-D; the law is planar. The height difference at t_k (own odometry and
         the neighbour's step message; both odometry origins on the ground) is taken out:
         h = sqrt(d^2 - dz^2). It cancels out of the cosine law only while constant, and a real
         altitude hold wanders by decimetres (PX4 SIH: 0.11-0.14 m RMS), which between vehicles
         3 m apart in height is worth ~0.1 m of range error. The target's range is horizontal."""
-        ranges = {}
+        ranges: dict[int, float] = {}
         for peer, measured_m in data.ranges_m.items():
             if peer == 0:
                 continue
@@ -423,19 +437,22 @@ class VehicleController:
             ranges[0] = data.target.range_m
         return ranges
 
-    def _target_report(self, data, observation):
+    def _target_report(
+        self, data: StepData, observation: TargetObservation | None
+    ) -> TargetReport | None:
         """The target's motion at step k: own observation, else a neighbour's relay, else the
         last known velocity for up to ``target_velocity_hold_steps`` (the target moves smoothly;
         dropping the feed-forward to 0 for a step would make the whole formation fall behind)."""
-        velocity = None
+        velocity: tuple[float, float] | None = None
         odometry = (math.nan, math.nan)
         if observation is not None:
             velocity = (observation.velocity_north_m_s, observation.velocity_east_m_s)
-            odometry = tuple(self._target_odometry)
+            odometry = (float(self._target_odometry[0]), float(self._target_odometry[1]))
         else:
             for message in data.neighbours.values():
-                if message.has_target:
-                    velocity = (message.target_velocity_north_m_s, message.target_velocity_east_m_s)
+                north, east = message.target_velocity_north_m_s, message.target_velocity_east_m_s
+                if north is not None and east is not None:  # it relays the target
+                    velocity = (north, east)
                     break
         if velocity is not None:
             self._known_target_velocity = (data.step, velocity)
@@ -445,7 +462,7 @@ class VehicleController:
                 velocity = known
         return None if velocity is None else TargetReport(odometry, velocity)
 
-    def _lead(self, velocity):
+    def _lead(self, velocity: ArrayLike) -> NDArray[np.float64]:
         """u + lead * du/dt: offsets the vehicle's velocity-loop lag and the command delay, so
         the displacement over the step is the one the law asked for."""
         velocity = np.asarray(velocity, dtype=float)
@@ -456,7 +473,9 @@ class VehicleController:
             velocity + self.settings.velocity_lead_s * (velocity - previous) / self.settings.step_s
         )
 
-    def _tracking(self, velocity, odometry):
+    def _tracking(
+        self, velocity: ArrayLike, odometry: tuple[float, float, float]
+    ) -> NDArray[np.float64]:
         """Displacement tracking: a PI correction towards where the law's commands would have
         taken a vehicle that realised them exactly (the paper's p(k+1) = p(k) + T u(k)), from the
         own odometry. A real multicopter's velocity loop lags and loses to drag (PX4 SIH: ~30 %
@@ -479,20 +498,20 @@ class VehicleController:
         self._reference = self._reference + settings.step_s * np.asarray(velocity, dtype=float)
         return correction * scale
 
-    def _clamp(self, velocity):
+    def _clamp(self, velocity: NDArray[np.float64]) -> tuple[float, float]:
         limit = self.settings.max_horizontal_speed_m_s
         speed = float(np.hypot(*velocity))
         scale = 1.0 if speed <= limit else limit / speed
         return (float(velocity[0] * scale), float(velocity[1] * scale))
 
-    def _altitude_hold(self, odometry):
+    def _altitude_hold(self, odometry: tuple[float, float, float] | None) -> float:
         if odometry is None:
             return 0.0
         error = -self.altitude_m - odometry[2]  # NED: down is positive
         limit = self.settings.max_vertical_speed_m_s
         return float(np.clip(self.settings.altitude_gain_per_s * error, -limit, limit))
 
-    async def _publish(self, topic, message):
+    async def _publish(self, topic: str, message: Message) -> None:
         from ..bus import BusError  # noqa: PLC0415
 
         try:
@@ -500,7 +519,7 @@ class VehicleController:
         except BusError as error:
             logger.warning("vehicle %s: could not publish %s: %s", self.vehicle_id, topic, error)
 
-    async def _publish_status(self, k, t_k):
+    async def _publish_status(self, k: int, t_k: float) -> None:
         status = VehicleStatus(
             self.vehicle_id,
             t_k,

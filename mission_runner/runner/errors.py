@@ -27,7 +27,7 @@ class VehicleCommandError(RunnerError):
 class RunnerTimeoutError(RunnerError):
     """An external wait timed out; ``what`` names it and ``timeout_s`` how long it waited."""
 
-    def __init__(self, what, timeout_s):
+    def __init__(self, what: str, timeout_s: float) -> None:
         self.what = what
         self.timeout_s = timeout_s
         super().__init__(f"timed out after {timeout_s:g} s waiting for {what}")

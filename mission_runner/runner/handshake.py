@@ -3,13 +3,23 @@ participant of a mission (vehicle processes, the range aid, the emulated world) 
 ``prepare`` / ``start`` / ``land`` / ``stop`` handshake described in :mod:`.process`.
 """
 
-import asyncio
+from __future__ import annotations
 
-from ..bus import ControlCommand, MissionControl
+import asyncio
+import math
+from collections.abc import Collection
+
+from ..bus import ControlCommand, MissionControl, Subscription
 from .errors import RunnerError, RunnerTimeoutError
 
 
-async def next_command(control, commands, *, mission_id=None, timeout_s=None):
+async def next_command(
+    control: Subscription,
+    commands: Collection[ControlCommand],
+    *,
+    mission_id: str | None = None,
+    timeout_s: float | None = None,
+) -> MissionControl:
     """The next :class:`MissionControl` on the subscription ``control`` whose command is in
     ``commands`` (and, if ``mission_id`` is given, of that mission).
 
@@ -25,10 +35,10 @@ async def next_command(control, commands, *, mission_id=None, timeout_s=None):
                     return message
     except TimeoutError:
         names = "/".join(sorted(c.value for c in commands))
-        raise RunnerTimeoutError(f"the ground station's {names}", timeout_s) from None
+        raise RunnerTimeoutError(f"the ground station's {names}", timeout_s or math.inf) from None
     raise RunnerError("the bus closed while waiting for the ground station")
 
 
-async def start_command(control, *, timeout_s=None):
+async def start_command(control: Subscription, *, timeout_s: float | None = None) -> MissionControl:
     """The next ``start``, whichever mission it belongs to (for aids that follow any mission)."""
     return await next_command(control, {ControlCommand.START}, timeout_s=timeout_s)

@@ -16,8 +16,15 @@ for ``member_timeout_steps`` steps is no longer a member: n shrinks and the rest
 becomes a member again as soon as it is heard.
 """
 
+from __future__ import annotations
+
 import asyncio
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ..bus import RangeMessage, StepMessage, TargetObservation
 
 
 @dataclass
@@ -26,10 +33,10 @@ class StepData:
     the target observation if any, and the member ids (including the vehicle itself)."""
 
     step: int
-    neighbours: dict = field(default_factory=dict)
-    ranges_m: dict = field(default_factory=dict)
-    target: object = None
-    members: frozenset = frozenset()
+    neighbours: dict[int, StepMessage] = field(default_factory=dict)
+    ranges_m: dict[int, float] = field(default_factory=dict)
+    target: TargetObservation | None = None
+    members: frozenset[int] = frozenset()
 
 
 class StepInbox:
@@ -43,14 +50,14 @@ class StepInbox:
 
     def __init__(
         self,
-        own_id,
-        vehicle_ids,
+        own_id: int,
+        vehicle_ids: Iterable[int],
         *,
-        senses_target,
-        step_of,
-        member_timeout_steps=8,
-        horizon_steps=4,
-    ):
+        senses_target: bool,
+        step_of: Callable[[float], int | None],
+        member_timeout_steps: int = 8,
+        horizon_steps: int = 4,
+    ) -> None:
         self.own_id = own_id
         self.senses_target = senses_target
         self._step_of = step_of
@@ -59,15 +66,15 @@ class StepInbox:
         self._others = [peer for peer in vehicle_ids if peer != own_id]
         self._last_heard = {peer: 0 for peer in self._others}  # members from the start
         self._current = 0
-        self._pending = {}
+        self._pending: dict[int, StepData] = {}
         self._changed = asyncio.Event()
         self.discarded_late = 0
 
     @property
-    def current_step(self):
+    def current_step(self) -> int:
         return self._current
 
-    def members(self):
+    def members(self) -> frozenset[int]:
         """Ids counted as live now (this vehicle included)."""
         alive = {
             peer
@@ -76,7 +83,7 @@ class StepInbox:
         }
         return frozenset({self.own_id, *alive})
 
-    def _slot(self, step):
+    def _slot(self, step: int) -> StepData | None:
         if step < self._current:
             self.discarded_late += 1  # never applied to a later step
             return None
@@ -84,7 +91,7 @@ class StepInbox:
             return None
         return self._pending.setdefault(step, StepData(step))
 
-    def add_step(self, message):
+    def add_step(self, message: StepMessage) -> None:
         """A neighbour's StepMessage (own messages are ignored)."""
         if message.vehicle_id == self.own_id or message.vehicle_id not in self._last_heard:
             return
@@ -97,7 +104,7 @@ class StepInbox:
             data.neighbours[message.vehicle_id] = message
             self._changed.set()
 
-    def add_range(self, message):
+    def add_range(self, message: RangeMessage) -> None:
         """A RangeMessage measured by this vehicle."""
         if message.vehicle_id != self.own_id:
             return
@@ -107,7 +114,7 @@ class StepInbox:
             data.ranges_m[message.peer_id] = message.range_m
             self._changed.set()
 
-    def add_target(self, observation):
+    def add_target(self, observation: TargetObservation) -> None:
         """A TargetObservation made by this vehicle."""
         if observation.vehicle_id != self.own_id:
             return
@@ -117,7 +124,7 @@ class StepInbox:
             data.target = observation
             self._changed.set()
 
-    def complete(self, step):
+    def complete(self, step: int) -> bool:
         """Whether every member's message, range and (if sensed) the target are in for ``step``."""
         data = self._pending.get(step)
         if data is None:
@@ -127,12 +134,12 @@ class StepInbox:
             return False
         return data.target is not None or not self.senses_target
 
-    def pending_target(self, step):
+    def pending_target(self, step: int) -> TargetObservation | None:
         """The target observation received for ``step`` so far, or None."""
         data = self._pending.get(step)
         return None if data is None else data.target
 
-    async def wait_for(self, condition, timeout_s):
+    async def wait_for(self, condition: Callable[[], bool], timeout_s: float) -> bool:
         """Wait until ``condition()`` holds, re-checked on every arrival, for at most
         ``timeout_s`` wall seconds. Returns whether it holds."""
         try:
@@ -144,11 +151,11 @@ class StepInbox:
             return condition()
         return True
 
-    async def wait_complete(self, step, timeout_s):
+    async def wait_complete(self, step: int, timeout_s: float) -> bool:
         """Wait until :meth:`complete` or ``timeout_s`` wall seconds; returns whether complete."""
         return await self.wait_for(lambda: self.complete(step), timeout_s)
 
-    def take(self, step):
+    def take(self, step: int) -> StepData:
         """Close ``step``: return what arrived, update membership, drop older data."""
         data = self._pending.pop(step, None) or StepData(step)
         for peer in data.neighbours:

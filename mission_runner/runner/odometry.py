@@ -24,11 +24,11 @@ class OdometrySample:
 class OdometryTrack:
     """The last ``capacity`` samples, in time order (late or repeated samples are dropped)."""
 
-    def __init__(self, capacity=256):
-        self._samples = deque(maxlen=capacity)
-        self._times = deque(maxlen=capacity)
+    def __init__(self, capacity: int = 256) -> None:
+        self._samples: deque[OdometrySample] = deque(maxlen=capacity)
+        self._times: deque[float] = deque(maxlen=capacity)
 
-    def add(self, sample):
+    def add(self, sample: OdometrySample) -> bool:
         """Record a sample; returns False (and ignores it) if it is not newer than the last."""
         if self._times and sample.time_s <= self._times[-1]:
             return False
@@ -37,11 +37,11 @@ class OdometryTrack:
         return True
 
     @property
-    def latest(self):
+    def latest(self) -> OdometrySample | None:
         """The newest sample, or None."""
         return self._samples[-1] if self._samples else None
 
-    def at(self, time_s):
+    def at(self, time_s: float) -> tuple[float, float, float] | None:
         """``(north_m, east_m, down_m)`` at ``time_s``, or None if no two samples bracket it.
 
         A sample exactly at ``time_s`` is returned as is.
@@ -54,11 +54,12 @@ class OdometryTrack:
             return None
         before, after = self._samples[index - 1], self._samples[index]
         weight = (time_s - before.time_s) / (after.time_s - before.time_s)
-        return tuple(
-            a + weight * (b - a)
-            for a, b in zip(
-                (before.north_m, before.east_m, before.down_m),
-                (after.north_m, after.east_m, after.down_m),
-                strict=True,
-            )
+
+        def between(a: float, b: float) -> float:
+            return a + weight * (b - a)
+
+        return (
+            between(before.north_m, after.north_m),
+            between(before.east_m, after.east_m),
+            between(before.down_m, after.down_m),
         )

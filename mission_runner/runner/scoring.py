@@ -4,17 +4,27 @@ emulator, and each vehicle's ``steps.csv``). The truth is used only here, after 
 controller ever reads it.
 """
 
+from __future__ import annotations
+
 import csv
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..sim.metrics import TruthSample, closest_pair
-from ..sim.simulator import score
+from ..sim.simulator import SimulationResult, score
 from .controller import StepRecord
 
+if TYPE_CHECKING:
+    from ..config import Scenario
+    from ..outputs import PathName
 
-def worst_estimate(ids, records, sample):
+
+def worst_estimate(
+    ids: Sequence[int], records: Mapping[int, StepRecord], sample: TruthSample
+) -> float:
     """max |phat_ij - p_ij| over the estimates in ``records`` against truth ``sample``."""
     worst = 0.0
     for vehicle_id, record in records.items():
@@ -25,7 +35,14 @@ def worst_estimate(ids, records, sample):
     return worst
 
 
-def score_flight(scenario, samples, records, disarmed, *, final_phases=None):
+def score_flight(
+    scenario: Scenario,
+    samples: Sequence[TruthSample],
+    records: Mapping[int, Sequence[StepRecord]],
+    disarmed: int | None,
+    *,
+    final_phases: Mapping[int, float] | None = None,
+) -> SimulationResult:
     """Score a flight from truth samples (``step``, ``time_s``, ``target_m (2,)``,
     ``positions_m (n, 2)``, ``alive (n,)``) and the controllers' records ``{id: [StepRecord]}``;
     ``disarmed``: vehicles disarmed at the end (None: unknown); ``final_phases``: each
@@ -84,7 +101,7 @@ def score_flight(scenario, samples, records, disarmed, *, final_phases=None):
     return score(scenario, times, target, out, extra)
 
 
-def write_truth_csv(samples, ids, path):
+def write_truth_csv(samples: Iterable[TruthSample], ids: Sequence[int], path: PathName) -> None:
     """Truth samples as CSV: step, time_s, target_north_m, target_east_m, then per vehicle
     ``v<id>_north_m``, ``v<id>_east_m`` (empty where unknown)."""
     from ..outputs import write_atomic  # noqa: PLC0415
@@ -103,7 +120,7 @@ def write_truth_csv(samples, ids, path):
     write_atomic(path, "\n".join(lines) + "\n")
 
 
-def read_truth_csv(path, ids):
+def read_truth_csv(path: PathName, ids: Sequence[int]) -> list[TruthSample]:
     """The samples written by :func:`write_truth_csv`."""
     samples = []
     with open(path, newline="", encoding="utf-8") as handle:
@@ -125,13 +142,20 @@ def read_truth_csv(path, ids):
     return samples
 
 
-def read_steps_csv(path):
+def _ned(row: Mapping[str, str], column: str) -> tuple[float, float, float]:
+    """The north, east and down columns ``column.format(axis)`` of a CSV row, as numbers."""
+    north, east, down = (float(row[column.format(axis)]) for axis in ("north", "east", "down"))
+    return north, east, down
+
+
+def read_steps_csv(path: PathName) -> list[StepRecord]:
     """A vehicle process's ``steps.csv`` back as :class:`StepRecord` objects."""
     records = []
     with open(path, newline="", encoding="utf-8") as handle:
         reader = csv.DictReader(handle)
+        columns = reader.fieldnames or ()  # None only for an empty file: no steps
         peers = sorted(
-            {int(name.split("_")[1]) for name in reader.fieldnames if name.startswith("estimate_")}
+            {int(name.split("_")[1]) for name in columns if name.startswith("estimate_")}
         )
         for row in reader:
             estimates = {}
@@ -147,19 +171,19 @@ def read_steps_csv(path):
                     int(row["step"]),
                     float(row["time_s"]),
                     row["state"],
-                    tuple(float(row[f"velocity_{a}_m_s"]) for a in ("north", "east", "down")),
-                    tuple(float(row[f"consensus_{a}_m_s"]) for a in ("north", "east")),
+                    _ned(row, "velocity_{}_m_s"),
+                    (float(row["consensus_north_m_s"]), float(row["consensus_east_m_s"])),
                     float(row["phase_rad"]),
                     used,
                     estimates,
                     float(row["time_s"]) + float(row["setpoint_lateness_s"]),
-                    tuple(float(row[f"odometry_{a}_m"]) for a in ("north", "east", "down")),
+                    _ned(row, "odometry_{}_m"),
                 )
             )
     return records
 
 
-def merge_mission(scenario, mission_dir):
+def merge_mission(scenario: Scenario, mission_dir: PathName) -> SimulationResult | None:
     """Score a mission of vehicle processes from what they wrote under ``mission_dir``
     (``vehicle_<id>/steps.csv``, ``truth/truth.csv``). Returns a SimulationResult, or None when
     the truth is not there (a mission without a simulator has no truth to score against)."""

@@ -19,6 +19,7 @@ import bisect
 import math
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from .errors import RunnerError
@@ -107,7 +108,7 @@ class ClockMapping:
                 self._restart([(boot_s, unix_s)])
                 return True
             return False
-        if self._rate_measured and abs(self._fit.unix_s(boot_s) - unix_s) > self.jump_s:
+        if self._rate_measured and abs(self.fit.unix_s(boot_s) - unix_s) > self.jump_s:
             self._outliers.append((boot_s, unix_s))
             if len(self._outliers) < self.jumps_to_refit:
                 self.rejected += 1
@@ -183,7 +184,13 @@ class MissionTime:
 
     UNITY_BAND = 0.002
 
-    def __init__(self, rate: float = 1.0, reference_s: float = 0.0, *, unix=time.time) -> None:
+    def __init__(
+        self,
+        rate: float = 1.0,
+        reference_s: float = 0.0,
+        *,
+        unix: Callable[[], float] = time.time,
+    ) -> None:
         self._unix = unix
         self.set(rate, reference_s)
 

@@ -4,18 +4,26 @@ mission (:mod:`.mission`) and the vehicle processes (:mod:`.process`) both build
 default lives once, in the config model.
 """
 
-import numpy as np
+from collections.abc import Callable
 
+import numpy as np
+from numpy.typing import NDArray
+
+from ..config import Scenario, VehicleConfig
 from ..enclosing import VehicleEnclosing
 from ..scenario import shape_matrices
 from ..sim.simulator import algorithm_params
-from .controller import ControllerSettings, VehicleController
+from .controller import ControllerSettings, StepRecord, VehicleController
+from .ports import ControllerBus, ControllerClock, ControllerLink
+
+#: k -> the affine shape matrix ``(3, 3)`` at step k.
+ShapeSchedule = Callable[[int], NDArray[np.float64]]
 
 #: PX4's COM_OBL_RC_ACT (offboard-loss failsafe) for each ``flight.on_lost``.
 OFFBOARD_LOSS_ACTION = {"return": 3, "land": 4, "hold": 5}
 
 
-def controller_settings(scenario, vehicle):
+def controller_settings(scenario: Scenario, vehicle: VehicleConfig) -> ControllerSettings:
     """The :class:`ControllerSettings` of ``vehicle`` (a scenario vehicle entry)."""
     flight = scenario.flight
     return ControllerSettings(
@@ -33,19 +41,28 @@ def controller_settings(scenario, vehicle):
     )
 
 
-def altitude_of(scenario, vehicle):
+def altitude_of(scenario: Scenario, vehicle: VehicleConfig) -> float:
     """The altitude ``vehicle`` holds [m above home]."""
     return vehicle.altitude_m or scenario.flight.altitude_m
 
 
-def shape_schedule(scenario):
+def shape_schedule(scenario: Scenario) -> ShapeSchedule:
     """k -> the affine shape matrix at step k (held after the last step)."""
     steps = scenario.timing.steps
     shapes = shape_matrices(scenario.algorithm.shape, np.arange(steps + 2) * scenario.timing.step_s)
     return lambda k: shapes[min(k, len(shapes) - 1)]
 
 
-def build_controller(scenario, vehicle, *, link, bus, clock, on_step=None, shape=None):
+def build_controller(
+    scenario: Scenario,
+    vehicle: VehicleConfig,
+    *,
+    link: ControllerLink,
+    bus: ControllerBus,
+    clock: ControllerClock,
+    on_step: Callable[[int, StepRecord], None] | None = None,
+    shape: ShapeSchedule | None = None,
+) -> VehicleController:
     """The controller of ``vehicle`` flying ``link`` on ``bus`` and ``clock``."""
     ids = [v.id for v in scenario.vehicles]
     law = VehicleEnclosing(
@@ -71,7 +88,7 @@ def build_controller(scenario, vehicle, *, link, bus, clock, on_step=None, shape
     )
 
 
-def autopilot_params(scenario):
+def autopilot_params(scenario: Scenario) -> dict[str, float | int]:
     """The parameters every vehicle gets before take-off: the offboard-loss failsafe matching
     ``flight.on_lost``, then ``flight.autopilot_params`` (which win)."""
     return {

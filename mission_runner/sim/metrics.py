@@ -2,14 +2,25 @@
 scenario's pass/fail expectations.
 """
 
+from __future__ import annotations
+
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
-from ..config import FLIGHT_METRICS
+from ..config import FLIGHT_METRICS, Expectation
+
+if TYPE_CHECKING:
+    from .simulator import SimulationResult
+
+#: One run's value of a metric (a Python or numpy number; None where there is none).
+MetricValue = float | np.floating[Any] | np.integer[Any] | None
 
 
-def converged_step(error, tolerance):
+def converged_step(error: NDArray[np.float64], tolerance: float) -> NDArray[np.int_]:
     """First step from which ``error`` ``(B, K)`` stays <= tolerance; -1 where it never does."""
     above = ~(error <= tolerance)  # NaN counts as not converged
     last_above = np.where(
@@ -19,7 +30,7 @@ def converged_step(error, tolerance):
     return np.where(step >= error.shape[-1], -1, step)
 
 
-def run_metrics(result):
+def run_metrics(result: SimulationResult) -> dict[str, NDArray[Any]]:
     """Headline metrics of every run: ``{name: (B,) array}``, names as in ``config.METRICS``."""
     tolerances = result.scenario.metrics
     commands = result.commands_m_s
@@ -57,7 +68,7 @@ def run_metrics(result):
 LOWER_IS_WORSE = {"min_separation_m", "final_live_vehicles"}
 
 
-def distribution(values, name):
+def distribution(values: ArrayLike, name: str) -> dict[str, float | int | None]:
     """Median, p95 and worst of one metric over runs. Convergence steps of -1 count as never."""
     values = np.asarray(values, dtype=float)
     if name.endswith("_converged_step"):
@@ -87,7 +98,9 @@ def distribution(values, name):
     }
 
 
-def check_expectations(expect, metrics):
+def check_expectations(
+    expect: Mapping[str, Expectation], metrics: Mapping[str, MetricValue]
+) -> list[str]:
     """Failed expectations as readable strings (empty when the run passes).
 
     expect: the scenario's ``expect`` mapping; metrics: ``{name: scalar}`` of one run. A
@@ -119,26 +132,30 @@ class TruthSample:
 
     step: int
     time_s: float
-    target_m: np.ndarray
-    positions_m: np.ndarray
-    alive: np.ndarray
+    target_m: NDArray[np.float64]
+    positions_m: NDArray[np.float64]
+    alive: NDArray[np.bool_]
 
 
-def formation_centre(positions_m, live):
+def formation_centre(
+    positions_m: NDArray[np.float64], live: NDArray[np.bool_]
+) -> NDArray[np.float64]:
     """Centroid of the live vehicles: positions_m ``(..., n, 2)``, live ``(..., n)`` -> ``(..., 2)``
     (the origin where none is live)."""
     total = np.sum(np.where(live[..., None], positions_m, 0.0), axis=-2)
     return total / np.maximum(live.sum(axis=-1, keepdims=True), 1)
 
 
-def tracking_error(positions_m, live, target_m):
+def tracking_error(
+    positions_m: NDArray[np.float64], live: NDArray[np.bool_], target_m: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """Distance [m] from the formation's centre to the target: positions_m ``(..., n, 2)``, live
     ``(..., n)``, target_m ``(..., 2)`` -> ``(...)``."""
     gap = formation_centre(positions_m, live) - target_m
     return np.sqrt(np.sum(gap * gap, axis=-1))
 
 
-def closest_pair(distance_m, live):
+def closest_pair(distance_m: NDArray[np.float64], live: NDArray[np.bool_]) -> NDArray[np.float64]:
     """Smallest distance between two live vehicles: distance_m ``(..., n, n)``, live ``(..., n)``
     -> ``(...)`` (inf with fewer than two)."""
     pair = live[..., :, None] & live[..., None, :] & ~np.eye(live.shape[-1], dtype=bool)

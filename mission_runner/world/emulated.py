@@ -8,12 +8,17 @@ by the ground station's ``start`` (:mod:`mission_runner.runner.handshake`), or b
 ``--start-after S`` seconds from launch.
 """
 
+from __future__ import annotations
+
+import argparse
 import asyncio
 import contextlib
 import logging
 import math
 import sys
+from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import yaml
 from pydantic import ValidationError
@@ -28,11 +33,19 @@ from ..runner.handshake import start_command
 from ..sim.metrics import tracking_error
 from .world import World
 
+if TYPE_CHECKING:
+    from sitl.config import EmulatorConfig
+
+    from ..bus import Subscription
+    from ..config import Scenario
+
 logger = logging.getLogger(__name__)
 
 
 @contextlib.asynccontextmanager
-async def emulated_world(scenario, config, *, start_after_s=None):
+async def emulated_world(
+    scenario: Scenario, config: EmulatorConfig, *, start_after_s: float | None = None
+) -> AsyncIterator[tuple[Emulator, World]]:
     """Emulator (``config``, an ``EmulatorConfig``) + world for ``scenario``; yields
     ``(emulator, world)``. Owns its tasks."""
     step_s = scenario.timing.step_s
@@ -56,14 +69,14 @@ async def emulated_world(scenario, config, *, start_after_s=None):
         yield emulator, world
 
 
-async def _start_on_command(control, world):
+async def _start_on_command(control: Subscription, world: World) -> None:
     start = await start_command(control)
     start_s = math.ceil(start.time_s / world.step_s - 1e-9) * world.step_s
     logger.info("world: mission k = 0 at UNIX time %.3f", start_s)
     world.start(start_s)
 
 
-def add_arguments(parser):
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``emulate`` command's arguments: the scenario, the emulator's own options (ports,
     clock, PX4-SIH fidelity: as ``sitl``'s) and ``--start-after``; sets ``handler=command``."""
     parser.add_argument(
@@ -78,7 +91,7 @@ def add_arguments(parser):
     parser.set_defaults(handler=command)
 
 
-def command(arguments):
+def command(arguments: argparse.Namespace) -> int:
     """Run the scenario's emulated world until SIGINT/SIGTERM; exit code 0."""
     scenario = load_scenario(arguments.scenario)
     source = f"emulator settings ({arguments.config or 'command line'})"
@@ -100,7 +113,7 @@ def command(arguments):
     return 0
 
 
-async def _serve(scenario, config, start_after_s):
+async def _serve(scenario: Scenario, config: EmulatorConfig, start_after_s: float | None) -> None:
     async with emulated_world(scenario, config, start_after_s=start_after_s) as (emulator, world):
         prefix = scenario.bus.topics(scenario.name).prefix
         _say(f"emulate: scenario {scenario.name}: world on the {scenario.bus.kind} bus, {prefix}/")
@@ -117,7 +130,7 @@ async def _serve(scenario, config, start_after_s):
     sitl_cli.describe_stop(emulator)
 
 
-def _say(text):
+def _say(text: str) -> None:
     """A line for the user at the terminal (this module is a command's body)."""
     sys.stdout.write(text + "\n")
     sys.stdout.flush()

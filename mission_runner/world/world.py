@@ -15,25 +15,37 @@ listener), so in lockstep the measurements belong to exactly the simulated insta
 with; a task owned by :class:`World` moves them onto the bus.
 """
 
+from __future__ import annotations
+
 import asyncio
 import contextlib
 import logging
 import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, Self
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from ..bus import BusError, RangeMessage, TargetObservation
 from ..scenario import target_positions
 from ..sensors import measure_ranges
 from ..sim.metrics import TruthSample
 
+if TYPE_CHECKING:
+    from sitl.emulator import Emulator, Truth
+
+    from ..bus import Bus, Topics
+    from ..config import Scenario, SensorConfig, TargetPath
+    from ..sensors import Rng
+
 logger = logging.getLogger(__name__)
 
 
-def _step_of(message, world):
-    if getattr(message, "step", None) is not None:
+def _step_of(message: RangeMessage | TargetObservation, world: World) -> int:
+    if isinstance(message, RangeMessage) and message.step is not None:
         return message.step
-    return round((message.time_s - world.start_s) / world.step_s)
+    return round((message.time_s - (world.start_s or 0.0)) / world.step_s)
 
 
 class World:
@@ -50,19 +62,19 @@ class World:
 
     def __init__(
         self,
-        emulator,
+        emulator: Emulator,
         *,
-        bus,
-        topics,
-        vehicle_ids,
-        senses_target,
-        target_path,
-        target_altitude_m,
-        sensors,
-        step_s,
-        seed=0,
-        time_offset_s=0.0,
-    ):
+        bus: Bus,
+        topics: Topics,
+        vehicle_ids: Sequence[int],
+        senses_target: ArrayLike,
+        target_path: TargetPath,
+        target_altitude_m: float,
+        sensors: SensorConfig,
+        step_s: float,
+        seed: int = 0,
+        time_offset_s: float = 0.0,
+    ) -> None:
         self.emulator = emulator
         self.bus = bus
         self.topics = topics
@@ -73,18 +85,18 @@ class World:
         self.sensors = sensors
         self.step_s = step_s
         self.time_offset_s = time_offset_s
-        self.start_s = None
+        self.start_s: float | None = None
         self._next_step = 0
         self._rng = np.random.default_rng([seed, 7])
-        self._down = {}  # (vehicle index, sensor) -> (from_s, until_s)
-        self._queue = asyncio.Queue()
+        self._down: dict[tuple[int, str], tuple[float, float]] = {}  # -> (from_s, until_s)
+        self._queue: asyncio.Queue[tuple[str, RangeMessage | TargetObservation]] = asyncio.Queue()
         self._stack = contextlib.AsyncExitStack()
-        self._task = None
+        self._task: asyncio.Task[None] | None = None
         self._closing = False
         self.published = 0
-        self.samples = []  # TruthSample per step, for scoring only
+        self.samples: list[TruthSample] = []  # per step, for scoring only
 
-    async def __aenter__(self):
+    async def __aenter__(self) -> Self:
         async with contextlib.AsyncExitStack() as stack:
             group = await stack.enter_async_context(asyncio.TaskGroup())
             stack.push_async_callback(self._stop_publishing)
@@ -93,19 +105,21 @@ class World:
             self._stack = stack.pop_all()
         return self
 
-    async def __aexit__(self, *exc_info):
+    async def __aexit__(self, *exc_info: Any) -> bool | None:
         return await self._stack.__aexit__(*exc_info)
 
-    async def _stop_publishing(self):
+    async def _stop_publishing(self) -> None:
         self._closing = True
         # Python 3.11's asyncio.wait_for (inside the MQTT client's publish) can swallow a
         # cancellation that races with its completion: cancel until the task is really done.
-        while not self._task.done():
+        while self._task is not None and not self._task.done():
             self._task.cancel()
             await asyncio.wait({self._task}, timeout=0.05)
 
     @classmethod
-    def for_scenario(cls, emulator, scenario, bus, *, time_offset_s=0.0):
+    def for_scenario(
+        cls, emulator: Emulator, scenario: Scenario, bus: Bus, *, time_offset_s: float = 0.0
+    ) -> World:
         """The world a mission scenario describes, publishing on ``bus`` under its topics."""
         return cls(
             emulator,
@@ -122,37 +136,39 @@ class World:
         )
 
     @property
-    def idle(self):
+    def idle(self) -> bool:
         """Whether every sampled measurement has been handed to the bus."""
         return self._queue.empty()
 
-    def start(self, start_s):
+    def start(self, start_s: float) -> None:
         """The mission's k = 0 is at ``start_s``: the target starts moving, ranging begins."""
         self.start_s = start_s
         self._next_step = 0
 
-    def fail_sensor(self, index, sensor, at_s, duration_s=None):
+    def fail_sensor(
+        self, index: int, sensor: str, at_s: float, duration_s: float | None = None
+    ) -> None:
         """Vehicle ``index``'s ``"uwb"`` (no ranges from or to it) or ``"tracker"`` (no target
         observations) stops at ``at_s`` for ``duration_s`` seconds (default: for good)."""
         if sensor not in ("uwb", "tracker"):
             raise ValueError(f"unknown world sensor {sensor!r}; use 'uwb' or 'tracker'")
         self._down[index, sensor] = (at_s, math.inf if duration_s is None else at_s + duration_s)
 
-    def target_position(self, time_s):
+    def target_position(self, time_s: float) -> NDArray[np.float64]:
         """The target's true ``[north, east]`` at mission time ``time_s``."""
         elapsed = 0.0 if self.start_s is None else max(0.0, time_s - self.start_s)
         return target_positions(self.target_path, np.array([elapsed]))[0]
 
-    def target_velocity(self, time_s, delta_s=1e-3):
+    def target_velocity(self, time_s: float, delta_s: float = 1e-3) -> NDArray[np.float64]:
         if self.start_s is None or time_s < self.start_s:
             return np.zeros(2)
         return (self.target_position(time_s + delta_s) - self.target_position(time_s)) / delta_s
 
-    def _working(self, index, sensor, time_s):
+    def _working(self, index: int, sensor: str, time_s: float) -> bool:
         window = self._down.get((index, sensor))
         return window is None or not (window[0] <= time_s < window[1])
 
-    def _on_step(self, time_s, truth):
+    def _on_step(self, time_s: float, truth: Truth) -> None:
         if self.start_s is None:
             return
         time_s += self.time_offset_s
@@ -163,7 +179,7 @@ class World:
         self._sample(self._next_step, t_k, truth)
         self._next_step += 1
 
-    def _sample(self, k, t_k, truth):
+    def _sample(self, k: int, t_k: float, truth: Truth) -> None:
         position = np.array(truth.position_ned_m, dtype=float)
         alive = np.array(truth.alive)
         count = len(self.vehicle_ids)
@@ -187,7 +203,7 @@ class World:
         for item in measured:
             self._queue.put_nowait(item)
 
-    async def _publish(self):
+    async def _publish(self) -> None:
         while not self._closing:
             topic, message = await self._queue.get()
             if self._next_step - _step_of(message, self) > 2:
@@ -200,19 +216,19 @@ class World:
 
 
 def step_measurements(
-    k,
-    t_k,
+    k: int,
+    t_k: float,
     *,
-    ids,
-    topics,
-    positions_m,
-    ranging,
-    tracking,
-    target_m,
-    target_velocity_m_s,
-    sensors,
-    rng,
-):
+    ids: Sequence[int],
+    topics: Topics,
+    positions_m: ArrayLike,
+    ranging: ArrayLike,
+    tracking: ArrayLike,
+    target_m: ArrayLike,
+    target_velocity_m_s: ArrayLike,
+    sensors: SensorConfig,
+    rng: Rng,
+) -> list[tuple[str, RangeMessage | TargetObservation]]:
     """What the UWB radios and target trackers report for step ``k`` (time ``t_k``), as
     ``(topic, message)`` pairs: a :class:`RangeMessage` per ranged ordered pair, a
     :class:`TargetObservation` (horizontal range and the target's velocity) per tracking vehicle.
@@ -224,21 +240,21 @@ def step_measurements(
     positions_m = np.asarray(positions_m, dtype=float)
     ranging = np.asarray(ranging, dtype=bool)
     ranges = measure_ranges(np.where(ranging[:, None], positions_m, np.nan), sensors, rng)
-    messages = [
+    messages: list[tuple[str, RangeMessage | TargetObservation]] = [
         (
             topics.range(ids[i], ids[j]),
             RangeMessage(ids[i], ids[j], t_k, float(ranges[i, j]), step=k),
         )
-        for i, j in zip(*np.nonzero(np.isfinite(ranges)), strict=True)
+        for i, j in zip(*(index.tolist() for index in np.nonzero(np.isfinite(ranges))), strict=True)
     ]
     sensing = np.flatnonzero(tracking)
     horizontal = measure_ranges(
         positions_m[sensing, :2], sensors, rng, to_m=np.asarray(target_m, dtype=float)[None, :2]
     )[:, 0]
-    north_m_s, east_m_s = (float(v) for v in target_velocity_m_s)
+    north_m_s, east_m_s = (float(v) for v in np.asarray(target_velocity_m_s, dtype=float))
     messages += [
         (topics.target(ids[i]), TargetObservation(ids[i], t_k, float(r), north_m_s, east_m_s))
-        for i, r in zip(sensing, horizontal, strict=True)
+        for i, r in zip(sensing.tolist(), horizontal, strict=True)
         if np.isfinite(r)
     ]
     return messages

@@ -1,0 +1,93 @@
+"""What a vehicle controller needs from the clock, the vehicle link and the bus it is handed.
+
+Structural protocols holding only the members :class:`.controller.VehicleController` uses, so
+that anything offering them fits: the emulator's and the wall clock (:mod:`.clock`), the MAVSDK
+vehicle (:mod:`.links`), the in-process and MQTT buses (:mod:`mission_runner.bus`), and the
+fakes of the controller's unit tests, none of which name these classes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import AbstractAsyncContextManager
+from typing import Protocol, TypeVar
+
+from ..bus import Message
+from .odometry import OdometrySample
+
+M = TypeVar("M", bound=Message)
+
+
+class ControllerClock(Protocol):
+    """The mission clock every t_k = start + kT refers to."""
+
+    @property
+    def lockstep(self) -> bool:
+        """Whether the world stands still until every controller has released it (so waits
+        are bounded in wall seconds, not mission seconds)."""
+        ...
+
+    @property
+    def rate(self) -> float:
+        """Mission seconds per wall second."""
+        ...
+
+    def now_s(self) -> float:
+        """Mission time now [s]."""
+        ...
+
+    async def sleep_until(self, time_s: float) -> None:
+        """Return at mission time ``time_s`` [s] (at once if it is past)."""
+        ...
+
+    def release(self, time_s: float) -> None:
+        """Let the world run up to mission time ``time_s`` [s] (lockstep; else nothing)."""
+        ...
+
+
+class OdometrySource(Protocol):
+    """The vehicle's own odometry on the mission clock, north-east-down [m] from its origin."""
+
+    @property
+    def latest(self) -> OdometrySample | None:
+        """The newest sample, or None before the first."""
+        ...
+
+    def at(self, time_s: float) -> tuple[float, float, float] | None:
+        """``(north_m, east_m, down_m)`` at mission time ``time_s``, or None if not known."""
+        ...
+
+
+class ControllerLink(Protocol):
+    """The vehicle as the controller drives it: odometry in, velocity setpoints out."""
+
+    @property
+    def odometry(self) -> OdometrySource: ...
+
+    async def odometry_updated(self) -> None:
+        """Return when the next odometry sample has arrived."""
+        ...
+
+    async def set_velocity_ned(self, north_m_s: float, east_m_s: float, down_m_s: float) -> None:
+        """Send a velocity setpoint, north-east-down [m/s]."""
+        ...
+
+
+class MessageSource(Protocol):
+    """A subscription, as the controller reads it."""
+
+    def messages(self, message_type: type[M]) -> AsyncIterator[tuple[str, M]]:
+        """``(topic, message)`` pairs decoded as ``message_type``, until the subscription ends."""
+        ...
+
+
+class ControllerBus(Protocol):
+    """The message bus: subscriptions for the inbox, publishing with a bounded wait."""
+
+    def subscribe(self, pattern: str) -> AbstractAsyncContextManager[MessageSource]:
+        """Messages on topics matching ``pattern`` (MQTT wildcards) while inside the block."""
+        ...
+
+    async def publish_message(self, topic: str, message: Message, *, timeout: float) -> None:
+        """Publish ``message`` on ``topic``, waiting at most ``timeout`` seconds."""
+        ...
