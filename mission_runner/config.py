@@ -608,34 +608,11 @@ def _rule_problems(scenario):
     return problems
 
 
-def emulator_config(scenario, **overrides):
-    """The bundled emulator's config for this scenario (sitl.config.EmulatorConfig)."""
-    from sitl.config import EmulatorConfig  # noqa: PLC0415 - the simulator does not need sitl
-
-    data = {**scenario.flight.emulator, **overrides}
-    # Sensors sample at t_k exactly only if the physics step divides T: >= 200 Hz, a divisor of T.
-    physics = dict(data.get("physics") or {})
-    physics.setdefault(
-        "rate_hz", math.ceil(200.0 * scenario.timing.step_s) / scenario.timing.step_s
-    )
-    data["physics"] = physics
-    data.setdefault("vehicles", len(scenario.vehicles))
-    data.setdefault("seed", scenario.seed)
-    data.setdefault(
-        "placement",
-        {
-            "positions": [
-                {"north_m": v.initial_position_m[0], "east_m": v.initial_position_m[1]}
-                for v in scenario.vehicles
-            ]
-        },
-    )
-    return EmulatorConfig.model_validate(data)
-
-
 def _emulator_problems(scenario):
     """Check ``flight.emulator`` at load time; the vehicle count is checked when flying (a
     simulate-only scenario may have more vehicles than one emulator process holds)."""
+    from .wiring import emulator_config  # noqa: PLC0415 - wiring imports this module
+
     if not scenario.flight.emulator:
         return []
     try:

@@ -17,6 +17,7 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
 from .outputs import PathName, write_atomic
+from .wiring import omega_of
 
 if TYPE_CHECKING:
     from .sim.simulator import SimulationResult
@@ -86,9 +87,7 @@ def _xy(result: SimulationResult, run: int) -> Figure:
 
 def _phases(result: SimulationResult, run: int) -> Figure:
     figure, axes = plt.subplots(figsize=(7, 4), layout="constrained")
-    omega = np.array(
-        [v.omega_rad_s or result.scenario.algorithm.omega_rad_s for v in result.scenario.vehicles]
-    )
+    omega = np.array([omega_of(result.scenario, v) for v in result.scenario.vehicles])
     relative = result.phases_rad[run] - result.times_s[:, None] * omega
     relative = np.where(result.live[run], relative, np.nan)
     for index, label in enumerate(_labels(result)):

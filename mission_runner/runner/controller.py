@@ -37,7 +37,16 @@ from ..bus import (
     Topics,
     VehicleStatus,
 )
+from ..config import Scenario, VehicleConfig
 from ..enclosing import NeighbourReport, TargetReport, VehicleEnclosing
+from ..wiring import (
+    ShapeSchedule,
+    algorithm_params,
+    altitude_of,
+    controller_settings,
+    omega_of,
+    shape_schedule,
+)
 from .inbox import StepData, StepInbox
 from .ports import ControllerBus, ControllerClock, ControllerLink, MessageSource
 
@@ -530,3 +539,38 @@ class VehicleController:
             mission_id=self.mission_id,
         )
         await self._publish(self.topics.status(self.vehicle_id), status)
+
+
+def build_controller(
+    scenario: Scenario,
+    vehicle: VehicleConfig,
+    *,
+    link: ControllerLink,
+    bus: ControllerBus,
+    clock: ControllerClock,
+    on_step: Callable[[int, StepRecord], None] | None = None,
+    shape: ShapeSchedule | None = None,
+) -> VehicleController:
+    """The controller of ``vehicle`` flying ``link`` on ``bus`` and ``clock``."""
+    ids = [v.id for v in scenario.vehicles]
+    law = VehicleEnclosing(
+        algorithm_params(scenario),
+        vehicle.id,
+        ids,
+        vehicle.initial_phase_rad,
+        omega_of(scenario, vehicle),
+    )
+    return VehicleController(
+        vehicle_id=vehicle.id,
+        vehicle_ids=ids,
+        law=law,
+        senses_target=vehicle.senses_target,
+        link=link,
+        bus=bus,
+        topics=scenario.bus.topics(scenario.name),
+        clock=clock,
+        settings=controller_settings(scenario, vehicle),
+        shape=shape or shape_schedule(scenario),
+        altitude_m=altitude_of(scenario, vehicle),
+        on_step=on_step,
+    )

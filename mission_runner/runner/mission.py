@@ -21,14 +21,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..bus import lost_vehicle_will, open_bus
-from ..config import emulator_config
 from ..sim.metrics import tracking_error
+from ..wiring import altitude_of, autopilot_params, emulator_config, shape_schedule
 from ..world import World
 from .clock import EmulatorClock
+from .controller import build_controller
 from .errors import RunnerError
 from .links import MavsdkVehicle, connected_vehicles
 from .scoring import score_flight, worst_estimate
-from .wiring import altitude_of, autopilot_params, build_controller, shape_schedule
 
 logger = logging.getLogger(__name__)
 

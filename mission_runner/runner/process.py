@@ -39,12 +39,13 @@ from ..bus import (
     open_bus,
 )
 from ..tasks import first_completed
+from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
+from .controller import build_controller
 from .errors import RunnerError, RunnerTimeoutError
 from .handshake import next_command
 from .links import MavsdkVehicle, connected_vehicles
 from .timesync import MissionTime
-from .wiring import altitude_of, autopilot_params, build_controller
 
 logger = logging.getLogger(__name__)
 

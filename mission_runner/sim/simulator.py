@@ -12,10 +12,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import Scenario
-from ..enclosing import EnclosingParams, SwarmEnclosing, splay_spacing_error
+from ..enclosing import SwarmEnclosing, splay_spacing_error
 from ..errors import SimulationError
 from ..scenario import shape_matrices, target_positions
 from ..sensors import measure_ranges, odometry_drift, odometry_error_step
+from ..wiring import algorithm_params, omega_of
 from .metrics import closest_pair, tracking_error
 
 
@@ -47,21 +48,6 @@ class SimulationResult:
     @property
     def runs(self):
         return self.tracking_error_m.shape[0]
-
-
-def algorithm_params(scenario):
-    """The scenario's :class:`EnclosingParams`."""
-    algorithm = scenario.algorithm
-    return EnclosingParams(
-        step_s=scenario.timing.step_s,
-        beta=algorithm.beta,
-        saturation_m_s=algorithm.saturation_m_s,
-        forgetting_factor=algorithm.forgetting_factor,
-        coupling_gain=algorithm.coupling_gain,
-        coupling_gain_last=algorithm.coupling_gain_last,
-        radius_m=algorithm.radius_m,
-        initial_gain=algorithm.initial_gain,
-    )
 
 
 def initial_conditions(scenario, runs):
@@ -137,7 +123,7 @@ def simulate(scenario, runs=1, on_step=None):
     times = np.arange(steps + 1) * step_s
     target = target_positions(scenario.target.path, np.append(times, times[-1] + step_s))
     shapes = shape_matrices(scenario.algorithm.shape, np.append(times, times[-1] + step_s))
-    omega = np.array([v.omega_rad_s or scenario.algorithm.omega_rad_s for v in scenario.vehicles])
+    omega = np.array([omega_of(scenario, v) for v in scenario.vehicles])
     senses = np.array([v.senses_target for v in scenario.vehicles])
     speed_limit = np.array([v.speed_limit_m_s for v in scenario.vehicles])[:, None]
     live_at = _event_schedule(scenario)

@@ -27,10 +27,11 @@ from sitl import cli as sitl_cli
 from sitl.emulator import Emulator
 
 from ..bus import open_bus
-from ..config import emulator_config, load_scenario
+from ..config import load_scenario
 from ..errors import ConfigError
 from ..runner.handshake import start_command
 from ..sim.metrics import tracking_error
+from ..wiring import emulator_config
 from .world import World
 
 if TYPE_CHECKING:

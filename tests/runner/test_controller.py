@@ -19,9 +19,9 @@ import pytest
 from mission_runner.bus import RangeMessage, StepMessage, VehicleStatus, open_bus
 from mission_runner.config import validate_scenario
 from mission_runner.enclosing import NeighbourReport, TargetReport, VehicleEnclosing
+from mission_runner.runner.controller import build_controller
 from mission_runner.runner.odometry import OdometrySample
-from mission_runner.runner.wiring import build_controller
-from mission_runner.sim.simulator import algorithm_params
+from mission_runner.wiring import algorithm_params
 
 T = 0.125
 START_S = 10.0

@@ -1,0 +1,118 @@
+"""One place that turns a scenario into what every layer needs: the algorithm's parameters and
+each vehicle's frequency (simulator and controllers), the shape schedule, a controller's settings,
+the autopilot parameters every vehicle gets, and the bundled emulator's config. The simulator
+(:mod:`.sim`), the in-process mission and the vehicle processes (:mod:`.runner`) and the emulated
+world (:mod:`.world`) all build from here, so a default lives once, in the config model.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .config import Scenario, VehicleConfig
+from .enclosing import EnclosingParams
+from .scenario import shape_matrices
+
+if TYPE_CHECKING:
+    from sitl.config import EmulatorConfig
+
+    from .runner.controller import ControllerSettings
+
+#: k -> the affine shape matrix ``(3, 3)`` at step k.
+ShapeSchedule = Callable[[int], NDArray[np.float64]]
+
+#: PX4's COM_OBL_RC_ACT (offboard-loss failsafe) for each ``flight.on_lost``.
+OFFBOARD_LOSS_ACTION = {"return": 3, "land": 4, "hold": 5}
+
+
+def algorithm_params(scenario: Scenario) -> EnclosingParams:
+    """The scenario's :class:`EnclosingParams`."""
+    algorithm = scenario.algorithm
+    return EnclosingParams(
+        step_s=scenario.timing.step_s,
+        beta=algorithm.beta,
+        saturation_m_s=algorithm.saturation_m_s,
+        forgetting_factor=algorithm.forgetting_factor,
+        coupling_gain=algorithm.coupling_gain,
+        coupling_gain_last=algorithm.coupling_gain_last,
+        radius_m=algorithm.radius_m,
+        initial_gain=algorithm.initial_gain,
+    )
+
+
+def omega_of(scenario: Scenario, vehicle: VehicleConfig) -> float:
+    """``vehicle``'s oscillator frequency [rad/s]: its own, else the scenario's."""
+    return vehicle.omega_rad_s or scenario.algorithm.omega_rad_s
+
+
+def controller_settings(scenario: Scenario, vehicle: VehicleConfig) -> ControllerSettings:
+    """The :class:`ControllerSettings` of ``vehicle`` (a scenario vehicle entry)."""
+    from .runner.controller import ControllerSettings  # noqa: PLC0415 - the simulator needs none
+
+    flight = scenario.flight
+    return ControllerSettings(
+        step_s=scenario.timing.step_s,
+        step_deadline_s=flight.step_deadline_s,
+        wall_deadline_s=flight.lockstep_wait_s,
+        silence_timeout_s=flight.silence_timeout_s,
+        member_timeout_steps=flight.member_timeout_steps,
+        max_horizontal_speed_m_s=vehicle.speed_limit_m_s,
+        max_vertical_speed_m_s=flight.max_vertical_speed_m_s,
+        velocity_lead_s=flight.velocity_lead_s,
+        tracking_gain_1_s=flight.displacement_tracking.gain_1_s,
+        tracking_integral_gain_1_s2=flight.displacement_tracking.integral_gain_1_s2,
+        tracking_max_correction_m_s=flight.displacement_tracking.max_correction_m_s,
+    )
+
+
+def altitude_of(scenario: Scenario, vehicle: VehicleConfig) -> float:
+    """The altitude ``vehicle`` holds [m above home]."""
+    return vehicle.altitude_m or scenario.flight.altitude_m
+
+
+def shape_schedule(scenario: Scenario) -> ShapeSchedule:
+    """k -> the affine shape matrix at step k (held after the last step)."""
+    steps = scenario.timing.steps
+    shapes = shape_matrices(scenario.algorithm.shape, np.arange(steps + 2) * scenario.timing.step_s)
+    return lambda k: shapes[min(k, len(shapes) - 1)]
+
+
+def autopilot_params(scenario: Scenario) -> dict[str, float | int]:
+    """The parameters every vehicle gets before take-off: the offboard-loss failsafe matching
+    ``flight.on_lost``, then ``flight.autopilot_params`` (which win)."""
+    return {
+        "COM_OBL_RC_ACT": OFFBOARD_LOSS_ACTION[scenario.flight.on_lost],
+        **scenario.flight.autopilot_params,
+    }
+
+
+def emulator_config(scenario: Scenario, **overrides: Any) -> EmulatorConfig:
+    """The bundled emulator's config for this scenario: ``flight.emulator``, then ``overrides``,
+    then what the scenario implies (vehicle count, placement, seed, a physics rate whose step
+    divides T)."""
+    from sitl.config import EmulatorConfig  # noqa: PLC0415 - the simulator does not need sitl
+
+    data = {**scenario.flight.emulator, **overrides}
+    # Sensors sample at t_k exactly only if the physics step divides T: >= 200 Hz, a divisor of T.
+    physics = dict(data.get("physics") or {})
+    physics.setdefault(
+        "rate_hz", math.ceil(200.0 * scenario.timing.step_s) / scenario.timing.step_s
+    )
+    data["physics"] = physics
+    data.setdefault("vehicles", len(scenario.vehicles))
+    data.setdefault("seed", scenario.seed)
+    data.setdefault(
+        "placement",
+        {
+            "positions": [
+                {"north_m": v.initial_position_m[0], "east_m": v.initial_position_m[1]}
+                for v in scenario.vehicles
+            ]
+        },
+    )
+    return EmulatorConfig.model_validate(data)
