@@ -30,75 +30,68 @@ from sitl import physics as ph
 from sitl.config import PX4_ARMING_DENIED_TEXT
 from sitl.geo import MapProjection
 from sitl.gnss import GnssError
-from sitl.mission import MISSION_TYPE_MISSION, RELATIVE_ALT_FRAMES, MissionItem, MissionTransfer
-from sitl.modes import MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, FlightMode
+from sitl.mission import RELATIVE_ALT_FRAMES, MissionItem, MissionTransfer
+from sitl.modes import FlightMode
 from sitl.odometry import Odometry
 from sitl.params import ParamStore
 from sitl.telemetry import BUILDABLE, StreamScheduler, TelemetryBuilder, quaternion_to_euler
 
 logger = logging.getLogger(__name__)
 
-# MAV_RESULT
-ACCEPTED = 0
-TEMPORARILY_REJECTED = 1
-DENIED = 2
-UNSUPPORTED = 3
-FAILED = 4
-
-# MAV_LANDED_STATE
-LANDED_UNDEFINED = 0
-ON_GROUND = 1
-IN_AIR = 2
-TAKING_OFF = 3
-LANDING = 4
-
-# MAV_SEVERITY
-CRITICAL = 2
-WARNING = 4
-NOTICE = 5
-INFO = 6
-
-MAV_AUTOPILOT_INVALID = 8
+# MAV_CMD_COMPONENT_ARM_DISARM param2 that forces arming/disarming: a magic number of the
+# MAVLink spec, with no constant in pymavlink.
 FORCE_MAGIC = 21196
+# COMMAND_INT x/y of DO_REPOSITION: INT32_MAX means "keep the current position" (MAVLink spec;
+# pymavlink has no constant for it).
 INT32_MAX = 2**31 - 1
 
-# MAV_CMD
-CMD_NAV_WAYPOINT = 16
-CMD_NAV_LOITER_UNLIM = 17
-CMD_NAV_LOITER_TIME = 19
-CMD_NAV_RETURN_TO_LAUNCH = 20
-CMD_NAV_LAND = 21
-CMD_NAV_TAKEOFF = 22
-CMD_NAV_DELAY = 93
-CMD_DO_SET_MODE = 176
-CMD_DO_CHANGE_SPEED = 178
-CMD_DO_SET_HOME = 179
-CMD_DO_FLIGHTTERMINATION = 185
-CMD_DO_REPOSITION = 192
-CMD_DO_PAUSE_CONTINUE = 193
-CMD_DO_SET_MISSION_CURRENT = 224
-CMD_MISSION_START = 300
-CMD_COMPONENT_ARM_DISARM = 400
-CMD_GET_HOME_POSITION = 410
-CMD_GET_MESSAGE_INTERVAL = 510
-CMD_SET_MESSAGE_INTERVAL = 511
-CMD_REQUEST_MESSAGE = 512
-CMD_REQUEST_PROTOCOL_VERSION = 519
-CMD_REQUEST_AUTOPILOT_CAPABILITIES = 520
-
-# MISSION_CURRENT.mission_state
-MISSION_STATE_NO_MISSION = 1
-MISSION_STATE_NOT_STARTED = 2
-MISSION_STATE_ACTIVE = 3
-MISSION_STATE_PAUSED = 4
-MISSION_STATE_COMPLETE = 5
-
-# SET_POSITION_TARGET type_mask bits
-_IGNORE_POS = 0x7
-_IGNORE_VEL = 0x38
-_IGNORE_ACC = 0x1C0
-_IGNORE_YAW = 0x400
-_IGNORE_YAW_RATE = 0x800
+# SET_POSITION_TARGET_*.type_mask: a vector is ignored when any of its bits is set.
+_IGNORE_POS = (
+    mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE
+)
+_IGNORE_VEL = (
+    mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE
+)
+_IGNORE_ACC = (
+    mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE
+)
+_LOCAL_FRAMES = frozenset(
+    [
+        mavlink.MAV_FRAME_LOCAL_NED,
+        mavlink.MAV_FRAME_LOCAL_OFFSET_NED,
+        mavlink.MAV_FRAME_BODY_NED,
+        mavlink.MAV_FRAME_BODY_OFFSET_NED,
+    ]
+)
+_BODY_FRAMES = frozenset([mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED])
+_GLOBAL_FRAMES = frozenset(
+    [
+        mavlink.MAV_FRAME_GLOBAL,
+        mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
+        mavlink.MAV_FRAME_GLOBAL_INT,
+        mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+        mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT,
+        mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
+    ]
+)
+# Flat ground: terrain altitude is altitude above home.
+_GLOBAL_RELATIVE_FRAMES = frozenset(
+    [
+        mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
+        mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+        mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT,
+        mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
+    ]
+)
+# MISSION_CURRENT.mission_mode (a plain field, no MAVLink enum).
+_MISSION_MODE_ACTIVE = 1
+_MISSION_MODE_SUSPENDED = 2
 _MAX_POSITION_M = 1e6
 _MAX_SPEED_M_S = 100.0
 _MAX_ACCEL_M_S2 = 100.0
@@ -249,7 +242,7 @@ class Px4Autopilot:
         self.armed = False
         self.mode = FlightMode.HOLD
         self.landed = True
-        self.landed_state = ON_GROUND
+        self.landed_state = mavlink.MAV_LANDED_STATE_ON_GROUND
         self.flow_ok = True
         self.gps_ok = True
         self.failsafe_active = False
@@ -318,23 +311,25 @@ class Px4Autopilot:
         ):
             self._message_handlers[kind] = self._on_mission_message
         self._command_handlers: dict[int, Callable[[_Command, Link], int]] = {
-            CMD_COMPONENT_ARM_DISARM: self._cmd_arm_disarm,
-            CMD_NAV_TAKEOFF: self._cmd_takeoff,
-            CMD_NAV_LAND: self._cmd_land,
-            CMD_NAV_RETURN_TO_LAUNCH: self._cmd_rtl,
-            CMD_DO_SET_MODE: self._cmd_set_mode,
-            CMD_DO_REPOSITION: self._cmd_reposition,
-            CMD_DO_CHANGE_SPEED: self._cmd_change_speed,
-            CMD_DO_SET_HOME: self._cmd_set_home,
-            CMD_DO_FLIGHTTERMINATION: self._cmd_flight_termination,
-            CMD_DO_PAUSE_CONTINUE: self._cmd_pause_continue,
-            CMD_DO_SET_MISSION_CURRENT: self._cmd_set_mission_current,
-            CMD_MISSION_START: self._cmd_mission_start,
-            CMD_GET_HOME_POSITION: self._cmd_get_home_position,
-            CMD_GET_MESSAGE_INTERVAL: self._cmd_get_message_interval,
-            CMD_SET_MESSAGE_INTERVAL: self._cmd_set_message_interval,
-            CMD_REQUEST_MESSAGE: self._cmd_request_message,
-            CMD_REQUEST_AUTOPILOT_CAPABILITIES: self._cmd_request_autopilot_capabilities,
+            mavlink.MAV_CMD_COMPONENT_ARM_DISARM: self._cmd_arm_disarm,
+            mavlink.MAV_CMD_NAV_TAKEOFF: self._cmd_takeoff,
+            mavlink.MAV_CMD_NAV_LAND: self._cmd_land,
+            mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH: self._cmd_rtl,
+            mavlink.MAV_CMD_DO_SET_MODE: self._cmd_set_mode,
+            mavlink.MAV_CMD_DO_REPOSITION: self._cmd_reposition,
+            mavlink.MAV_CMD_DO_CHANGE_SPEED: self._cmd_change_speed,
+            mavlink.MAV_CMD_DO_SET_HOME: self._cmd_set_home,
+            mavlink.MAV_CMD_DO_FLIGHTTERMINATION: self._cmd_flight_termination,
+            mavlink.MAV_CMD_DO_PAUSE_CONTINUE: self._cmd_pause_continue,
+            mavlink.MAV_CMD_DO_SET_MISSION_CURRENT: self._cmd_set_mission_current,
+            mavlink.MAV_CMD_MISSION_START: self._cmd_mission_start,
+            mavlink.MAV_CMD_GET_HOME_POSITION: self._cmd_get_home_position,
+            mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: self._cmd_get_message_interval,
+            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_message_interval,
+            mavlink.MAV_CMD_REQUEST_MESSAGE: self._cmd_request_message,
+            mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: (
+                self._cmd_request_autopilot_capabilities
+            ),
         }
         self._apply_limits()
         self._command_physics()
@@ -459,18 +454,20 @@ class Px4Autopilot:
     def mission_status(self) -> tuple[int, int, int, int]:
         """MISSION_CURRENT fields (seq, total, mission_state, mission_mode)."""
         total = len(self.mission.items)
-        in_mission = 1 if self.mode is FlightMode.MISSION else 2
+        in_mission = (
+            _MISSION_MODE_ACTIVE if self.mode is FlightMode.MISSION else _MISSION_MODE_SUSPENDED
+        )
         if total == 0:
-            return 0, 0, MISSION_STATE_NO_MISSION, in_mission
+            return 0, 0, mavlink.MISSION_STATE_NO_MISSION, in_mission
         seq = min(self._mission_seq, total - 1)
         if self._mission_finished:
-            state = MISSION_STATE_COMPLETE
+            state = mavlink.MISSION_STATE_COMPLETE
         elif not self._mission_started:
-            state = MISSION_STATE_NOT_STARTED
+            state = mavlink.MISSION_STATE_NOT_STARTED
         elif self.mode is FlightMode.MISSION:
-            state = MISSION_STATE_ACTIVE
+            state = mavlink.MISSION_STATE_ACTIVE
         else:
-            state = MISSION_STATE_PAUSED
+            state = mavlink.MISSION_STATE_PAUSED
         return seq, total, state, in_mission
 
     # ================================================================ faults
@@ -489,14 +486,16 @@ class Px4Autopilot:
                 self.flow_ok = ok
                 self._statustext(
                     now_s,
-                    WARNING if not ok else INFO,
+                    mavlink.MAV_SEVERITY_WARNING if not ok else mavlink.MAV_SEVERITY_INFO,
                     "Optical flow lost" if not ok else "Optical flow regained",
                 )
         elif sensor == "gps":
             if self.gps_ok != ok:
                 self.gps_ok = ok
                 self._statustext(
-                    now_s, WARNING if not ok else INFO, "GPS lost" if not ok else "GPS regained"
+                    now_s,
+                    mavlink.MAV_SEVERITY_WARNING if not ok else mavlink.MAV_SEVERITY_INFO,
+                    "GPS lost" if not ok else "GPS regained",
                 )
         else:
             raise ValueError(f"unknown sensor {sensor!r}; use 'flow' or 'gps'")
@@ -515,15 +514,18 @@ class Px4Autopilot:
         return msg.target_system == self.sysid and msg.target_component in (0, self.compid)
 
     def _on_heartbeat(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if msg.autopilot != MAV_AUTOPILOT_INVALID or msg.get_srcSystem() == self.sysid:
+        if msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID or msg.get_srcSystem() == self.sysid:
             return  # another vehicle, or our own echo: not a ground station / API client
         self._gcs_last_heartbeat_s = self._now_s
         if self._gcs_lost:
             self._gcs_lost = False
-            self._statustext(self._now_s, INFO, "Data link regained")
+            self._statustext(self._now_s, mavlink.MAV_SEVERITY_INFO, "Data link regained")
 
     def _on_set_mode(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if msg.target_system != self.sysid or not msg.base_mode & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+        if (
+            msg.target_system != self.sysid
+            or not msg.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        ):
             return
         mode = FlightMode.from_custom_mode(msg.custom_mode)
         if mode is not None:
@@ -571,7 +573,9 @@ class Px4Autopilot:
             return
         name = _param_name(msg.param_id)
         if name not in self.params:
-            self._statustext(self._now_s, WARNING, f"Unknown parameter {name[:24]}")
+            self._statustext(
+                self._now_s, mavlink.MAV_SEVERITY_WARNING, f"Unknown parameter {name[:24]}"
+            )
             return
         if name in ("MAV_SYS_ID", "MAV_COMP_ID"):
             pass  # changing ids needs a reboot on PX4 too; echo the value in use
@@ -580,7 +584,9 @@ class Px4Autopilot:
                 value = self.params.decode_wire_value(name, msg.param_value, msg.param_type)
                 self.params.set(name, value)
             except (ValueError, OverflowError) as exc:
-                self._statustext(self._now_s, WARNING, f"Param {name} rejected")
+                self._statustext(
+                    self._now_s, mavlink.MAV_SEVERITY_WARNING, f"Param {name} rejected"
+                )
                 logger.info("vehicle %d: PARAM_SET %s rejected: %s", self.sysid, name, exc)
         # PX4 announces the (possibly unchanged) value on every link.
         self._broadcast(self._param_value(name))
@@ -597,7 +603,10 @@ class Px4Autopilot:
     # -------------------------------------------------------------- commands
     def _on_command_long(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         command = msg.command
-        broadcast_ok = command in (CMD_REQUEST_AUTOPILOT_CAPABILITIES, CMD_REQUEST_PROTOCOL_VERSION)
+        broadcast_ok = command in (
+            mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+            mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION,
+        )
         if not (self._for_me(msg) or (broadcast_ok and msg.target_system in (0, self.sysid))):
             return
         cmd = _Command(
@@ -623,7 +632,7 @@ class Px4Autopilot:
 
     def _run_command(self, cmd: _Command, msg: mavlink.MAVLink_message, link: Link) -> None:
         handler = self._command_handlers.get(cmd.command)
-        result = UNSUPPORTED if handler is None else handler(cmd, link)
+        result = mavlink.MAV_RESULT_UNSUPPORTED if handler is None else handler(cmd, link)
         # Every copy of a command gets an answer: MAVSDK may miss a very fast first one.
         ack = mavlink.MAVLink_command_ack_message(
             cmd.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
@@ -644,31 +653,33 @@ class Px4Autopilot:
         now = self._now_s
         if p1 == 1.0:
             if self.armed:
-                return ACCEPTED
+                return mavlink.MAV_RESULT_ACCEPTED
             if not force:
                 if not self.ready(now):
                     reason = "estimator not ready" if self.position_ok else "no position"
-                    self._statustext(now, CRITICAL, f"Arming denied: {reason}")
-                    return TEMPORARILY_REJECTED
+                    self._statustext(now, mavlink.MAV_SEVERITY_CRITICAL, f"Arming denied: {reason}")
+                    return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
                 if self.mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
-                    self._statustext(now, CRITICAL, "Arming denied: no offboard signal")
-                    return TEMPORARILY_REJECTED
+                    self._statustext(
+                        now, mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: no offboard signal"
+                    )
+                    return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
             if self._injected_arm_refusal(cmd, link, now):
                 # PX4's commander: mavlink_log_critical(... "\t"), then TRANSITION_DENIED,
-                # which the arm command answers with TEMPORARILY_REJECTED.
-                self._statustext(now, CRITICAL, self._arm_refusal.text + "\t")
-                return TEMPORARILY_REJECTED
+                # which the arm command answers with MAV_RESULT_TEMPORARILY_REJECTED.
+                self._statustext(now, mavlink.MAV_SEVERITY_CRITICAL, self._arm_refusal.text + "\t")
+                return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
             self._arm(now)
-            return ACCEPTED
+            return mavlink.MAV_RESULT_ACCEPTED
         if p1 == 0.0:
             if not self.armed:
-                return ACCEPTED
+                return mavlink.MAV_RESULT_ACCEPTED
             if not (self.landed or force):
-                self._statustext(now, CRITICAL, "Disarming denied: not landed")
-                return DENIED
+                self._statustext(now, mavlink.MAV_SEVERITY_CRITICAL, "Disarming denied: not landed")
+                return mavlink.MAV_RESULT_DENIED
             self._disarm(now, "Disarmed by external command")
-            return ACCEPTED
-        return DENIED
+            return mavlink.MAV_RESULT_ACCEPTED
+        return mavlink.MAV_RESULT_DENIED
 
     def deny_arming(self, count: int, text: str, retry_window_s: float) -> None:
         """Refuse the next ``count`` arm attempts with STATUSTEXT ``text`` (added to any
@@ -702,8 +713,10 @@ class Px4Autopilot:
 
     def _cmd_takeoff(self, cmd: _Command, link: Link) -> int:
         if not self.armed:
-            self._statustext(self._now_s, CRITICAL, "Takeoff denied: vehicle not armed")
-            return TEMPORARILY_REJECTED
+            self._statustext(
+                self._now_s, mavlink.MAV_SEVERITY_CRITICAL, "Takeoff denied: vehicle not armed"
+            )
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         alt_amsl = cmd.params[6]
         if math.isfinite(alt_amsl):
             altitude = alt_amsl - (self.ground_amsl_m - self._home_ned_m[2])
@@ -711,34 +724,36 @@ class Px4Autopilot:
             altitude = self.params["MIS_TAKEOFF_ALT"]
         self._target_altitude_m = max(altitude, 0.5)
         self._set_mode(FlightMode.TAKEOFF)
-        return ACCEPTED
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_land(self, cmd: _Command, link: Link) -> int:
         self._set_mode(FlightMode.LAND)
-        return ACCEPTED
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_rtl(self, cmd: _Command, link: Link) -> int:
         self._set_mode(FlightMode.RTL)
-        return ACCEPTED
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_set_mode(self, cmd: _Command, link: Link) -> int:
         base, main, sub = cmd.params[0], cmd.params[1], cmd.params[2]
         if not (math.isfinite(base) and math.isfinite(main) and math.isfinite(sub)):
-            return DENIED
+            return mavlink.MAV_RESULT_DENIED
         # Only the custom-mode flag of param 1 matters: its armed bit may lag the real state.
-        if not int(base) & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            return DENIED
+        if not int(base) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            return mavlink.MAV_RESULT_DENIED
         mode = FlightMode.from_main_sub(int(main), int(sub))
         if mode is None:
-            return DENIED
+            return mavlink.MAV_RESULT_DENIED
         return self._request_mode(mode)
 
     def _cmd_reposition(self, cmd: _Command, link: Link) -> int:
         if not self.armed:
-            return DENIED
+            return mavlink.MAV_RESULT_DENIED
         if self.landed:
-            self._statustext(self._now_s, CRITICAL, "Reposition denied: vehicle landed")
-            return TEMPORARILY_REJECTED
+            self._statustext(
+                self._now_s, mavlink.MAV_SEVERITY_CRITICAL, "Reposition denied: vehicle landed"
+            )
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         p = cmd.params
         pos = self.position_ned()
         target = list(pos)
@@ -750,7 +765,7 @@ class Px4Autopilot:
             lat, lon = cmd.x_int * 1e-7, cmd.y_int * 1e-7
         if valid_xy:
             if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
-                return DENIED
+                return mavlink.MAV_RESULT_DENIED
             target[0], target[1] = self._projection.to_local(lat, lon)
         alt = p[6]
         if math.isfinite(alt):
@@ -765,15 +780,15 @@ class Px4Autopilot:
             self._mode_changed()
         self._fly_to(target, yaw if yaw is not None else self._heading_to(target))
         self._apply_limits()
-        return ACCEPTED
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_change_speed(self, cmd: _Command, link: Link) -> int:
         speed = cmd.params[1]
         if not math.isfinite(speed):
-            return DENIED
+            return mavlink.MAV_RESULT_DENIED
         self._cruise_override_m_s = speed if speed > 0 else None
         self._apply_limits()
-        return ACCEPTED
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_set_home(self, cmd: _Command, link: Link) -> int:
         p = cmd.params
@@ -785,77 +800,79 @@ class Px4Autopilot:
             else:
                 lat, lon = cmd.x_int * 1e-7, cmd.y_int * 1e-7
             if not (math.isfinite(lat) and math.isfinite(lon) and math.isfinite(p[6])):
-                return DENIED
+                return mavlink.MAV_RESULT_DENIED
             if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
-                return DENIED
+                return mavlink.MAV_RESULT_DENIED
             n, e = self._projection.to_local(lat, lon)
             self._home_ned_m = [n, e, self.ground_amsl_m - p[6]]
-        self._broadcast_message(242)
-        return ACCEPTED
+        self._broadcast_message(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_flight_termination(self, cmd: _Command, link: Link) -> int:
         if cmd.params[0] > 0.5:
             self._disarm(self._now_s, "Flight termination active")
-        return ACCEPTED
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_pause_continue(self, cmd: _Command, link: Link) -> int:
         if cmd.params[0] == 0.0:
             return self._request_mode(FlightMode.HOLD)
         if cmd.params[0] == 1.0:
             return self._request_mode(FlightMode.MISSION)
-        return DENIED
+        return mavlink.MAV_RESULT_DENIED
 
     def _cmd_set_mission_current(self, cmd: _Command, link: Link) -> int:
         seq = cmd.params[0]
         if not math.isfinite(seq) or not self._mission_set_current(int(seq)):
-            return DENIED
+            return mavlink.MAV_RESULT_DENIED
         self._broadcast_mission_current()
-        return ACCEPTED
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_mission_start(self, cmd: _Command, link: Link) -> int:
         items = self.mission.items
         if not items:
-            self._statustext(self._now_s, CRITICAL, "Mission start denied: no mission")
-            return TEMPORARILY_REJECTED
+            self._statustext(
+                self._now_s, mavlink.MAV_SEVERITY_CRITICAL, "Mission start denied: no mission"
+            )
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         first = cmd.params[0]
         if math.isfinite(first) and 0 <= first < len(items):
             self._mission_set_current(int(first))
         return self._request_mode(FlightMode.MISSION)
 
     def _cmd_get_home_position(self, cmd: _Command, link: Link) -> int:
-        self._then(lambda: self._send_built(242, link))
-        return ACCEPTED
+        self._then(lambda: self._send_built(mavlink.MAVLINK_MSG_ID_HOME_POSITION, link))
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_get_message_interval(self, cmd: _Command, link: Link) -> int:
         msg_id = cmd.params[0]
         if not math.isfinite(msg_id) or not 0 <= msg_id < 2**24:
-            return DENIED
+            return mavlink.MAV_RESULT_DENIED
         interval = link.streams.interval_us(int(msg_id)) if int(msg_id) in BUILDABLE else 0
         self._then(
             lambda: link.send(mavlink.MAVLink_message_interval_message(int(msg_id), interval))
         )
-        return ACCEPTED
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_set_message_interval(self, cmd: _Command, link: Link) -> int:
         msg_id, interval_us = cmd.params[0], cmd.params[1]
         if not (math.isfinite(msg_id) and 0 <= msg_id < 2**24):
-            return DENIED
+            return mavlink.MAV_RESULT_DENIED
         ok = link.streams.set_interval(int(msg_id), interval_us, self._now_s)
-        return ACCEPTED if ok else DENIED
+        return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
 
     def _cmd_request_message(self, cmd: _Command, link: Link) -> int:
         msg_id = cmd.params[0]
         if not (math.isfinite(msg_id) and int(msg_id) in BUILDABLE):
-            return DENIED
+            return mavlink.MAV_RESULT_DENIED
         msg = self.telemetry.build(int(msg_id), self._now_s)
         if msg is None:
-            return FAILED
+            return mavlink.MAV_RESULT_FAILED
         self._then(lambda: link.send(msg))
-        return ACCEPTED
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_request_autopilot_capabilities(self, cmd: _Command, link: Link) -> int:
-        self._then(lambda: self._send_built(148, link))
-        return ACCEPTED
+        self._then(lambda: self._send_built(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, link))
+        return mavlink.MAV_RESULT_ACCEPTED
 
     # ------------------------------------------------------------- setpoints
     def _on_position_target_local(self, msg: mavlink.MAVLink_message, link: Link) -> None:
@@ -863,7 +880,7 @@ class Px4Autopilot:
             return
         mask = msg.type_mask
         frame = msg.coordinate_frame
-        if frame not in (1, 7, 8, 9):  # LOCAL_NED, LOCAL_OFFSET_NED, BODY_NED, BODY_OFFSET_NED
+        if frame not in _LOCAL_FRAMES:
             self.rejected_setpoints += 1
             return
         use_pos = not mask & _IGNORE_POS
@@ -880,12 +897,12 @@ class Px4Autopilot:
             self.rejected_setpoints += 1
             return
         yaw_now = self.attitude()[2]
-        if frame in (8, 9):
+        if frame in _BODY_FRAMES:
             pos = _rotate_yaw(pos, yaw_now)
             vel = _rotate_yaw(vel, yaw_now)
             acc = _rotate_yaw(acc, yaw_now)
         if use_pos:
-            if frame == 1:
+            if frame == mavlink.MAV_FRAME_LOCAL_NED:
                 world = self._odometry.to_world(self.index, (pos[0], pos[1], pos[2]))
             else:
                 here = self.position_ned()
@@ -904,7 +921,7 @@ class Px4Autopilot:
         if not self._for_me(msg):
             return
         mask = msg.type_mask
-        if msg.coordinate_frame not in (0, 3, 5, 6, 10, 11):
+        if msg.coordinate_frame not in _GLOBAL_FRAMES:
             self.rejected_setpoints += 1
             return
         use_pos = not mask & _IGNORE_POS
@@ -919,7 +936,7 @@ class Px4Autopilot:
                 self.rejected_setpoints += 1
                 return
             n, e = self._projection.to_local(lat, lon)
-            relative = msg.coordinate_frame in (3, 6, 10, 11)
+            relative = msg.coordinate_frame in _GLOBAL_RELATIVE_FRAMES
             world = [n, e, self._down_from_altitude(alt, relative)]
             sp = _OffboardSetpoint("position", world, vel if use_vel else None, *self._yaw(msg))
         elif use_vel:
@@ -934,16 +951,22 @@ class Px4Autopilot:
         if not self._for_me(msg):
             return
         mask = msg.type_mask
-        thrust = msg.thrust if not mask & 0x40 else _HOVER_THRUST
+        thrust = (
+            msg.thrust
+            if not mask & mavlink.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE
+            else _HOVER_THRUST
+        )
         q = list(msg.q)
         if not (math.isfinite(thrust) and all(math.isfinite(v) for v in q)):
             self.rejected_setpoints += 1
             return
         norm = math.sqrt(sum(v * v for v in q))
         yaw_rate = math.nan
-        if not mask & 0x4 and math.isfinite(msg.body_yaw_rate):
+        if not mask & mavlink.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE and math.isfinite(
+            msg.body_yaw_rate
+        ):
             yaw_rate = msg.body_yaw_rate
-        if mask & 0x80 or norm < 1e-6:
+        if mask & mavlink.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE or norm < 1e-6:
             roll = pitch = 0.0
             yaw = math.nan
         else:
@@ -981,9 +1004,15 @@ class Px4Autopilot:
     @staticmethod
     def _yaw(msg: mavlink.MAVLink_message) -> tuple[float, float]:
         mask = msg.type_mask
-        yaw = msg.yaw if not mask & _IGNORE_YAW and math.isfinite(msg.yaw) else math.nan
+        yaw = (
+            msg.yaw
+            if not mask & mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE and math.isfinite(msg.yaw)
+            else math.nan
+        )
         rate = math.nan
-        if not mask & _IGNORE_YAW_RATE and math.isfinite(msg.yaw_rate):
+        if not mask & mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE and math.isfinite(
+            msg.yaw_rate
+        ):
             rate = msg.yaw_rate
         return yaw, rate
 
@@ -1020,20 +1049,26 @@ class Px4Autopilot:
         """A client asks for ``mode``: PX4's acceptance rules, then switch."""
         now = self._now_s
         if mode is self.mode:
-            return ACCEPTED
+            return mavlink.MAV_RESULT_ACCEPTED
         if mode in (FlightMode.MANUAL, FlightMode.ALTCTL, FlightMode.POSCTL):
-            self._statustext(now, CRITICAL, "Switching denied: no manual control input")
-            return TEMPORARILY_REJECTED
+            self._statustext(
+                now, mavlink.MAV_SEVERITY_CRITICAL, "Switching denied: no manual control input"
+            )
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         if mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
-            self._statustext(now, CRITICAL, "Switching to Offboard denied: no setpoints")
-            return TEMPORARILY_REJECTED
+            self._statustext(
+                now, mavlink.MAV_SEVERITY_CRITICAL, "Switching to Offboard denied: no setpoints"
+            )
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         if mode is FlightMode.MISSION and not self.mission.items:
-            self._statustext(now, CRITICAL, "Mission denied: no mission uploaded")
-            return TEMPORARILY_REJECTED
+            self._statustext(
+                now, mavlink.MAV_SEVERITY_CRITICAL, "Mission denied: no mission uploaded"
+            )
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         if mode is FlightMode.TAKEOFF:
             self._target_altitude_m = self.params["MIS_TAKEOFF_ALT"]
         self._set_mode(mode)
-        return ACCEPTED
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _set_mode(self, mode: FlightMode, failsafe: bool = False) -> None:
         previous = self.mode
@@ -1204,7 +1239,7 @@ class Px4Autopilot:
 
     # --------------------------------------------------------------- mission
     def _mission_uploaded(self, mission_type: int, items: list[MissionItem]) -> None:
-        if mission_type != MISSION_TYPE_MISSION:
+        if mission_type != mavlink.MAV_MISSION_TYPE_MISSION:
             return
         self._mission_seq = 0
         self._mission_started = False
@@ -1246,32 +1281,37 @@ class Px4Autopilot:
             command = item.command
             self._mission_phase = ""
             if command in (
-                CMD_NAV_WAYPOINT,
-                CMD_NAV_LOITER_UNLIM,
-                CMD_NAV_LOITER_TIME,
-                CMD_NAV_TAKEOFF,
-                CMD_NAV_LAND,
+                mavlink.MAV_CMD_NAV_WAYPOINT,
+                mavlink.MAV_CMD_NAV_LOITER_UNLIM,
+                mavlink.MAV_CMD_NAV_LOITER_TIME,
+                mavlink.MAV_CMD_NAV_TAKEOFF,
+                mavlink.MAV_CMD_NAV_LAND,
             ):
                 self._mission_fly_item(item)
                 return
-            if command == CMD_NAV_RETURN_TO_LAUNCH:
+            if command == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
                 # PX4 hands over to Return mode; MAVSDK expects no ITEM_REACHED for this item.
                 self._mission_finished = True
                 self._broadcast_mission_current()
                 self._set_mode(FlightMode.RTL)
                 return
-            if command == CMD_NAV_DELAY:
+            if command == mavlink.MAV_CMD_NAV_DELAY:
                 self._mission_phase = "hold"
                 delay = item.param1 if math.isfinite(item.param1) else 0.0
                 self._mission_hold_until_s = self._now_s + max(delay, 0.0)
                 self._hold_here()
                 return
-            if command == CMD_DO_CHANGE_SPEED and math.isfinite(item.param2):
+            if command == mavlink.MAV_CMD_DO_CHANGE_SPEED and math.isfinite(item.param2):
                 self._cruise_override_m_s = item.param2 if item.param2 > 0 else None
                 self._apply_limits()
-            elif command < 80 and command not in self._mission_warned:
+            elif command < mavlink.MAV_CMD_NAV_ROI and command not in self._mission_warned:
+                # A navigation item skipped changes the flight path: say so, once per command.
                 self._mission_warned.add(command)
-                self._statustext(self._now_s, WARNING, f"Mission item {command} not supported")
+                self._statustext(
+                    self._now_s,
+                    mavlink.MAV_SEVERITY_WARNING,
+                    f"Mission item {command} not supported",
+                )
             self._mission_item_reached(advance_only=True)
         self._mission_complete()
 
@@ -1288,7 +1328,7 @@ class Px4Autopilot:
         target = self._mission_item_target(item)
         self._mission_target_ned_m = target
         pos = self.position_ned()
-        if item.command == CMD_NAV_LAND:
+        if item.command == mavlink.MAV_CMD_NAV_LAND:
             if math.hypot(target[0] - pos[0], target[1] - pos[1]) > 1.0 and not self.landed:
                 self._mission_phase = "go"
                 self._fly_to([target[0], target[1], pos[2]], self._heading_to(target))
@@ -1296,7 +1336,7 @@ class Px4Autopilot:
                 self._mission_phase = "land"
                 self._start_landing()
             return
-        if item.command == CMD_NAV_TAKEOFF:
+        if item.command == mavlink.MAV_CMD_NAV_TAKEOFF:
             self._mission_phase = "takeoff"
             self._apply_limits()
             self._fly_to([pos[0], pos[1], min(target[2], pos[2])], math.nan)
@@ -1324,7 +1364,7 @@ class Px4Autopilot:
         vertical = self.params["NAV_MC_ALT_RAD"]
         if phase == "takeoff":
             if self._reached(self._physics_target(), 1e9, vertical):
-                if item.command == CMD_NAV_TAKEOFF:
+                if item.command == mavlink.MAV_CMD_NAV_TAKEOFF:
                     self._mission_phase = ""
                     self._apply_limits()
                     self._mission_item_reached()
@@ -1332,14 +1372,14 @@ class Px4Autopilot:
                     self._mission_fly_item(item)
         elif phase == "go":
             radius = item.param2 if item.param2 > 0 else self.params["NAV_ACC_RAD"]
-            if item.command == CMD_NAV_LAND:
+            if item.command == mavlink.MAV_CMD_NAV_LAND:
                 radius = 1.0
             if not self._reached(self._physics_target(), radius, vertical):
                 return
-            if item.command == CMD_NAV_LAND:
+            if item.command == mavlink.MAV_CMD_NAV_LAND:
                 self._mission_phase = "land"
                 self._start_landing()
-            elif item.command == CMD_NAV_LOITER_UNLIM:
+            elif item.command == mavlink.MAV_CMD_NAV_LOITER_UNLIM:
                 self._mission_phase = "loiter"
             else:
                 hold = item.param1 if math.isfinite(item.param1) and item.param1 > 0 else 0.0
@@ -1374,7 +1414,7 @@ class Px4Autopilot:
         self._mission_seq = max(len(self.mission.items) - 1, 0)
         self._broadcast_mission_current()
         if not self.landed:
-            self._statustext(self._now_s, INFO, "Mission finished, loitering")
+            self._statustext(self._now_s, mavlink.MAV_SEVERITY_INFO, "Mission finished, loitering")
             self._hold_here()
 
     def _broadcast_mission_current(self) -> None:
@@ -1388,13 +1428,13 @@ class Px4Autopilot:
         self._flown_since_arm = False
         self.failsafe_active = False
         self._gcs_lost = False
-        self._statustext(now_s, INFO, "Armed by external command")
+        self._statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Armed by external command")
         self._command_physics()
 
     def _disarm(self, now_s: float, reason: str) -> None:
         self.armed = False
         self._landing = False
-        self._statustext(now_s, INFO, reason)
+        self._statustext(now_s, mavlink.MAV_SEVERITY_INFO, reason)
         self._command_physics()
 
     # ================================================================ per step
@@ -1449,20 +1489,20 @@ class Px4Autopilot:
                 self._landed_at_s = now_s
                 self._landing = False
                 if self.armed:
-                    self._statustext(now_s, INFO, "Landing detected")
+                    self._statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Landing detected")
                     self._apply_limits()
                     self._hold_on_ground()
             else:
                 self._flown_since_arm = True
-                self._statustext(now_s, INFO, "Takeoff detected")
+                self._statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Takeoff detected")
         if landed:
-            self.landed_state = ON_GROUND
+            self.landed_state = mavlink.MAV_LANDED_STATE_ON_GROUND
         elif self._landing:
-            self.landed_state = LANDING
+            self.landed_state = mavlink.MAV_LANDED_STATE_LANDING
         elif self.mode is FlightMode.TAKEOFF or self._mission_phase == "takeoff":
-            self.landed_state = TAKING_OFF
+            self.landed_state = mavlink.MAV_LANDED_STATE_TAKEOFF
         else:
-            self.landed_state = IN_AIR
+            self.landed_state = mavlink.MAV_LANDED_STATE_IN_AIR
 
     def _hold_on_ground(self) -> None:
         """After touchdown keep the motors idle on the spot (until auto-disarm)."""
@@ -1476,7 +1516,9 @@ class Px4Autopilot:
     def _check_failsafes(self, now_s: float) -> None:
         p = self.params
         if self.mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
-            self._statustext(now_s, CRITICAL, "Failsafe activated: offboard control lost")
+            self._statustext(
+                now_s, mavlink.MAV_SEVERITY_CRITICAL, "Failsafe activated: offboard control lost"
+            )
             action = int(p["COM_OBL_RC_ACT"])
             self._failsafe(
                 {3: FlightMode.RTL, 4: FlightMode.LAND, 6: None, 7: None}.get(
@@ -1489,14 +1531,18 @@ class Px4Autopilot:
             and now_s - self._gcs_last_heartbeat_s > p["COM_DL_LOSS_T"]
         ):
             self._gcs_lost = True
-            self._statustext(now_s, CRITICAL, "Connection to ground station lost")
+            self._statustext(
+                now_s, mavlink.MAV_SEVERITY_CRITICAL, "Connection to ground station lost"
+            )
             action = int(p["NAV_DLL_ACT"])
             if action != 0:
                 self._failsafe(
                     {1: FlightMode.HOLD, 2: FlightMode.RTL, 3: FlightMode.LAND}.get(action)
                 )
         if not self.position_ok and not self.landed and self.mode is not FlightMode.LAND:
-            self._statustext(now_s, CRITICAL, "Failsafe activated: no position, landing")
+            self._statustext(
+                now_s, mavlink.MAV_SEVERITY_CRITICAL, "Failsafe activated: no position, landing"
+            )
             self._failsafe(FlightMode.LAND)
 
     def _failsafe(self, mode: FlightMode | None) -> None:
