@@ -21,20 +21,21 @@ import logging
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Protocol
+from dataclasses import dataclass
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import physics as ph
 from sitl.config import PX4_ARMING_DENIED_TEXT
 from sitl.geo import MapProjection
-from sitl.gnss import GnssError
 from sitl.mission import RELATIVE_ALT_FRAMES, MissionItem, MissionTransfer
 from sitl.modes import FlightMode
 from sitl.odometry import Odometry
 from sitl.params import ParamStore
-from sitl.telemetry import BUILDABLE, StreamScheduler, TelemetryBuilder, quaternion_to_euler
+from sitl.telemetry import BUILDABLE, TelemetryBuilder, quaternion_to_euler
+from sitl.vehicle_state import Link, Snapshot, VehicleContext, VehicleState
+
+__all__ = ["Link", "Px4Autopilot", "Snapshot"]
 
 logger = logging.getLogger(__name__)
 
@@ -98,57 +99,8 @@ _MAX_ACCEL_M_S2 = 100.0
 _HOVER_THRUST = 0.5
 
 _LANDED_AFTER_S = 0.5
-STATUS_LOG_LENGTH = 256
 _TAKEOFF_HEIGHT_M = 0.1
 _RTL_ARRIVED_M = 1.0
-
-
-class Link(Protocol):
-    """Where the autopilot's messages go: one MAVLink link (API or GCS) of this vehicle."""
-
-    name: str
-    streams: StreamScheduler
-
-    def send(self, msg: mavlink.MAVLink_message) -> None: ...
-
-
-@dataclass(slots=True)
-class Snapshot:
-    """Python-list copies of the physics state, refreshed once per step for cheap scalar reads.
-
-    ``position_ned_m[i]`` etc. are lists of 3 floats (world NED); ``step_id`` increments on every
-    refresh so per-vehicle caches know when they are stale.
-    """
-
-    position_ned_m: list[list[float]] = field(default_factory=list)
-    velocity_ned_m_s: list[list[float]] = field(default_factory=list)
-    roll_rad: list[float] = field(default_factory=list)
-    pitch_rad: list[float] = field(default_factory=list)
-    yaw_rad: list[float] = field(default_factory=list)
-    yaw_rate_rad_s: list[float] = field(default_factory=list)
-    drift_ned_m: list[list[float]] = field(default_factory=list)
-    gps_error_ned_m: list[list[float]] | None = None
-    """Error of the reported global position (world NED m), None while there is none."""
-    step_id: int = 0
-
-    def refresh(
-        self,
-        physics: ph.MulticopterPhysics,
-        odometry: Odometry,
-        gnss: GnssError | None = None,
-    ) -> None:
-        self.position_ned_m = physics.position_ned_m.tolist()
-        self.velocity_ned_m_s = physics.velocity_ned_m_s.tolist()
-        self.roll_rad = physics.roll_rad.tolist()
-        self.pitch_rad = physics.pitch_rad.tolist()
-        self.yaw_rad = physics.yaw_rad.tolist()
-        self.yaw_rate_rad_s = physics.yaw_rate_rad_s.tolist()
-        self.drift_ned_m = odometry.drift_ned_m.tolist()
-        if gnss is not None and gnss.active:
-            self.gps_error_ned_m = gnss.error_ned_m.tolist()
-        else:
-            self.gps_error_ned_m = None
-        self.step_id += 1
 
 
 @dataclass(slots=True)
@@ -225,7 +177,17 @@ class Px4Autopilot:
         self.boot_offset_s = float(boot_offset_s)
         self.params = ParamStore(param_overrides, on_change=self._param_changed)
         self.params.set_silently("MAV_SYS_ID", self.sysid)
-        self.links: list[Link] = []
+        self._state = VehicleState(home_ned_m=list(map(float, physics.position_ned_m[index])))
+        self._vehicle = VehicleContext(
+            index,
+            state=self._state,
+            params=self.params,
+            physics=physics,
+            odometry=odometry,
+            snapshot=snapshot,
+            projection=projection,
+            ground_amsl_m=ground_amsl_m,
+        )
         self.telemetry = TelemetryBuilder(self)
         self.mission = MissionTransfer(
             self.sysid,
@@ -234,34 +196,18 @@ class Px4Autopilot:
             on_set_current=self._mission_set_current,
             send_current=self._broadcast_mission_current,
         )
-        #: The latest STATUSTEXTs as (time_s, text), for observers (tests, a world module).
-        self.status_log: deque[tuple[float, str]] = deque(maxlen=STATUS_LOG_LENGTH)
-        self.on_statustext: Callable[[float, int, str], None] | None = None
-
-        self.alive = True
-        self.armed = False
-        self.mode = FlightMode.HOLD
-        self.landed = True
-        self.landed_state = mavlink.MAV_LANDED_STATE_ON_GROUND
-        self.flow_ok = True
-        self.gps_ok = True
-        self.failsafe_active = False
         self.battery_remaining_pct = 100.0
         self.rejected_setpoints = 0
         self._arm_refusal = _ArmRefusal()
-        self._statustext_id = 0
 
-        self._now_s = 0.0
         self._last_update_s = 0.0
         self._after_ack: Callable[[], None] | None = None
         self._armed_at_s = 0.0
         self._flown_since_arm = False
         self._ground_since_s: float | None = 0.0
         self._landed_at_s = 0.0
-        self._home_ned_m = list(map(float, physics.position_ned_m[index]))
         self._cruise_override_m_s: float | None = None
         self._target_altitude_m = 0.0  # takeoff target, above home
-        self._landing = False  # descending to land in any mode
 
         self._offboard_sp: _OffboardSetpoint | None = None
         self._last_setpoint_s = -math.inf
@@ -335,13 +281,70 @@ class Px4Autopilot:
         self._command_physics()
 
     # ================================================================ state access
-    def ready(self, now_s: float) -> bool:
-        """Preflight checks pass: estimator converged, a position source works, alive."""
-        return self.alive and now_s >= self.preflight_ready_after_s and self.position_ok
+    @property
+    def alive(self) -> bool:
+        return self._state.alive
+
+    @property
+    def armed(self) -> bool:
+        return self._state.armed
+
+    @property
+    def mode(self) -> FlightMode:
+        return self._state.mode
+
+    @property
+    def landed(self) -> bool:
+        return self._state.landed
+
+    @property
+    def landed_state(self) -> int:
+        """MAV_LANDED_STATE as of the last :meth:`update`."""
+        return self._state.landed_state
+
+    @property
+    def failsafe_active(self) -> bool:
+        return self._state.failsafe_active
+
+    @property
+    def flow_ok(self) -> bool:
+        return self._state.flow_ok
+
+    @property
+    def gps_ok(self) -> bool:
+        return self._state.gps_ok
 
     @property
     def position_ok(self) -> bool:
-        return self.gps_ok or self.flow_ok
+        return self._state.position_ok
+
+    @property
+    def links(self) -> list[Link]:
+        """Where this vehicle's messages go (set by whoever owns the links)."""
+        return self._vehicle.links
+
+    @links.setter
+    def links(self, links: list[Link]) -> None:
+        self._vehicle.links = links
+
+    @property
+    def status_log(self) -> deque[tuple[float, str]]:
+        """The latest STATUSTEXTs as (time_s, text), for observers (tests, a world module)."""
+        return self._vehicle.status_log
+
+    @property
+    def on_statustext(self) -> Callable[[float, int, str], None] | None:
+        """Called with (time_s, severity, text) for every STATUSTEXT."""
+        return self._vehicle.on_statustext
+
+    @on_statustext.setter
+    def on_statustext(self, observer: Callable[[float, int, str], None] | None) -> None:
+        self._vehicle.on_statustext = observer
+
+    def ready(self, now_s: float) -> bool:
+        """Preflight checks pass: estimator converged, a position source works, alive."""
+        state = self._state
+        return state.alive and now_s >= self.preflight_ready_after_s and state.position_ok
 
     def boot_time_s(self, now_s: float) -> float:
         """The autopilot's boot clock at simulated time ``now_s``."""
@@ -360,16 +363,14 @@ class Px4Autopilot:
 
     def position_ned(self) -> list[float]:
         """True world NED position, m."""
-        return self._snap.position_ned_m[self.index]
+        return self._vehicle.position_ned()
 
     def velocity_ned(self) -> list[float]:
-        return self._snap.velocity_ned_m_s[self.index]
+        return self._vehicle.velocity_ned()
 
     def attitude(self) -> tuple[float, float, float, float]:
         """(roll, pitch, yaw, yaw rate), rad and rad/s."""
-        i = self.index
-        s = self._snap
-        return s.roll_rad[i], s.pitch_rad[i], s.yaw_rad[i], s.yaw_rate_rad_s[i]
+        return self._vehicle.attitude()
 
     def reported_position_ned(self) -> list[float]:
         """World NED position the vehicle reports as its own: the truth plus the GPS/EKF
@@ -398,10 +399,10 @@ class Px4Autopilot:
         return lat, lon, self.ground_amsl_m - d
 
     def altitude_above_home_m(self) -> float:
-        return self._home_ned_m[2] - self.position_ned()[2]
+        return self._vehicle.altitude_above_home_m()
 
     def reported_altitude_above_home_m(self) -> float:
-        return self._home_ned_m[2] - self.reported_position_ned()[2]
+        return self._state.home_ned_m[2] - self.reported_position_ned()[2]
 
     def truth_rates(self) -> tuple[float, float, float, list[float], list[float]]:
         """Body rates (roll, pitch, yaw; rad/s, FRD), NED acceleration (m/s^2) and the wind
@@ -422,16 +423,16 @@ class Px4Autopilot:
         return p, q, r, accel, wind_ned
 
     def height_above_ground_m(self) -> float:
-        return -self.position_ned()[2]
+        return self._vehicle.height_above_ground_m()
 
     def home_global(self) -> tuple[float, float, float]:
-        n, e, d = self._home_ned_m
+        n, e, d = self._state.home_ned_m
         lat, lon = self._projection.to_global(n, e)
         return lat, lon, self.ground_amsl_m - d
 
     def home_local_ned(self) -> tuple[float, float, float]:
         origin = self._odometry.origin_ned_m[self.index]
-        n, e, d = self._home_ned_m
+        n, e, d = self._state.home_ned_m
         return float(n - origin[0]), float(e - origin[1]), float(d - origin[2])
 
     def local_origin_global(self) -> tuple[float, float, float]:
@@ -455,7 +456,9 @@ class Px4Autopilot:
         """MISSION_CURRENT fields (seq, total, mission_state, mission_mode)."""
         total = len(self.mission.items)
         in_mission = (
-            _MISSION_MODE_ACTIVE if self.mode is FlightMode.MISSION else _MISSION_MODE_SUSPENDED
+            _MISSION_MODE_ACTIVE
+            if self._state.mode is FlightMode.MISSION
+            else _MISSION_MODE_SUSPENDED
         )
         if total == 0:
             return 0, 0, mavlink.MISSION_STATE_NO_MISSION, in_mission
@@ -464,7 +467,7 @@ class Px4Autopilot:
             state = mavlink.MISSION_STATE_COMPLETE
         elif not self._mission_started:
             state = mavlink.MISSION_STATE_NOT_STARTED
-        elif self.mode is FlightMode.MISSION:
+        elif self._state.mode is FlightMode.MISSION:
             state = mavlink.MISSION_STATE_ACTIVE
         else:
             state = mavlink.MISSION_STATE_PAUSED
@@ -473,26 +476,26 @@ class Px4Autopilot:
     # ================================================================ faults
     def kill(self, now_s: float) -> None:
         """The autopilot dies: motors stop, nothing is sent or answered from now on."""
-        if not self.alive:
+        if not self._state.alive:
             return
-        self.alive = False
-        self._physics.control_mode[self.index] = ph.MOTORS_OFF
+        self._state.alive = False
+        self._vehicle.motors_off()
         logger.info("vehicle %d killed at %.2f s", self.sysid, now_s)
 
     def set_sensor(self, sensor: str, ok: bool, now_s: float) -> None:
         """Fail (``ok=False``) or restore the ``"flow"`` odometry or the ``"gps"`` receiver."""
         if sensor == "flow":
-            if self.flow_ok != ok:
-                self.flow_ok = ok
-                self._statustext(
+            if self._state.flow_ok != ok:
+                self._state.flow_ok = ok
+                self._vehicle.statustext(
                     now_s,
                     mavlink.MAV_SEVERITY_WARNING if not ok else mavlink.MAV_SEVERITY_INFO,
                     "Optical flow lost" if not ok else "Optical flow regained",
                 )
         elif sensor == "gps":
-            if self.gps_ok != ok:
-                self.gps_ok = ok
-                self._statustext(
+            if self._state.gps_ok != ok:
+                self._state.gps_ok = ok
+                self._vehicle.statustext(
                     now_s,
                     mavlink.MAV_SEVERITY_WARNING if not ok else mavlink.MAV_SEVERITY_INFO,
                     "GPS lost" if not ok else "GPS regained",
@@ -503,23 +506,22 @@ class Px4Autopilot:
     # ================================================================ messages in
     def handle_message(self, msg: mavlink.MAVLink_message, link: Link, now_s: float) -> None:
         """React to one decoded message received on ``link``."""
-        if not self.alive:
+        if not self._state.alive:
             return
-        self._now_s = now_s
+        self._state.now_s = now_s
         handler = self._message_handlers.get(msg.get_type())
         if handler is not None:
             handler(msg, link)
 
-    def _for_me(self, msg: mavlink.MAVLink_message) -> bool:
-        return msg.target_system == self.sysid and msg.target_component in (0, self.compid)
-
     def _on_heartbeat(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         if msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID or msg.get_srcSystem() == self.sysid:
             return  # another vehicle, or our own echo: not a ground station / API client
-        self._gcs_last_heartbeat_s = self._now_s
+        self._gcs_last_heartbeat_s = self._state.now_s
         if self._gcs_lost:
             self._gcs_lost = False
-            self._statustext(self._now_s, mavlink.MAV_SEVERITY_INFO, "Data link regained")
+            self._vehicle.statustext(
+                self._state.now_s, mavlink.MAV_SEVERITY_INFO, "Data link regained"
+            )
 
     def _on_set_mode(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         if (
@@ -541,21 +543,21 @@ class Px4Autopilot:
 
     def _on_timesync(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         if msg.tc1 == 0:
-            boot_ns = int(self.boot_time_s(self._now_s) * 1e9)
+            boot_ns = int(self.boot_time_s(self._state.now_s) * 1e9)
             link.send(mavlink.MAVLink_timesync_message(boot_ns, msg.ts1))
 
     def _on_mission_message(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        self.mission.handle(msg, link, self._now_s)
+        self.mission.handle(msg, link, self._state.now_s)
 
     # ---------------------------------------------------------------- params
     def _on_param_request_list(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._for_me(msg):
+        if not self._vehicle.is_for_me(msg):
             return
         for name in self.params:
             link.send(self._param_value(name))
 
     def _on_param_request_read(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._for_me(msg):
+        if not self._vehicle.is_for_me(msg):
             return
         names = self.params
         if msg.param_index >= 0:
@@ -569,12 +571,12 @@ class Px4Autopilot:
         link.send(self._param_value(name))
 
     def _on_param_set(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._for_me(msg):
+        if not self._vehicle.is_for_me(msg):
             return
         name = _param_name(msg.param_id)
         if name not in self.params:
-            self._statustext(
-                self._now_s, mavlink.MAV_SEVERITY_WARNING, f"Unknown parameter {name[:24]}"
+            self._vehicle.statustext(
+                self._state.now_s, mavlink.MAV_SEVERITY_WARNING, f"Unknown parameter {name[:24]}"
             )
             return
         if name in ("MAV_SYS_ID", "MAV_COMP_ID"):
@@ -584,12 +586,12 @@ class Px4Autopilot:
                 value = self.params.decode_wire_value(name, msg.param_value, msg.param_type)
                 self.params.set(name, value)
             except (ValueError, OverflowError) as exc:
-                self._statustext(
-                    self._now_s, mavlink.MAV_SEVERITY_WARNING, f"Param {name} rejected"
+                self._vehicle.statustext(
+                    self._state.now_s, mavlink.MAV_SEVERITY_WARNING, f"Param {name} rejected"
                 )
                 logger.info("vehicle %d: PARAM_SET %s rejected: %s", self.sysid, name, exc)
         # PX4 announces the (possibly unchanged) value on every link.
-        self._broadcast(self._param_value(name))
+        self._vehicle.broadcast(self._param_value(name))
 
     def _param_value(self, name: str) -> mavlink.MAVLink_message:
         value, mav_type = self.params.wire_value(name)
@@ -607,7 +609,9 @@ class Px4Autopilot:
             mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
             mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION,
         )
-        if not (self._for_me(msg) or (broadcast_ok and msg.target_system in (0, self.sysid))):
+        if not (
+            self._vehicle.is_for_me(msg) or (broadcast_ok and msg.target_system in (0, self.sysid))
+        ):
             return
         cmd = _Command(
             command,
@@ -618,7 +622,7 @@ class Px4Autopilot:
         self._run_command(cmd, msg, link)
 
     def _on_command_int(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._for_me(msg):
+        if not self._vehicle.is_for_me(msg):
             return
         cmd = _Command(
             msg.command,
@@ -650,32 +654,38 @@ class Px4Autopilot:
     def _cmd_arm_disarm(self, cmd: _Command, link: Link) -> int:
         p1, p2 = cmd.params[0], cmd.params[1]
         force = p2 == FORCE_MAGIC
-        now = self._now_s
+        now = self._state.now_s
         if p1 == 1.0:
-            if self.armed:
+            if self._state.armed:
                 return mavlink.MAV_RESULT_ACCEPTED
             if not force:
                 if not self.ready(now):
-                    reason = "estimator not ready" if self.position_ok else "no position"
-                    self._statustext(now, mavlink.MAV_SEVERITY_CRITICAL, f"Arming denied: {reason}")
+                    reason = "estimator not ready" if self._state.position_ok else "no position"
+                    self._vehicle.statustext(
+                        now, mavlink.MAV_SEVERITY_CRITICAL, f"Arming denied: {reason}"
+                    )
                     return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-                if self.mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
-                    self._statustext(
+                if self._state.mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
+                    self._vehicle.statustext(
                         now, mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: no offboard signal"
                     )
                     return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
             if self._injected_arm_refusal(cmd, link, now):
                 # PX4's commander: mavlink_log_critical(... "\t"), then TRANSITION_DENIED,
                 # which the arm command answers with MAV_RESULT_TEMPORARILY_REJECTED.
-                self._statustext(now, mavlink.MAV_SEVERITY_CRITICAL, self._arm_refusal.text + "\t")
+                self._vehicle.statustext(
+                    now, mavlink.MAV_SEVERITY_CRITICAL, self._arm_refusal.text + "\t"
+                )
                 return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
             self._arm(now)
             return mavlink.MAV_RESULT_ACCEPTED
         if p1 == 0.0:
-            if not self.armed:
+            if not self._state.armed:
                 return mavlink.MAV_RESULT_ACCEPTED
-            if not (self.landed or force):
-                self._statustext(now, mavlink.MAV_SEVERITY_CRITICAL, "Disarming denied: not landed")
+            if not (self._state.landed or force):
+                self._vehicle.statustext(
+                    now, mavlink.MAV_SEVERITY_CRITICAL, "Disarming denied: not landed"
+                )
                 return mavlink.MAV_RESULT_DENIED
             self._disarm(now, "Disarmed by external command")
             return mavlink.MAV_RESULT_ACCEPTED
@@ -712,14 +722,16 @@ class Px4Autopilot:
         return True
 
     def _cmd_takeoff(self, cmd: _Command, link: Link) -> int:
-        if not self.armed:
-            self._statustext(
-                self._now_s, mavlink.MAV_SEVERITY_CRITICAL, "Takeoff denied: vehicle not armed"
+        if not self._state.armed:
+            self._vehicle.statustext(
+                self._state.now_s,
+                mavlink.MAV_SEVERITY_CRITICAL,
+                "Takeoff denied: vehicle not armed",
             )
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         alt_amsl = cmd.params[6]
         if math.isfinite(alt_amsl):
-            altitude = alt_amsl - (self.ground_amsl_m - self._home_ned_m[2])
+            altitude = alt_amsl - (self.ground_amsl_m - self._state.home_ned_m[2])
         else:
             altitude = self.params["MIS_TAKEOFF_ALT"]
         self._target_altitude_m = max(altitude, 0.5)
@@ -747,11 +759,13 @@ class Px4Autopilot:
         return self._request_mode(mode)
 
     def _cmd_reposition(self, cmd: _Command, link: Link) -> int:
-        if not self.armed:
+        if not self._state.armed:
             return mavlink.MAV_RESULT_DENIED
-        if self.landed:
-            self._statustext(
-                self._now_s, mavlink.MAV_SEVERITY_CRITICAL, "Reposition denied: vehicle landed"
+        if self._state.landed:
+            self._vehicle.statustext(
+                self._state.now_s,
+                mavlink.MAV_SEVERITY_CRITICAL,
+                "Reposition denied: vehicle landed",
             )
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         p = cmd.params
@@ -770,13 +784,13 @@ class Px4Autopilot:
         alt = p[6]
         if math.isfinite(alt):
             relative = cmd.frame in RELATIVE_ALT_FRAMES
-            target[2] = self._down_from_altitude(alt, relative)
+            target[2] = self._vehicle.down_from_altitude(alt, relative)
         speed = p[0]
         if math.isfinite(speed) and speed > 0:
             self._cruise_override_m_s = speed
         yaw = p[3] if math.isfinite(p[3]) else None
-        if self.mode is not FlightMode.HOLD:
-            self.mode = FlightMode.HOLD
+        if self._state.mode is not FlightMode.HOLD:
+            self._state.mode = FlightMode.HOLD
             self._mode_changed()
         self._fly_to(target, yaw if yaw is not None else self._heading_to(target))
         self._apply_limits()
@@ -793,7 +807,7 @@ class Px4Autopilot:
     def _cmd_set_home(self, cmd: _Command, link: Link) -> int:
         p = cmd.params
         if p[0] == 1.0:
-            self._home_ned_m = list(self.position_ned())
+            self._state.home_ned_m = list(self.position_ned())
         else:
             if cmd.frame is None:
                 lat, lon = p[4], p[5]
@@ -804,13 +818,13 @@ class Px4Autopilot:
             if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
                 return mavlink.MAV_RESULT_DENIED
             n, e = self._projection.to_local(lat, lon)
-            self._home_ned_m = [n, e, self.ground_amsl_m - p[6]]
+            self._state.home_ned_m = [n, e, self.ground_amsl_m - p[6]]
         self._broadcast_message(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
         return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_flight_termination(self, cmd: _Command, link: Link) -> int:
         if cmd.params[0] > 0.5:
-            self._disarm(self._now_s, "Flight termination active")
+            self._disarm(self._state.now_s, "Flight termination active")
         return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_pause_continue(self, cmd: _Command, link: Link) -> int:
@@ -830,8 +844,8 @@ class Px4Autopilot:
     def _cmd_mission_start(self, cmd: _Command, link: Link) -> int:
         items = self.mission.items
         if not items:
-            self._statustext(
-                self._now_s, mavlink.MAV_SEVERITY_CRITICAL, "Mission start denied: no mission"
+            self._vehicle.statustext(
+                self._state.now_s, mavlink.MAV_SEVERITY_CRITICAL, "Mission start denied: no mission"
             )
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         first = cmd.params[0]
@@ -857,14 +871,14 @@ class Px4Autopilot:
         msg_id, interval_us = cmd.params[0], cmd.params[1]
         if not (math.isfinite(msg_id) and 0 <= msg_id < 2**24):
             return mavlink.MAV_RESULT_DENIED
-        ok = link.streams.set_interval(int(msg_id), interval_us, self._now_s)
+        ok = link.streams.set_interval(int(msg_id), interval_us, self._state.now_s)
         return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
 
     def _cmd_request_message(self, cmd: _Command, link: Link) -> int:
         msg_id = cmd.params[0]
         if not (math.isfinite(msg_id) and int(msg_id) in BUILDABLE):
             return mavlink.MAV_RESULT_DENIED
-        msg = self.telemetry.build(int(msg_id), self._now_s)
+        msg = self.telemetry.build(int(msg_id), self._state.now_s)
         if msg is None:
             return mavlink.MAV_RESULT_FAILED
         self._then(lambda: link.send(msg))
@@ -876,7 +890,7 @@ class Px4Autopilot:
 
     # ------------------------------------------------------------- setpoints
     def _on_position_target_local(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._for_me(msg):
+        if not self._vehicle.is_for_me(msg):
             return
         mask = msg.type_mask
         frame = msg.coordinate_frame
@@ -918,7 +932,7 @@ class Px4Autopilot:
         self._accept_setpoint(sp)
 
     def _on_position_target_global(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._for_me(msg):
+        if not self._vehicle.is_for_me(msg):
             return
         mask = msg.type_mask
         if msg.coordinate_frame not in _GLOBAL_FRAMES:
@@ -937,7 +951,7 @@ class Px4Autopilot:
                 return
             n, e = self._projection.to_local(lat, lon)
             relative = msg.coordinate_frame in _GLOBAL_RELATIVE_FRAMES
-            world = [n, e, self._down_from_altitude(alt, relative)]
+            world = [n, e, self._vehicle.down_from_altitude(alt, relative)]
             sp = _OffboardSetpoint("position", world, vel if use_vel else None, *self._yaw(msg))
         elif use_vel:
             sp = _OffboardSetpoint("velocity", vel, None, *self._yaw(msg))
@@ -948,7 +962,7 @@ class Px4Autopilot:
 
     def _on_attitude_target(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         """Approximation: the tilt and thrust become an acceleration command."""
-        if not self._for_me(msg):
+        if not self._vehicle.is_for_me(msg):
             return
         mask = msg.type_mask
         thrust = (
@@ -1018,12 +1032,12 @@ class Px4Autopilot:
 
     def _accept_setpoint(self, sp: _OffboardSetpoint) -> None:
         self._offboard_sp = sp
-        self._last_setpoint_s = self._now_s
-        if self.mode is FlightMode.OFFBOARD and self.armed:
+        self._last_setpoint_s = self._state.now_s
+        if self._state.mode is FlightMode.OFFBOARD and self._state.armed:
             self._apply_offboard()
 
     def _offboard_signal_fresh(self) -> bool:
-        return self._now_s - self._last_setpoint_s <= self.params["COM_OF_LOSS_T"]
+        return self._state.now_s - self._last_setpoint_s <= self.params["COM_OF_LOSS_T"]
 
     def _apply_offboard(self) -> None:
         sp = self._offboard_sp
@@ -1047,21 +1061,21 @@ class Px4Autopilot:
     # ================================================================ modes
     def _request_mode(self, mode: FlightMode) -> int:
         """A client asks for ``mode``: PX4's acceptance rules, then switch."""
-        now = self._now_s
-        if mode is self.mode:
+        now = self._state.now_s
+        if mode is self._state.mode:
             return mavlink.MAV_RESULT_ACCEPTED
         if mode in (FlightMode.MANUAL, FlightMode.ALTCTL, FlightMode.POSCTL):
-            self._statustext(
+            self._vehicle.statustext(
                 now, mavlink.MAV_SEVERITY_CRITICAL, "Switching denied: no manual control input"
             )
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         if mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
-            self._statustext(
+            self._vehicle.statustext(
                 now, mavlink.MAV_SEVERITY_CRITICAL, "Switching to Offboard denied: no setpoints"
             )
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         if mode is FlightMode.MISSION and not self.mission.items:
-            self._statustext(
+            self._vehicle.statustext(
                 now, mavlink.MAV_SEVERITY_CRITICAL, "Mission denied: no mission uploaded"
             )
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
@@ -1071,15 +1085,15 @@ class Px4Autopilot:
         return mavlink.MAV_RESULT_ACCEPTED
 
     def _set_mode(self, mode: FlightMode, failsafe: bool = False) -> None:
-        previous = self.mode
-        self.mode = mode
-        self.failsafe_active = failsafe
+        previous = self._state.mode
+        self._state.mode = mode
+        self._state.failsafe_active = failsafe
         if mode is FlightMode.MISSION and previous is not FlightMode.MISSION:
             self._mission_restart_if_finished()
         self._mode_changed()
 
     def _mode_changed(self) -> None:
-        self._landing = False
+        self._state.landing = False
         self._rtl_stage = ""
         self._apply_limits()
         self._command_physics()
@@ -1088,19 +1102,19 @@ class Px4Autopilot:
         """Set this vehicle's physics setpoints for the current mode (entry actions)."""
         i = self.index
         phys = self._physics
-        if not self.alive:
+        if not self._state.alive:
             phys.control_mode[i] = ph.MOTORS_OFF
             return
-        if not self.armed:
+        if not self._state.armed:
             phys.control_mode[i] = ph.MOTORS_OFF
             phys.velocity_setpoint_ned_m_s[i] = 0.0
             return
-        mode = self.mode
+        mode = self._state.mode
         if mode is FlightMode.OFFBOARD:
             self._apply_offboard()
         elif mode is FlightMode.TAKEOFF:
             pos = self.position_ned()
-            down = self._home_ned_m[2] - self._target_altitude_m
+            down = self._state.home_ned_m[2] - self._target_altitude_m
             self._fly_to([pos[0], pos[1], min(down, pos[2])], math.nan)
         elif mode is FlightMode.LAND:
             self._start_landing()
@@ -1123,14 +1137,14 @@ class Px4Autopilot:
         phys.max_up_accel_m_s2[i] = p["MPC_ACC_UP_MAX"]
         phys.max_down_accel_m_s2[i] = p["MPC_ACC_DOWN_MAX"]
         phys.max_yaw_rate_rad_s[i] = math.radians(p["MPC_YAWRAUTO_MAX"])
-        if self.mode is FlightMode.OFFBOARD:
+        if self._state.mode is FlightMode.OFFBOARD:
             cruise = p["MPC_XY_VEL_MAX"]
         else:
             cruise = self._cruise_override_m_s or p["MPC_XY_CRUISE"]
         phys.cruise_speed_m_s[i] = min(cruise, p["MPC_XY_VEL_MAX"])
-        if self.mode is FlightMode.TAKEOFF or self._mission_phase == "takeoff":
+        if self._state.mode is FlightMode.TAKEOFF or self._mission_phase == "takeoff":
             phys.max_up_speed_m_s[i] = min(p["MPC_TKO_SPEED"], p["MPC_Z_VEL_MAX_UP"])
-        if self._landing:
+        if self._state.landing:
             phys.max_down_speed_m_s[i] = self._landing_speed()
 
     def _landing_speed(self) -> float:
@@ -1157,7 +1171,7 @@ class Px4Autopilot:
     def _hold_here(self) -> None:
         """Brake and hold: target the stopping point of the current motion."""
         pos = self.position_ned()
-        if self.landed:
+        if self._state.landed:
             self._fly_to([pos[0], pos[1], max(pos[2], 0.0)], math.nan)
             return
         vel = self.velocity_ned()
@@ -1173,21 +1187,16 @@ class Px4Autopilot:
             return math.nan
         return math.atan2(de, dn)
 
-    def _down_from_altitude(self, altitude_m: float, relative_to_home: bool) -> float:
-        if relative_to_home:
-            return self._home_ned_m[2] - altitude_m
-        return self.ground_amsl_m - altitude_m
-
     def _start_landing(self) -> None:
         pos = self.position_ned()
-        self._landing = True
+        self._state.landing = True
         self._apply_limits()
         # Aim below the ground: the descent is limited by the landing speed, the ground stops it.
         self._fly_to([pos[0], pos[1], 10.0], math.nan)
 
     # -------------------------------------------------------------------- RTL
     def _rtl_begin(self) -> None:
-        if self.landed:
+        if self._state.landed:
             self._rtl_stage = "done"
             self._hold_here()
             return
@@ -1198,7 +1207,7 @@ class Px4Autopilot:
     def _rtl_set_stage(self, stage: str) -> None:
         self._rtl_stage = stage
         pos = self.position_ned()
-        home = self._home_ned_m
+        home = self._state.home_ned_m
         if stage == "climb":
             self._fly_to([pos[0], pos[1], home[2] - self._rtl_altitude_m], math.nan)
         elif stage == "return":
@@ -1209,7 +1218,7 @@ class Px4Autopilot:
             self._fly_to([home[0], home[1], home[2] - altitude], math.nan)
         elif stage == "loiter":
             delay = self.params["RTL_LAND_DELAY"]
-            self._rtl_loiter_until_s = math.inf if delay < 0 else self._now_s + delay
+            self._rtl_loiter_until_s = math.inf if delay < 0 else self._state.now_s + delay
         elif stage == "land":
             self._start_landing()
 
@@ -1246,7 +1255,7 @@ class Px4Autopilot:
         self._mission_finished = False
         self._mission_phase = ""
         self._mission_warned.clear()
-        if self.mode is FlightMode.MISSION:
+        if self._state.mode is FlightMode.MISSION:
             if items:
                 self._command_physics()
             else:
@@ -1258,7 +1267,7 @@ class Px4Autopilot:
             return False
         self._mission_seq = seq
         self._mission_finished = False
-        if self.mode is FlightMode.MISSION and self.armed:
+        if self._state.mode is FlightMode.MISSION and self._state.armed:
             self._mission_start_item()
         return True
 
@@ -1270,7 +1279,7 @@ class Px4Autopilot:
     def _mission_start_item(self) -> None:
         """Begin the current item; items that need no flying complete at once."""
         items = self.mission.items
-        if not self.armed:
+        if not self._state.armed:
             return
         self._mission_started = True
         for _ in range(len(items) + 1):
@@ -1298,7 +1307,7 @@ class Px4Autopilot:
             if command == mavlink.MAV_CMD_NAV_DELAY:
                 self._mission_phase = "hold"
                 delay = item.param1 if math.isfinite(item.param1) else 0.0
-                self._mission_hold_until_s = self._now_s + max(delay, 0.0)
+                self._mission_hold_until_s = self._state.now_s + max(delay, 0.0)
                 self._hold_here()
                 return
             if command == mavlink.MAV_CMD_DO_CHANGE_SPEED and math.isfinite(item.param2):
@@ -1307,8 +1316,8 @@ class Px4Autopilot:
             elif command < mavlink.MAV_CMD_NAV_ROI and command not in self._mission_warned:
                 # A navigation item skipped changes the flight path: say so, once per command.
                 self._mission_warned.add(command)
-                self._statustext(
-                    self._now_s,
+                self._vehicle.statustext(
+                    self._state.now_s,
                     mavlink.MAV_SEVERITY_WARNING,
                     f"Mission item {command} not supported",
                 )
@@ -1321,7 +1330,7 @@ class Px4Autopilot:
         if item.x != 0 or item.y != 0:
             target[0], target[1] = self._projection.to_local(item.latitude_deg, item.longitude_deg)
         if math.isfinite(item.z):
-            target[2] = self._down_from_altitude(item.z, item.frame in RELATIVE_ALT_FRAMES)
+            target[2] = self._vehicle.down_from_altitude(item.z, item.frame in RELATIVE_ALT_FRAMES)
         return target
 
     def _mission_fly_item(self, item: MissionItem) -> None:
@@ -1329,7 +1338,7 @@ class Px4Autopilot:
         self._mission_target_ned_m = target
         pos = self.position_ned()
         if item.command == mavlink.MAV_CMD_NAV_LAND:
-            if math.hypot(target[0] - pos[0], target[1] - pos[1]) > 1.0 and not self.landed:
+            if math.hypot(target[0] - pos[0], target[1] - pos[1]) > 1.0 and not self._state.landed:
                 self._mission_phase = "go"
                 self._fly_to([target[0], target[1], pos[2]], self._heading_to(target))
             else:
@@ -1341,12 +1350,12 @@ class Px4Autopilot:
             self._apply_limits()
             self._fly_to([pos[0], pos[1], min(target[2], pos[2])], math.nan)
             return
-        if self.landed:
+        if self._state.landed:
             # PX4 takes off vertically before flying to the first waypoint.
-            altitude = max(self._home_ned_m[2] - target[2], self.params["MIS_TAKEOFF_ALT"])
+            altitude = max(self._state.home_ned_m[2] - target[2], self.params["MIS_TAKEOFF_ALT"])
             self._mission_phase = "takeoff"
             self._apply_limits()
-            self._fly_to([pos[0], pos[1], self._home_ned_m[2] - altitude], math.nan)
+            self._fly_to([pos[0], pos[1], self._state.home_ned_m[2] - altitude], math.nan)
             return
         self._mission_phase = "go"
         self._apply_limits()
@@ -1355,7 +1364,7 @@ class Px4Autopilot:
 
     def _mission_update(self, now_s: float) -> None:
         phase = self._mission_phase
-        if not self.armed or not phase or self._mission_finished:
+        if not self._state.armed or not phase or self._mission_finished:
             return
         items = self.mission.items
         if self._mission_seq >= len(items):
@@ -1391,12 +1400,12 @@ class Px4Autopilot:
         elif phase == "hold":
             if now_s >= self._mission_hold_until_s:
                 self._mission_item_reached()
-        elif phase == "land" and self.landed:
+        elif phase == "land" and self._state.landed:
             self._mission_phase = ""
             self._mission_item_reached()
 
     def _mission_item_reached(self, advance_only: bool = False) -> None:
-        self._broadcast(mavlink.MAVLink_mission_item_reached_message(self._mission_seq))
+        self._vehicle.broadcast(mavlink.MAVLink_mission_item_reached_message(self._mission_seq))
         self._mission_seq += 1
         self._mission_phase = ""
         if self._mission_seq >= len(self.mission.items):
@@ -1413,46 +1422,48 @@ class Px4Autopilot:
         self._mission_phase = ""
         self._mission_seq = max(len(self.mission.items) - 1, 0)
         self._broadcast_mission_current()
-        if not self.landed:
-            self._statustext(self._now_s, mavlink.MAV_SEVERITY_INFO, "Mission finished, loitering")
+        if not self._state.landed:
+            self._vehicle.statustext(
+                self._state.now_s, mavlink.MAV_SEVERITY_INFO, "Mission finished, loitering"
+            )
             self._hold_here()
 
     def _broadcast_mission_current(self) -> None:
         seq, total, state, mode = self.mission_status()
-        self._broadcast(mavlink.MAVLink_mission_current_message(seq, total, state, mode))
+        self._vehicle.broadcast(mavlink.MAVLink_mission_current_message(seq, total, state, mode))
 
     # ================================================================ arming
     def _arm(self, now_s: float) -> None:
-        self.armed = True
+        self._state.armed = True
         self._armed_at_s = now_s
         self._flown_since_arm = False
-        self.failsafe_active = False
+        self._state.failsafe_active = False
         self._gcs_lost = False
-        self._statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Armed by external command")
+        self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Armed by external command")
         self._command_physics()
 
     def _disarm(self, now_s: float, reason: str) -> None:
-        self.armed = False
-        self._landing = False
-        self._statustext(now_s, mavlink.MAV_SEVERITY_INFO, reason)
+        self._state.armed = False
+        self._state.landing = False
+        self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, reason)
         self._command_physics()
 
     # ================================================================ per step
     def update(self, now_s: float) -> None:
         """Advance mode logic, failsafes and timers to ``now_s`` (call once per step)."""
-        if not self.alive:
+        if not self._state.alive:
             return
-        self._now_s = now_s
+        self._state.now_s = now_s
         self._update_landed(now_s)
         dt_s = max(now_s - self._last_update_s, 0.0)
         self._last_update_s = now_s
-        if self.armed:
+        if self._state.armed:
             self.battery_remaining_pct = max(
                 0.0, self.battery_remaining_pct - self.battery_drain_percent_per_min * dt_s / 60.0
             )
-            mode = self.mode
+            mode = self._state.mode
             if mode is FlightMode.TAKEOFF:
-                target_down = self._home_ned_m[2] - self._target_altitude_m
+                target_down = self._state.home_ned_m[2] - self._target_altitude_m
                 pos = self.position_ned()
                 if pos[2] <= target_down + 0.1:
                     self._set_mode(FlightMode.HOLD)
@@ -1461,7 +1472,7 @@ class Px4Autopilot:
                 self._rtl_update(now_s)
             elif mode is FlightMode.MISSION:
                 self._mission_update(now_s)
-            if self._landing:
+            if self._state.landing:
                 self._physics.max_down_speed_m_s[self.index] = self._landing_speed()
             self._check_failsafes(now_s)
             self._check_auto_disarm(now_s)
@@ -1476,37 +1487,37 @@ class Px4Autopilot:
                 self._ground_since_s = now_s
         else:
             self._ground_since_s = None
-        if self.landed:
+        if self._state.landed:
             # Hysteresis: airborne only once clearly off the ground.
-            landed = pos[2] > -_TAKEOFF_HEIGHT_M or not self.armed
+            landed = pos[2] > -_TAKEOFF_HEIGHT_M or not self._state.armed
         else:
-            landed = not self.armed and on_ground
+            landed = not self._state.armed and on_ground
             if self._ground_since_s is not None:
                 landed = landed or now_s - self._ground_since_s >= _LANDED_AFTER_S
-        if landed != self.landed:
-            self.landed = landed
+        if landed != self._state.landed:
+            self._state.landed = landed
             if landed:
                 self._landed_at_s = now_s
-                self._landing = False
-                if self.armed:
-                    self._statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Landing detected")
+                self._state.landing = False
+                if self._state.armed:
+                    self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Landing detected")
                     self._apply_limits()
                     self._hold_on_ground()
             else:
                 self._flown_since_arm = True
-                self._statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Takeoff detected")
+                self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Takeoff detected")
         if landed:
-            self.landed_state = mavlink.MAV_LANDED_STATE_ON_GROUND
-        elif self._landing:
-            self.landed_state = mavlink.MAV_LANDED_STATE_LANDING
-        elif self.mode is FlightMode.TAKEOFF or self._mission_phase == "takeoff":
-            self.landed_state = mavlink.MAV_LANDED_STATE_TAKEOFF
+            self._state.landed_state = mavlink.MAV_LANDED_STATE_ON_GROUND
+        elif self._state.landing:
+            self._state.landed_state = mavlink.MAV_LANDED_STATE_LANDING
+        elif self._state.mode is FlightMode.TAKEOFF or self._mission_phase == "takeoff":
+            self._state.landed_state = mavlink.MAV_LANDED_STATE_TAKEOFF
         else:
-            self.landed_state = mavlink.MAV_LANDED_STATE_IN_AIR
+            self._state.landed_state = mavlink.MAV_LANDED_STATE_IN_AIR
 
     def _hold_on_ground(self) -> None:
         """After touchdown keep the motors idle on the spot (until auto-disarm)."""
-        mode = self.mode
+        mode = self._state.mode
         if mode in (FlightMode.LAND, FlightMode.RTL) or (
             mode is FlightMode.MISSION and self._mission_phase == "land"
         ):
@@ -1515,8 +1526,8 @@ class Px4Autopilot:
 
     def _check_failsafes(self, now_s: float) -> None:
         p = self.params
-        if self.mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
-            self._statustext(
+        if self._state.mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
+            self._vehicle.statustext(
                 now_s, mavlink.MAV_SEVERITY_CRITICAL, "Failsafe activated: offboard control lost"
             )
             action = int(p["COM_OBL_RC_ACT"])
@@ -1531,7 +1542,7 @@ class Px4Autopilot:
             and now_s - self._gcs_last_heartbeat_s > p["COM_DL_LOSS_T"]
         ):
             self._gcs_lost = True
-            self._statustext(
+            self._vehicle.statustext(
                 now_s, mavlink.MAV_SEVERITY_CRITICAL, "Connection to ground station lost"
             )
             action = int(p["NAV_DLL_ACT"])
@@ -1539,8 +1550,12 @@ class Px4Autopilot:
                 self._failsafe(
                     {1: FlightMode.HOLD, 2: FlightMode.RTL, 3: FlightMode.LAND}.get(action)
                 )
-        if not self.position_ok and not self.landed and self.mode is not FlightMode.LAND:
-            self._statustext(
+        if (
+            not self._state.position_ok
+            and not self._state.landed
+            and self._state.mode is not FlightMode.LAND
+        ):
+            self._vehicle.statustext(
                 now_s, mavlink.MAV_SEVERITY_CRITICAL, "Failsafe activated: no position, landing"
             )
             self._failsafe(FlightMode.LAND)
@@ -1548,14 +1563,14 @@ class Px4Autopilot:
     def _failsafe(self, mode: FlightMode | None) -> None:
         """Switch to ``mode`` as a failsafe; None means terminate/disarm."""
         if mode is None:
-            self._disarm(self._now_s, "Failsafe: disarmed")
+            self._disarm(self._state.now_s, "Failsafe: disarmed")
             return
-        if self.landed and mode is not FlightMode.HOLD:
+        if self._state.landed and mode is not FlightMode.HOLD:
             mode = FlightMode.HOLD
         self._set_mode(mode, failsafe=True)
 
     def _check_auto_disarm(self, now_s: float) -> None:
-        if not self.landed:
+        if not self._state.landed:
             return
         p = self.params
         if self._flown_since_arm:
@@ -1568,38 +1583,13 @@ class Px4Autopilot:
             self._disarm(now_s, reason)
 
     # ================================================================ output
-    def _statustext(self, now_s: float, severity: int, text: str) -> None:
-        """Log ``text`` and send it; PX4 sends texts over 50 bytes in 50-byte chunks that share
-        a non-zero id (a tab that PX4 appends to many texts is kept on the wire only)."""
-        shown = text.rstrip("\t")
-        self.status_log.append((now_s, shown))
-        logger.debug("vehicle %d: %s", self.sysid, shown)
-        if self.on_statustext is not None:
-            self.on_statustext(now_s, severity, shown)
-        if not self.alive:
-            return
-        data = text.encode()
-        if len(data) <= 50:
-            self._broadcast(mavlink.MAVLink_statustext_message(severity, data))
-            return
-        self._statustext_id = self._statustext_id % 0xFFFF + 1
-        for seq, start in enumerate(range(0, len(data), 50)):
-            chunk = data[start : start + 50]
-            self._broadcast(
-                mavlink.MAVLink_statustext_message(severity, chunk, self._statustext_id, seq)
-            )
-
-    def _broadcast(self, msg: mavlink.MAVLink_message) -> None:
-        for link in self.links:
-            link.send(msg)
-
     def _broadcast_message(self, msg_id: int) -> None:
-        msg = self.telemetry.build(msg_id, self._now_s)
+        msg = self.telemetry.build(msg_id, self._state.now_s)
         if msg is not None:
-            self._broadcast(msg)
+            self._vehicle.broadcast(msg)
 
     def _send_built(self, msg_id: int, link: Link) -> None:
-        msg = self.telemetry.build(msg_id, self._now_s)
+        msg = self.telemetry.build(msg_id, self._state.now_s)
         if msg is not None:
             link.send(msg)
 
