@@ -31,8 +31,9 @@ from sitl.geo import MapProjection
 from sitl.mission import RELATIVE_ALT_FRAMES, MissionItem, MissionTransfer
 from sitl.modes import FlightMode
 from sitl.odometry import Odometry
+from sitl.offboard import Offboard
 from sitl.params import ParamStore
-from sitl.telemetry import BUILDABLE, TelemetryBuilder, quaternion_to_euler
+from sitl.telemetry import BUILDABLE, TelemetryBuilder
 from sitl.vehicle_state import Link, Snapshot, VehicleContext, VehicleState
 
 __all__ = ["Link", "Px4Autopilot", "Snapshot"]
@@ -46,58 +47,9 @@ FORCE_MAGIC = 21196
 # pymavlink has no constant for it).
 INT32_MAX = 2**31 - 1
 
-# SET_POSITION_TARGET_*.type_mask: a vector is ignored when any of its bits is set.
-_IGNORE_POS = (
-    mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE
-    | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
-    | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE
-)
-_IGNORE_VEL = (
-    mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE
-    | mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE
-    | mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE
-)
-_IGNORE_ACC = (
-    mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE
-    | mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE
-    | mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE
-)
-_LOCAL_FRAMES = frozenset(
-    [
-        mavlink.MAV_FRAME_LOCAL_NED,
-        mavlink.MAV_FRAME_LOCAL_OFFSET_NED,
-        mavlink.MAV_FRAME_BODY_NED,
-        mavlink.MAV_FRAME_BODY_OFFSET_NED,
-    ]
-)
-_BODY_FRAMES = frozenset([mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED])
-_GLOBAL_FRAMES = frozenset(
-    [
-        mavlink.MAV_FRAME_GLOBAL,
-        mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
-        mavlink.MAV_FRAME_GLOBAL_INT,
-        mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-        mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT,
-        mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
-    ]
-)
-# Flat ground: terrain altitude is altitude above home.
-_GLOBAL_RELATIVE_FRAMES = frozenset(
-    [
-        mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
-        mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-        mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT,
-        mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
-    ]
-)
 # MISSION_CURRENT.mission_mode (a plain field, no MAVLink enum).
 _MISSION_MODE_ACTIVE = 1
 _MISSION_MODE_SUSPENDED = 2
-_MAX_POSITION_M = 1e6
-_MAX_SPEED_M_S = 100.0
-_MAX_ACCEL_M_S2 = 100.0
-_HOVER_THRUST = 0.5
-
 _LANDED_AFTER_S = 0.5
 _TAKEOFF_HEIGHT_M = 0.1
 _RTL_ARRIVED_M = 1.0
@@ -124,15 +76,6 @@ class _ArmRefusal:
     retry_window_s: float = 2.0
     last_key: tuple[object, ...] | None = None
     last_at_s: float = -math.inf
-
-
-@dataclass(slots=True)
-class _OffboardSetpoint:
-    kind: str  # "velocity" | "position" | "acceleration"
-    vector_ned: list[float]
-    feedforward_ned_m_s: list[float] | None
-    yaw_rad: float
-    yaw_rate_rad_s: float
 
 
 class Px4Autopilot:
@@ -197,7 +140,6 @@ class Px4Autopilot:
             send_current=self._broadcast_mission_current,
         )
         self.battery_remaining_pct = 100.0
-        self.rejected_setpoints = 0
         self._arm_refusal = _ArmRefusal()
 
         self._last_update_s = 0.0
@@ -208,9 +150,6 @@ class Px4Autopilot:
         self._landed_at_s = 0.0
         self._cruise_override_m_s: float | None = None
         self._target_altitude_m = 0.0  # takeoff target, above home
-
-        self._offboard_sp: _OffboardSetpoint | None = None
-        self._last_setpoint_s = -math.inf
 
         self._gcs_last_heartbeat_s: float | None = None
         self._gcs_lost = False
@@ -230,14 +169,16 @@ class Px4Autopilot:
         self._cache_step = -1
         self._cache_global: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
+        self._offboard = Offboard(self._vehicle)
+
         self._message_handlers: dict[str, Callable[[mavlink.MAVLink_message, Link], None]] = {
             "HEARTBEAT": self._on_heartbeat,
             "COMMAND_LONG": self._on_command_long,
             "COMMAND_INT": self._on_command_int,
             "SET_MODE": self._on_set_mode,
-            "SET_POSITION_TARGET_LOCAL_NED": self._on_position_target_local,
-            "SET_POSITION_TARGET_GLOBAL_INT": self._on_position_target_global,
-            "SET_ATTITUDE_TARGET": self._on_attitude_target,
+            "SET_POSITION_TARGET_LOCAL_NED": self._offboard.on_position_target_local,
+            "SET_POSITION_TARGET_GLOBAL_INT": self._offboard.on_position_target_global,
+            "SET_ATTITUDE_TARGET": self._offboard.on_attitude_target,
             "PARAM_REQUEST_LIST": self._on_param_request_list,
             "PARAM_REQUEST_READ": self._on_param_request_read,
             "PARAM_SET": self._on_param_set,
@@ -317,6 +258,11 @@ class Px4Autopilot:
     @property
     def position_ok(self) -> bool:
         return self._state.position_ok
+
+    @property
+    def rejected_setpoints(self) -> int:
+        """Offboard setpoints ignored as implausible so far."""
+        return self._offboard.rejected_setpoints
 
     @property
     def links(self) -> list[Link]:
@@ -665,7 +611,7 @@ class Px4Autopilot:
                         now, mavlink.MAV_SEVERITY_CRITICAL, f"Arming denied: {reason}"
                     )
                     return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-                if self._state.mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
+                if self._state.mode is FlightMode.OFFBOARD and not self._offboard.signal_fresh():
                     self._vehicle.statustext(
                         now, mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: no offboard signal"
                     )
@@ -888,176 +834,6 @@ class Px4Autopilot:
         self._then(lambda: self._send_built(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, link))
         return mavlink.MAV_RESULT_ACCEPTED
 
-    # ------------------------------------------------------------- setpoints
-    def _on_position_target_local(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._vehicle.is_for_me(msg):
-            return
-        mask = msg.type_mask
-        frame = msg.coordinate_frame
-        if frame not in _LOCAL_FRAMES:
-            self.rejected_setpoints += 1
-            return
-        use_pos = not mask & _IGNORE_POS
-        use_vel = not mask & _IGNORE_VEL
-        use_acc = not mask & _IGNORE_ACC
-        pos = [msg.x, msg.y, msg.z]
-        vel = [msg.vx, msg.vy, msg.vz]
-        acc = [msg.afx, msg.afy, msg.afz]
-        if not self._valid_vectors(
-            pos=pos if use_pos else None,
-            vel=vel if use_vel else None,
-            acc=acc if use_acc else None,
-        ):
-            self.rejected_setpoints += 1
-            return
-        yaw_now = self.attitude()[2]
-        if frame in _BODY_FRAMES:
-            pos = _rotate_yaw(pos, yaw_now)
-            vel = _rotate_yaw(vel, yaw_now)
-            acc = _rotate_yaw(acc, yaw_now)
-        if use_pos:
-            if frame == mavlink.MAV_FRAME_LOCAL_NED:
-                world = self._odometry.to_world(self.index, (pos[0], pos[1], pos[2]))
-            else:
-                here = self.position_ned()
-                world = [here[k] + pos[k] for k in range(3)]
-            sp = _OffboardSetpoint("position", world, vel if use_vel else None, *self._yaw(msg))
-        elif use_vel:
-            sp = _OffboardSetpoint("velocity", vel, None, *self._yaw(msg))
-        elif use_acc:
-            sp = _OffboardSetpoint("acceleration", acc, None, *self._yaw(msg))
-        else:
-            self.rejected_setpoints += 1
-            return
-        self._accept_setpoint(sp)
-
-    def _on_position_target_global(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._vehicle.is_for_me(msg):
-            return
-        mask = msg.type_mask
-        if msg.coordinate_frame not in _GLOBAL_FRAMES:
-            self.rejected_setpoints += 1
-            return
-        use_pos = not mask & _IGNORE_POS
-        use_vel = not mask & _IGNORE_VEL
-        vel = [msg.vx, msg.vy, msg.vz]
-        if not self._valid_vectors(vel=vel if use_vel else None):
-            self.rejected_setpoints += 1
-            return
-        if use_pos:
-            lat, lon, alt = msg.lat_int * 1e-7, msg.lon_int * 1e-7, msg.alt
-            if not (-90 <= lat <= 90 and -180 <= lon <= 180 and math.isfinite(alt)):
-                self.rejected_setpoints += 1
-                return
-            n, e = self._projection.to_local(lat, lon)
-            relative = msg.coordinate_frame in _GLOBAL_RELATIVE_FRAMES
-            world = [n, e, self._vehicle.down_from_altitude(alt, relative)]
-            sp = _OffboardSetpoint("position", world, vel if use_vel else None, *self._yaw(msg))
-        elif use_vel:
-            sp = _OffboardSetpoint("velocity", vel, None, *self._yaw(msg))
-        else:
-            self.rejected_setpoints += 1
-            return
-        self._accept_setpoint(sp)
-
-    def _on_attitude_target(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        """Approximation: the tilt and thrust become an acceleration command."""
-        if not self._vehicle.is_for_me(msg):
-            return
-        mask = msg.type_mask
-        thrust = (
-            msg.thrust
-            if not mask & mavlink.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE
-            else _HOVER_THRUST
-        )
-        q = list(msg.q)
-        if not (math.isfinite(thrust) and all(math.isfinite(v) for v in q)):
-            self.rejected_setpoints += 1
-            return
-        norm = math.sqrt(sum(v * v for v in q))
-        yaw_rate = math.nan
-        if not mask & mavlink.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE and math.isfinite(
-            msg.body_yaw_rate
-        ):
-            yaw_rate = msg.body_yaw_rate
-        if mask & mavlink.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE or norm < 1e-6:
-            roll = pitch = 0.0
-            yaw = math.nan
-        else:
-            roll, pitch, yaw = quaternion_to_euler(*(v / norm for v in q))
-            if math.isfinite(yaw_rate):
-                yaw = math.nan
-        g = ph.GRAVITY_M_S2
-        forward = -g * math.tan(max(-0.8, min(0.8, pitch)))
-        right = g * math.tan(max(-0.8, min(0.8, roll)))
-        heading = self.attitude()[2]
-        acc = [
-            forward * math.cos(heading) - right * math.sin(heading),
-            forward * math.sin(heading) + right * math.cos(heading),
-            g * (1.0 - max(0.0, min(1.0, thrust)) / _HOVER_THRUST),
-        ]
-        self._accept_setpoint(_OffboardSetpoint("acceleration", acc, None, yaw, yaw_rate))
-
-    @staticmethod
-    def _valid_vectors(
-        *,
-        pos: list[float] | None = None,
-        vel: list[float] | None = None,
-        acc: list[float] | None = None,
-    ) -> bool:
-        """The used vectors (not None) are finite and physically plausible."""
-        for vector, limit in (
-            (pos, _MAX_POSITION_M),
-            (vel, _MAX_SPEED_M_S),
-            (acc, _MAX_ACCEL_M_S2),
-        ):
-            if vector is not None and not all(math.isfinite(v) and abs(v) < limit for v in vector):
-                return False
-        return True
-
-    @staticmethod
-    def _yaw(msg: mavlink.MAVLink_message) -> tuple[float, float]:
-        mask = msg.type_mask
-        yaw = (
-            msg.yaw
-            if not mask & mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE and math.isfinite(msg.yaw)
-            else math.nan
-        )
-        rate = math.nan
-        if not mask & mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE and math.isfinite(
-            msg.yaw_rate
-        ):
-            rate = msg.yaw_rate
-        return yaw, rate
-
-    def _accept_setpoint(self, sp: _OffboardSetpoint) -> None:
-        self._offboard_sp = sp
-        self._last_setpoint_s = self._state.now_s
-        if self._state.mode is FlightMode.OFFBOARD and self._state.armed:
-            self._apply_offboard()
-
-    def _offboard_signal_fresh(self) -> bool:
-        return self._state.now_s - self._last_setpoint_s <= self.params["COM_OF_LOSS_T"]
-
-    def _apply_offboard(self) -> None:
-        sp = self._offboard_sp
-        if sp is None:
-            return
-        i = self.index
-        phys = self._physics
-        if sp.kind == "velocity":
-            phys.control_mode[i] = ph.VELOCITY
-            phys.velocity_setpoint_ned_m_s[i] = sp.vector_ned
-        elif sp.kind == "position":
-            phys.control_mode[i] = ph.POSITION
-            phys.position_setpoint_ned_m[i] = sp.vector_ned
-            phys.velocity_feedforward_ned_m_s[i] = sp.feedforward_ned_m_s or (0.0, 0.0, 0.0)
-        else:
-            phys.control_mode[i] = ph.ACCELERATION
-            phys.acceleration_setpoint_ned_m_s2[i] = sp.vector_ned
-        phys.yaw_setpoint_rad[i] = sp.yaw_rad
-        phys.yaw_rate_setpoint_rad_s[i] = sp.yaw_rate_rad_s
-
     # ================================================================ modes
     def _request_mode(self, mode: FlightMode) -> int:
         """A client asks for ``mode``: PX4's acceptance rules, then switch."""
@@ -1069,7 +845,7 @@ class Px4Autopilot:
                 now, mavlink.MAV_SEVERITY_CRITICAL, "Switching denied: no manual control input"
             )
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        if mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
+        if mode is FlightMode.OFFBOARD and not self._offboard.signal_fresh():
             self._vehicle.statustext(
                 now, mavlink.MAV_SEVERITY_CRITICAL, "Switching to Offboard denied: no setpoints"
             )
@@ -1111,7 +887,7 @@ class Px4Autopilot:
             return
         mode = self._state.mode
         if mode is FlightMode.OFFBOARD:
-            self._apply_offboard()
+            self._offboard.apply()
         elif mode is FlightMode.TAKEOFF:
             pos = self.position_ned()
             down = self._state.home_ned_m[2] - self._target_altitude_m
@@ -1526,7 +1302,7 @@ class Px4Autopilot:
 
     def _check_failsafes(self, now_s: float) -> None:
         p = self.params
-        if self._state.mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
+        if self._state.mode is FlightMode.OFFBOARD and not self._offboard.signal_fresh():
             self._vehicle.statustext(
                 now_s, mavlink.MAV_SEVERITY_CRITICAL, "Failsafe activated: offboard control lost"
             )
@@ -1598,9 +1374,3 @@ def _param_name(param_id: str | bytes) -> str:
     if isinstance(param_id, bytes):
         param_id = param_id.decode("ascii", errors="replace")
     return param_id.split("\x00", 1)[0]
-
-
-def _rotate_yaw(v: list[float], yaw_rad: float) -> list[float]:
-    """Body (forward, right, down) -> NED for a vehicle heading ``yaw_rad``."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return [v[0] * c - v[1] * s, v[0] * s + v[1] * c, v[2]]
