@@ -28,6 +28,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from sitl import physics as ph
 from sitl.config import PX4_ARMING_DENIED_TEXT
 from sitl.geo import MapProjection
+from sitl.land_detector import LandDetector, LandEvent
 from sitl.mission import RELATIVE_ALT_FRAMES, MissionItem, MissionTransfer
 from sitl.modes import FlightMode
 from sitl.odometry import Odometry
@@ -50,8 +51,6 @@ INT32_MAX = 2**31 - 1
 # MISSION_CURRENT.mission_mode (a plain field, no MAVLink enum).
 _MISSION_MODE_ACTIVE = 1
 _MISSION_MODE_SUSPENDED = 2
-_LANDED_AFTER_S = 0.5
-_TAKEOFF_HEIGHT_M = 0.1
 _RTL_ARRIVED_M = 1.0
 
 
@@ -146,8 +145,6 @@ class Px4Autopilot:
         self._after_ack: Callable[[], None] | None = None
         self._armed_at_s = 0.0
         self._flown_since_arm = False
-        self._ground_since_s: float | None = 0.0
-        self._landed_at_s = 0.0
         self._cruise_override_m_s: float | None = None
         self._target_altitude_m = 0.0  # takeoff target, above home
 
@@ -170,6 +167,7 @@ class Px4Autopilot:
         self._cache_global: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
         self._offboard = Offboard(self._vehicle)
+        self._land_detector = LandDetector(self._vehicle)
 
         self._message_handlers: dict[str, Callable[[mavlink.MAVLink_message, Link], None]] = {
             "HEARTBEAT": self._on_heartbeat,
@@ -1230,7 +1228,10 @@ class Px4Autopilot:
         if not self._state.alive:
             return
         self._state.now_s = now_s
-        self._update_landed(now_s)
+        taking_off = self._state.mode is FlightMode.TAKEOFF or self._mission_phase == "takeoff"
+        event = self._land_detector.update(now_s, taking_off=taking_off)
+        if event is not None:
+            self._on_land_event(event, now_s)
         dt_s = max(now_s - self._last_update_s, 0.0)
         self._last_update_s = now_s
         if self._state.armed:
@@ -1254,42 +1255,16 @@ class Px4Autopilot:
             self._check_auto_disarm(now_s)
         self.mission.update(now_s)
 
-    def _update_landed(self, now_s: float) -> None:
-        pos = self.position_ned()
-        vel = self.velocity_ned()
-        on_ground = pos[2] >= -0.05 and abs(vel[2]) < 0.5
-        if on_ground:
-            if self._ground_since_s is None:
-                self._ground_since_s = now_s
+    def _on_land_event(self, event: LandEvent, now_s: float) -> None:
+        """The land detector saw a touchdown or a take-off."""
+        if event is LandEvent.TOUCHDOWN:
+            if self._state.armed:
+                self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Landing detected")
+                self._apply_limits()
+                self._hold_on_ground()
         else:
-            self._ground_since_s = None
-        if self._state.landed:
-            # Hysteresis: airborne only once clearly off the ground.
-            landed = pos[2] > -_TAKEOFF_HEIGHT_M or not self._state.armed
-        else:
-            landed = not self._state.armed and on_ground
-            if self._ground_since_s is not None:
-                landed = landed or now_s - self._ground_since_s >= _LANDED_AFTER_S
-        if landed != self._state.landed:
-            self._state.landed = landed
-            if landed:
-                self._landed_at_s = now_s
-                self._state.landing = False
-                if self._state.armed:
-                    self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Landing detected")
-                    self._apply_limits()
-                    self._hold_on_ground()
-            else:
-                self._flown_since_arm = True
-                self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Takeoff detected")
-        if landed:
-            self._state.landed_state = mavlink.MAV_LANDED_STATE_ON_GROUND
-        elif self._state.landing:
-            self._state.landed_state = mavlink.MAV_LANDED_STATE_LANDING
-        elif self._state.mode is FlightMode.TAKEOFF or self._mission_phase == "takeoff":
-            self._state.landed_state = mavlink.MAV_LANDED_STATE_TAKEOFF
-        else:
-            self._state.landed_state = mavlink.MAV_LANDED_STATE_IN_AIR
+            self._flown_since_arm = True
+            self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Takeoff detected")
 
     def _hold_on_ground(self) -> None:
         """After touchdown keep the motors idle on the spot (until auto-disarm)."""
@@ -1349,11 +1324,12 @@ class Px4Autopilot:
         if not self._state.landed:
             return
         p = self.params
+        landed_at_s = self._land_detector.landed_at_s
         if self._flown_since_arm:
-            timeout, since, reason = p["COM_DISARM_LAND"], self._landed_at_s, "Disarmed by landing"
+            timeout, since, reason = p["COM_DISARM_LAND"], landed_at_s, "Disarmed by landing"
         else:
             timeout = p["COM_DISARM_PRFLT"]
-            since = max(self._armed_at_s, self._landed_at_s)
+            since = max(self._armed_at_s, landed_at_s)
             reason = "Disarmed by auto preflight disarming"
         if timeout >= 0 and now_s - since >= timeout:
             self._disarm(now_s, reason)
