@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import physics as ph
+from sitl.commands import Command, CommandDispatcher, CommandTable, bind
 from sitl.config import PX4_ARMING_DENIED_TEXT
 from sitl.geo import MapProjection
 from sitl.land_detector import LandDetector, LandEvent
@@ -52,18 +53,6 @@ INT32_MAX = 2**31 - 1
 _MISSION_MODE_ACTIVE = 1
 _MISSION_MODE_SUSPENDED = 2
 _RTL_ARRIVED_M = 1.0
-
-
-@dataclass(slots=True)
-class _Command:
-    """COMMAND_LONG and COMMAND_INT in one shape (x/y stay integers for COMMAND_INT)."""
-
-    command: int
-    params: tuple[float, float, float, float, float, float, float]
-    frame: int | None  # None for COMMAND_LONG
-    x_int: int = 0
-    y_int: int = 0
-    source: tuple[int, int] = (0, 0)  # sender's system and component id
 
 
 @dataclass(slots=True)
@@ -142,7 +131,6 @@ class Px4Autopilot:
         self._arm_refusal = _ArmRefusal()
 
         self._last_update_s = 0.0
-        self._after_ack: Callable[[], None] | None = None
         self._armed_at_s = 0.0
         self._flown_since_arm = False
         self._cruise_override_m_s: float | None = None
@@ -169,10 +157,11 @@ class Px4Autopilot:
         self._offboard = Offboard(self._vehicle)
         self._land_detector = LandDetector(self._vehicle)
 
+        self._commands = CommandDispatcher(self._vehicle, [bind(self, AUTOPILOT_COMMANDS)])
         self._message_handlers: dict[str, Callable[[mavlink.MAVLink_message, Link], None]] = {
             "HEARTBEAT": self._on_heartbeat,
-            "COMMAND_LONG": self._on_command_long,
-            "COMMAND_INT": self._on_command_int,
+            "COMMAND_LONG": self._commands.on_command_long,
+            "COMMAND_INT": self._commands.on_command_int,
             "SET_MODE": self._on_set_mode,
             "SET_POSITION_TARGET_LOCAL_NED": self._offboard.on_position_target_local,
             "SET_POSITION_TARGET_GLOBAL_INT": self._offboard.on_position_target_global,
@@ -195,27 +184,6 @@ class Px4Autopilot:
             "MISSION_ACK",
         ):
             self._message_handlers[kind] = self._on_mission_message
-        self._command_handlers: dict[int, Callable[[_Command, Link], int]] = {
-            mavlink.MAV_CMD_COMPONENT_ARM_DISARM: self._cmd_arm_disarm,
-            mavlink.MAV_CMD_NAV_TAKEOFF: self._cmd_takeoff,
-            mavlink.MAV_CMD_NAV_LAND: self._cmd_land,
-            mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH: self._cmd_rtl,
-            mavlink.MAV_CMD_DO_SET_MODE: self._cmd_set_mode,
-            mavlink.MAV_CMD_DO_REPOSITION: self._cmd_reposition,
-            mavlink.MAV_CMD_DO_CHANGE_SPEED: self._cmd_change_speed,
-            mavlink.MAV_CMD_DO_SET_HOME: self._cmd_set_home,
-            mavlink.MAV_CMD_DO_FLIGHTTERMINATION: self._cmd_flight_termination,
-            mavlink.MAV_CMD_DO_PAUSE_CONTINUE: self._cmd_pause_continue,
-            mavlink.MAV_CMD_DO_SET_MISSION_CURRENT: self._cmd_set_mission_current,
-            mavlink.MAV_CMD_MISSION_START: self._cmd_mission_start,
-            mavlink.MAV_CMD_GET_HOME_POSITION: self._cmd_get_home_position,
-            mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: self._cmd_get_message_interval,
-            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_message_interval,
-            mavlink.MAV_CMD_REQUEST_MESSAGE: self._cmd_request_message,
-            mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: (
-                self._cmd_request_autopilot_capabilities
-            ),
-        }
         self._apply_limits()
         self._command_physics()
 
@@ -547,55 +515,7 @@ class Px4Autopilot:
         self._apply_limits()
 
     # -------------------------------------------------------------- commands
-    def _on_command_long(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        command = msg.command
-        broadcast_ok = command in (
-            mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
-            mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION,
-        )
-        if not (
-            self._vehicle.is_for_me(msg) or (broadcast_ok and msg.target_system in (0, self.sysid))
-        ):
-            return
-        cmd = _Command(
-            command,
-            (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7),
-            None,
-            source=(msg.get_srcSystem(), msg.get_srcComponent()),
-        )
-        self._run_command(cmd, msg, link)
-
-    def _on_command_int(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._vehicle.is_for_me(msg):
-            return
-        cmd = _Command(
-            msg.command,
-            (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z),
-            msg.frame,
-            msg.x,
-            msg.y,
-            source=(msg.get_srcSystem(), msg.get_srcComponent()),
-        )
-        self._run_command(cmd, msg, link)
-
-    def _run_command(self, cmd: _Command, msg: mavlink.MAVLink_message, link: Link) -> None:
-        handler = self._command_handlers.get(cmd.command)
-        result = mavlink.MAV_RESULT_UNSUPPORTED if handler is None else handler(cmd, link)
-        # Every copy of a command gets an answer: MAVSDK may miss a very fast first one.
-        ack = mavlink.MAVLink_command_ack_message(
-            cmd.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
-        )
-        link.send(ack)
-        follow_up = self._after_ack
-        if follow_up is not None:
-            self._after_ack = None
-            follow_up()
-
-    def _then(self, action: Callable[[], None]) -> None:
-        """Run ``action`` right after the COMMAND_ACK is sent (e.g. the requested message)."""
-        self._after_ack = action
-
-    def _cmd_arm_disarm(self, cmd: _Command, link: Link) -> int:
+    def _cmd_arm_disarm(self, cmd: Command, link: Link) -> int:
         p1, p2 = cmd.params[0], cmd.params[1]
         force = p2 == FORCE_MAGIC
         now = self._state.now_s
@@ -649,7 +569,7 @@ class Px4Autopilot:
     def arm_refusals_pending(self) -> int:
         return self._arm_refusal.remaining
 
-    def _injected_arm_refusal(self, cmd: _Command, link: Link, now_s: float) -> bool:
+    def _injected_arm_refusal(self, cmd: Command, link: Link, now_s: float) -> bool:
         """Whether an injected health failure refuses this arm command (uses up one refusal
         unless it retransmits the attempt refused last)."""
         refusal = self._arm_refusal
@@ -665,7 +585,7 @@ class Px4Autopilot:
         refusal.last_at_s = now_s
         return True
 
-    def _cmd_takeoff(self, cmd: _Command, link: Link) -> int:
+    def _cmd_takeoff(self, cmd: Command, link: Link) -> int:
         if not self._state.armed:
             self._vehicle.statustext(
                 self._state.now_s,
@@ -682,15 +602,15 @@ class Px4Autopilot:
         self._set_mode(FlightMode.TAKEOFF)
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _cmd_land(self, cmd: _Command, link: Link) -> int:
+    def _cmd_land(self, cmd: Command, link: Link) -> int:
         self._set_mode(FlightMode.LAND)
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _cmd_rtl(self, cmd: _Command, link: Link) -> int:
+    def _cmd_rtl(self, cmd: Command, link: Link) -> int:
         self._set_mode(FlightMode.RTL)
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _cmd_set_mode(self, cmd: _Command, link: Link) -> int:
+    def _cmd_set_mode(self, cmd: Command, link: Link) -> int:
         base, main, sub = cmd.params[0], cmd.params[1], cmd.params[2]
         if not (math.isfinite(base) and math.isfinite(main) and math.isfinite(sub)):
             return mavlink.MAV_RESULT_DENIED
@@ -702,7 +622,7 @@ class Px4Autopilot:
             return mavlink.MAV_RESULT_DENIED
         return self._request_mode(mode)
 
-    def _cmd_reposition(self, cmd: _Command, link: Link) -> int:
+    def _cmd_reposition(self, cmd: Command, link: Link) -> int:
         if not self._state.armed:
             return mavlink.MAV_RESULT_DENIED
         if self._state.landed:
@@ -740,7 +660,7 @@ class Px4Autopilot:
         self._apply_limits()
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _cmd_change_speed(self, cmd: _Command, link: Link) -> int:
+    def _cmd_change_speed(self, cmd: Command, link: Link) -> int:
         speed = cmd.params[1]
         if not math.isfinite(speed):
             return mavlink.MAV_RESULT_DENIED
@@ -748,7 +668,7 @@ class Px4Autopilot:
         self._apply_limits()
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _cmd_set_home(self, cmd: _Command, link: Link) -> int:
+    def _cmd_set_home(self, cmd: Command, link: Link) -> int:
         p = cmd.params
         if p[0] == 1.0:
             self._state.home_ned_m = list(self.position_ned())
@@ -766,26 +686,26 @@ class Px4Autopilot:
         self._broadcast_message(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _cmd_flight_termination(self, cmd: _Command, link: Link) -> int:
+    def _cmd_flight_termination(self, cmd: Command, link: Link) -> int:
         if cmd.params[0] > 0.5:
             self._disarm(self._state.now_s, "Flight termination active")
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _cmd_pause_continue(self, cmd: _Command, link: Link) -> int:
+    def _cmd_pause_continue(self, cmd: Command, link: Link) -> int:
         if cmd.params[0] == 0.0:
             return self._request_mode(FlightMode.HOLD)
         if cmd.params[0] == 1.0:
             return self._request_mode(FlightMode.MISSION)
         return mavlink.MAV_RESULT_DENIED
 
-    def _cmd_set_mission_current(self, cmd: _Command, link: Link) -> int:
+    def _cmd_set_mission_current(self, cmd: Command, link: Link) -> int:
         seq = cmd.params[0]
         if not math.isfinite(seq) or not self._mission_set_current(int(seq)):
             return mavlink.MAV_RESULT_DENIED
         self._broadcast_mission_current()
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _cmd_mission_start(self, cmd: _Command, link: Link) -> int:
+    def _cmd_mission_start(self, cmd: Command, link: Link) -> int:
         items = self.mission.items
         if not items:
             self._vehicle.statustext(
@@ -797,39 +717,41 @@ class Px4Autopilot:
             self._mission_set_current(int(first))
         return self._request_mode(FlightMode.MISSION)
 
-    def _cmd_get_home_position(self, cmd: _Command, link: Link) -> int:
-        self._then(lambda: self._send_built(mavlink.MAVLINK_MSG_ID_HOME_POSITION, link))
+    def _cmd_get_home_position(self, cmd: Command, link: Link) -> int:
+        self._commands.then(lambda: self._send_built(mavlink.MAVLINK_MSG_ID_HOME_POSITION, link))
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _cmd_get_message_interval(self, cmd: _Command, link: Link) -> int:
+    def _cmd_get_message_interval(self, cmd: Command, link: Link) -> int:
         msg_id = cmd.params[0]
         if not math.isfinite(msg_id) or not 0 <= msg_id < 2**24:
             return mavlink.MAV_RESULT_DENIED
         interval = link.streams.interval_us(int(msg_id)) if int(msg_id) in BUILDABLE else 0
-        self._then(
+        self._commands.then(
             lambda: link.send(mavlink.MAVLink_message_interval_message(int(msg_id), interval))
         )
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _cmd_set_message_interval(self, cmd: _Command, link: Link) -> int:
+    def _cmd_set_message_interval(self, cmd: Command, link: Link) -> int:
         msg_id, interval_us = cmd.params[0], cmd.params[1]
         if not (math.isfinite(msg_id) and 0 <= msg_id < 2**24):
             return mavlink.MAV_RESULT_DENIED
         ok = link.streams.set_interval(int(msg_id), interval_us, self._state.now_s)
         return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
 
-    def _cmd_request_message(self, cmd: _Command, link: Link) -> int:
+    def _cmd_request_message(self, cmd: Command, link: Link) -> int:
         msg_id = cmd.params[0]
         if not (math.isfinite(msg_id) and int(msg_id) in BUILDABLE):
             return mavlink.MAV_RESULT_DENIED
         msg = self.telemetry.build(int(msg_id), self._state.now_s)
         if msg is None:
             return mavlink.MAV_RESULT_FAILED
-        self._then(lambda: link.send(msg))
+        self._commands.then(lambda: link.send(msg))
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _cmd_request_autopilot_capabilities(self, cmd: _Command, link: Link) -> int:
-        self._then(lambda: self._send_built(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, link))
+    def _cmd_request_autopilot_capabilities(self, cmd: Command, link: Link) -> int:
+        self._commands.then(
+            lambda: self._send_built(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, link)
+        )
         return mavlink.MAV_RESULT_ACCEPTED
 
     # ================================================================ modes
@@ -1344,6 +1266,30 @@ class Px4Autopilot:
         msg = self.telemetry.build(msg_id, self._state.now_s)
         if msg is not None:
             link.send(msg)
+
+
+#: MAV_CMD -> the autopilot's handler.
+AUTOPILOT_COMMANDS: CommandTable[Px4Autopilot] = {
+    mavlink.MAV_CMD_COMPONENT_ARM_DISARM: Px4Autopilot._cmd_arm_disarm,
+    mavlink.MAV_CMD_NAV_TAKEOFF: Px4Autopilot._cmd_takeoff,
+    mavlink.MAV_CMD_NAV_LAND: Px4Autopilot._cmd_land,
+    mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH: Px4Autopilot._cmd_rtl,
+    mavlink.MAV_CMD_DO_SET_MODE: Px4Autopilot._cmd_set_mode,
+    mavlink.MAV_CMD_DO_REPOSITION: Px4Autopilot._cmd_reposition,
+    mavlink.MAV_CMD_DO_CHANGE_SPEED: Px4Autopilot._cmd_change_speed,
+    mavlink.MAV_CMD_DO_SET_HOME: Px4Autopilot._cmd_set_home,
+    mavlink.MAV_CMD_DO_FLIGHTTERMINATION: Px4Autopilot._cmd_flight_termination,
+    mavlink.MAV_CMD_DO_PAUSE_CONTINUE: Px4Autopilot._cmd_pause_continue,
+    mavlink.MAV_CMD_DO_SET_MISSION_CURRENT: Px4Autopilot._cmd_set_mission_current,
+    mavlink.MAV_CMD_MISSION_START: Px4Autopilot._cmd_mission_start,
+    mavlink.MAV_CMD_GET_HOME_POSITION: Px4Autopilot._cmd_get_home_position,
+    mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: Px4Autopilot._cmd_get_message_interval,
+    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: Px4Autopilot._cmd_set_message_interval,
+    mavlink.MAV_CMD_REQUEST_MESSAGE: Px4Autopilot._cmd_request_message,
+    mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: (
+        Px4Autopilot._cmd_request_autopilot_capabilities
+    ),
+}
 
 
 def _param_name(param_id: str | bytes) -> str:
