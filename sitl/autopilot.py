@@ -30,8 +30,9 @@ from sitl.commands import Command, CommandDispatcher, CommandTable, bind
 from sitl.config import PX4_ARMING_DENIED_TEXT
 from sitl.geo import MapProjection
 from sitl.land_detector import LandDetector, LandEvent
-from sitl.mission import RELATIVE_ALT_FRAMES, MissionItem, MissionTransfer
+from sitl.mission import MissionTransfer
 from sitl.modes import FlightMode
+from sitl.navigator import NAVIGATOR_COMMANDS, Navigator
 from sitl.odometry import Odometry
 from sitl.offboard import Offboard
 from sitl.params import ParamStore
@@ -45,14 +46,6 @@ logger = logging.getLogger(__name__)
 # MAV_CMD_COMPONENT_ARM_DISARM param2 that forces arming/disarming: a magic number of the
 # MAVLink spec, with no constant in pymavlink.
 FORCE_MAGIC = 21196
-# COMMAND_INT x/y of DO_REPOSITION: INT32_MAX means "keep the current position" (MAVLink spec;
-# pymavlink has no constant for it).
-INT32_MAX = 2**31 - 1
-
-# MISSION_CURRENT.mission_mode (a plain field, no MAVLink enum).
-_MISSION_MODE_ACTIVE = 1
-_MISSION_MODE_SUSPENDED = 2
-_RTL_ARRIVED_M = 1.0
 
 
 @dataclass(slots=True)
@@ -120,44 +113,28 @@ class Px4Autopilot:
             ground_amsl_m=ground_amsl_m,
         )
         self.telemetry = TelemetryBuilder(self)
-        self.mission = MissionTransfer(
-            self.sysid,
-            self.compid,
-            on_uploaded=self._mission_uploaded,
-            on_set_current=self._mission_set_current,
-            send_current=self._broadcast_mission_current,
-        )
         self.battery_remaining_pct = 100.0
         self._arm_refusal = _ArmRefusal()
 
         self._last_update_s = 0.0
         self._armed_at_s = 0.0
         self._flown_since_arm = False
-        self._cruise_override_m_s: float | None = None
-        self._target_altitude_m = 0.0  # takeoff target, above home
 
         self._gcs_last_heartbeat_s: float | None = None
         self._gcs_lost = False
-
-        self._rtl_stage = ""
-        self._rtl_altitude_m = 0.0
-        self._rtl_loiter_until_s = 0.0
-
-        self._mission_seq = 0
-        self._mission_started = False
-        self._mission_finished = False
-        self._mission_phase = ""
-        self._mission_target_ned_m: list[float] | None = None
-        self._mission_hold_until_s = 0.0
-        self._mission_warned: set[int] = set()
 
         self._cache_step = -1
         self._cache_global: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
         self._offboard = Offboard(self._vehicle)
         self._land_detector = LandDetector(self._vehicle)
+        self._navigator = Navigator(self._vehicle, set_mode=self._set_mode)
+        self.mission: MissionTransfer = self._navigator.mission
 
-        self._commands = CommandDispatcher(self._vehicle, [bind(self, AUTOPILOT_COMMANDS)])
+        self._commands = CommandDispatcher(
+            self._vehicle,
+            [bind(self, AUTOPILOT_COMMANDS), bind(self._navigator, NAVIGATOR_COMMANDS)],
+        )
         self._message_handlers: dict[str, Callable[[mavlink.MAVLink_message, Link], None]] = {
             "HEARTBEAT": self._on_heartbeat,
             "COMMAND_LONG": self._commands.on_command_long,
@@ -184,7 +161,7 @@ class Px4Autopilot:
             "MISSION_ACK",
         ):
             self._message_handlers[kind] = self._on_mission_message
-        self._apply_limits()
+        self._navigator.apply_limits()
         self._command_physics()
 
     # ================================================================ state access
@@ -366,24 +343,7 @@ class Px4Autopilot:
 
     def mission_status(self) -> tuple[int, int, int, int]:
         """MISSION_CURRENT fields (seq, total, mission_state, mission_mode)."""
-        total = len(self.mission.items)
-        in_mission = (
-            _MISSION_MODE_ACTIVE
-            if self._state.mode is FlightMode.MISSION
-            else _MISSION_MODE_SUSPENDED
-        )
-        if total == 0:
-            return 0, 0, mavlink.MISSION_STATE_NO_MISSION, in_mission
-        seq = min(self._mission_seq, total - 1)
-        if self._mission_finished:
-            state = mavlink.MISSION_STATE_COMPLETE
-        elif not self._mission_started:
-            state = mavlink.MISSION_STATE_NOT_STARTED
-        elif self._state.mode is FlightMode.MISSION:
-            state = mavlink.MISSION_STATE_ACTIVE
-        else:
-            state = mavlink.MISSION_STATE_PAUSED
-        return seq, total, state, in_mission
+        return self._navigator.mission_status()
 
     # ================================================================ faults
     def kill(self, now_s: float) -> None:
@@ -512,7 +472,7 @@ class Px4Autopilot:
         )
 
     def _param_changed(self, name: str, value: float) -> None:
-        self._apply_limits()
+        self._navigator.apply_limits()
 
     # -------------------------------------------------------------- commands
     def _cmd_arm_disarm(self, cmd: Command, link: Link) -> int:
@@ -598,7 +558,7 @@ class Px4Autopilot:
             altitude = alt_amsl - (self.ground_amsl_m - self._state.home_ned_m[2])
         else:
             altitude = self.params["MIS_TAKEOFF_ALT"]
-        self._target_altitude_m = max(altitude, 0.5)
+        self._navigator.set_takeoff_altitude(max(altitude, 0.5))
         self._set_mode(FlightMode.TAKEOFF)
         return mavlink.MAV_RESULT_ACCEPTED
 
@@ -621,52 +581,6 @@ class Px4Autopilot:
         if mode is None:
             return mavlink.MAV_RESULT_DENIED
         return self._request_mode(mode)
-
-    def _cmd_reposition(self, cmd: Command, link: Link) -> int:
-        if not self._state.armed:
-            return mavlink.MAV_RESULT_DENIED
-        if self._state.landed:
-            self._vehicle.statustext(
-                self._state.now_s,
-                mavlink.MAV_SEVERITY_CRITICAL,
-                "Reposition denied: vehicle landed",
-            )
-            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        p = cmd.params
-        pos = self.position_ned()
-        target = list(pos)
-        if cmd.frame is None:
-            lat, lon = p[4], p[5]
-            valid_xy = math.isfinite(lat) and math.isfinite(lon)
-        else:
-            valid_xy = INT32_MAX not in (cmd.x_int, cmd.y_int)
-            lat, lon = cmd.x_int * 1e-7, cmd.y_int * 1e-7
-        if valid_xy:
-            if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
-                return mavlink.MAV_RESULT_DENIED
-            target[0], target[1] = self._projection.to_local(lat, lon)
-        alt = p[6]
-        if math.isfinite(alt):
-            relative = cmd.frame in RELATIVE_ALT_FRAMES
-            target[2] = self._vehicle.down_from_altitude(alt, relative)
-        speed = p[0]
-        if math.isfinite(speed) and speed > 0:
-            self._cruise_override_m_s = speed
-        yaw = p[3] if math.isfinite(p[3]) else None
-        if self._state.mode is not FlightMode.HOLD:
-            self._state.mode = FlightMode.HOLD
-            self._mode_changed()
-        self._fly_to(target, yaw if yaw is not None else self._heading_to(target))
-        self._apply_limits()
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def _cmd_change_speed(self, cmd: Command, link: Link) -> int:
-        speed = cmd.params[1]
-        if not math.isfinite(speed):
-            return mavlink.MAV_RESULT_DENIED
-        self._cruise_override_m_s = speed if speed > 0 else None
-        self._apply_limits()
-        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_set_home(self, cmd: Command, link: Link) -> int:
         p = cmd.params
@@ -698,13 +612,6 @@ class Px4Autopilot:
             return self._request_mode(FlightMode.MISSION)
         return mavlink.MAV_RESULT_DENIED
 
-    def _cmd_set_mission_current(self, cmd: Command, link: Link) -> int:
-        seq = cmd.params[0]
-        if not math.isfinite(seq) or not self._mission_set_current(int(seq)):
-            return mavlink.MAV_RESULT_DENIED
-        self._broadcast_mission_current()
-        return mavlink.MAV_RESULT_ACCEPTED
-
     def _cmd_mission_start(self, cmd: Command, link: Link) -> int:
         items = self.mission.items
         if not items:
@@ -714,7 +621,7 @@ class Px4Autopilot:
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         first = cmd.params[0]
         if math.isfinite(first) and 0 <= first < len(items):
-            self._mission_set_current(int(first))
+            self._navigator.mission_set_current(int(first))
         return self._request_mode(FlightMode.MISSION)
 
     def _cmd_get_home_position(self, cmd: Command, link: Link) -> int:
@@ -770,13 +677,13 @@ class Px4Autopilot:
                 now, mavlink.MAV_SEVERITY_CRITICAL, "Switching to Offboard denied: no setpoints"
             )
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        if mode is FlightMode.MISSION and not self.mission.items:
+        if mode is FlightMode.MISSION and not self._navigator.has_mission:
             self._vehicle.statustext(
                 now, mavlink.MAV_SEVERITY_CRITICAL, "Mission denied: no mission uploaded"
             )
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         if mode is FlightMode.TAKEOFF:
-            self._target_altitude_m = self.params["MIS_TAKEOFF_ALT"]
+            self._navigator.set_takeoff_altitude(self.params["MIS_TAKEOFF_ALT"])
         self._set_mode(mode)
         return mavlink.MAV_RESULT_ACCEPTED
 
@@ -784,14 +691,7 @@ class Px4Autopilot:
         previous = self._state.mode
         self._state.mode = mode
         self._state.failsafe_active = failsafe
-        if mode is FlightMode.MISSION and previous is not FlightMode.MISSION:
-            self._mission_restart_if_finished()
-        self._mode_changed()
-
-    def _mode_changed(self) -> None:
-        self._state.landing = False
-        self._rtl_stage = ""
-        self._apply_limits()
+        self._navigator.mode_changed(previous)
         self._command_physics()
 
     def _command_physics(self) -> None:
@@ -805,328 +705,10 @@ class Px4Autopilot:
             phys.control_mode[i] = ph.MOTORS_OFF
             phys.velocity_setpoint_ned_m_s[i] = 0.0
             return
-        mode = self._state.mode
-        if mode is FlightMode.OFFBOARD:
-            self._offboard.apply()
-        elif mode is FlightMode.TAKEOFF:
-            pos = self.position_ned()
-            down = self._state.home_ned_m[2] - self._target_altitude_m
-            self._fly_to([pos[0], pos[1], min(down, pos[2])], math.nan)
-        elif mode is FlightMode.LAND:
-            self._start_landing()
-        elif mode is FlightMode.RTL:
-            self._rtl_begin()
-        elif mode is FlightMode.MISSION:
-            self._mission_start_item()
-        else:
-            self._hold_here()
-
-    def _apply_limits(self) -> None:
-        """Speed/acceleration limits of this vehicle for the current mode, from the params."""
-        i = self.index
-        p = self.params
-        phys = self._physics
-        phys.max_horizontal_speed_m_s[i] = p["MPC_XY_VEL_MAX"]
-        phys.max_up_speed_m_s[i] = p["MPC_Z_VEL_MAX_UP"]
-        phys.max_down_speed_m_s[i] = p["MPC_Z_VEL_MAX_DN"]
-        phys.max_horizontal_accel_m_s2[i] = p["MPC_ACC_HOR"]
-        phys.max_up_accel_m_s2[i] = p["MPC_ACC_UP_MAX"]
-        phys.max_down_accel_m_s2[i] = p["MPC_ACC_DOWN_MAX"]
-        phys.max_yaw_rate_rad_s[i] = math.radians(p["MPC_YAWRAUTO_MAX"])
         if self._state.mode is FlightMode.OFFBOARD:
-            cruise = p["MPC_XY_VEL_MAX"]
+            self._offboard.apply()
         else:
-            cruise = self._cruise_override_m_s or p["MPC_XY_CRUISE"]
-        phys.cruise_speed_m_s[i] = min(cruise, p["MPC_XY_VEL_MAX"])
-        if self._state.mode is FlightMode.TAKEOFF or self._mission_phase == "takeoff":
-            phys.max_up_speed_m_s[i] = min(p["MPC_TKO_SPEED"], p["MPC_Z_VEL_MAX_UP"])
-        if self._state.landing:
-            phys.max_down_speed_m_s[i] = self._landing_speed()
-
-    def _landing_speed(self) -> float:
-        """PX4 descends fast high up and at MPC_LAND_SPEED close to the ground."""
-        p = self.params
-        height = self.height_above_ground_m() if self._snap.position_ned_m else 0.0
-        slow, fast = p["MPC_LAND_SPEED"], max(p["MPC_Z_VEL_MAX_DN"], p["MPC_LAND_SPEED"])
-        high, low = 10.0, 5.0  # PX4 MPC_LAND_ALT1 / MPC_LAND_ALT2 defaults
-        if height >= high:
-            return fast
-        if height <= low:
-            return slow
-        return slow + (fast - slow) * (height - low) / (high - low)
-
-    def _fly_to(self, target_ned_m: list[float], yaw_rad: float) -> None:
-        i = self.index
-        phys = self._physics
-        phys.control_mode[i] = ph.POSITION
-        phys.position_setpoint_ned_m[i] = target_ned_m
-        phys.velocity_feedforward_ned_m_s[i] = 0.0
-        phys.yaw_setpoint_rad[i] = yaw_rad
-        phys.yaw_rate_setpoint_rad_s[i] = math.nan
-
-    def _hold_here(self) -> None:
-        """Brake and hold: target the stopping point of the current motion."""
-        pos = self.position_ned()
-        if self._state.landed:
-            self._fly_to([pos[0], pos[1], max(pos[2], 0.0)], math.nan)
-            return
-        vel = self.velocity_ned()
-        accel = max(self.params["MPC_ACC_HOR"], 0.1)
-        speed = math.hypot(vel[0], vel[1])
-        k = speed / (2.0 * accel)
-        self._fly_to([pos[0] + vel[0] * k, pos[1] + vel[1] * k, pos[2]], math.nan)
-
-    def _heading_to(self, target: list[float]) -> float:
-        pos = self.position_ned()
-        dn, de = target[0] - pos[0], target[1] - pos[1]
-        if math.hypot(dn, de) < 2.0:
-            return math.nan
-        return math.atan2(de, dn)
-
-    def _start_landing(self) -> None:
-        pos = self.position_ned()
-        self._state.landing = True
-        self._apply_limits()
-        # Aim below the ground: the descent is limited by the landing speed, the ground stops it.
-        self._fly_to([pos[0], pos[1], 10.0], math.nan)
-
-    # -------------------------------------------------------------------- RTL
-    def _rtl_begin(self) -> None:
-        if self._state.landed:
-            self._rtl_stage = "done"
-            self._hold_here()
-            return
-        altitude = self.altitude_above_home_m()
-        self._rtl_altitude_m = max(altitude, self.params["RTL_RETURN_ALT"])
-        self._rtl_set_stage("climb")
-
-    def _rtl_set_stage(self, stage: str) -> None:
-        self._rtl_stage = stage
-        pos = self.position_ned()
-        home = self._state.home_ned_m
-        if stage == "climb":
-            self._fly_to([pos[0], pos[1], home[2] - self._rtl_altitude_m], math.nan)
-        elif stage == "return":
-            target = [home[0], home[1], home[2] - self._rtl_altitude_m]
-            self._fly_to(target, self._heading_to(target))
-        elif stage == "descend":
-            altitude = min(self._rtl_altitude_m, self.params["RTL_DESCEND_ALT"])
-            self._fly_to([home[0], home[1], home[2] - altitude], math.nan)
-        elif stage == "loiter":
-            delay = self.params["RTL_LAND_DELAY"]
-            self._rtl_loiter_until_s = math.inf if delay < 0 else self._state.now_s + delay
-        elif stage == "land":
-            self._start_landing()
-
-    def _rtl_update(self, now_s: float) -> None:
-        stage = self._rtl_stage
-        if stage in ("", "done", "land"):
-            return
-        if stage == "loiter":
-            if now_s >= self._rtl_loiter_until_s:
-                self._rtl_set_stage("land")
-            return
-        if self._reached(self._physics_target(), _RTL_ARRIVED_M, self.params["NAV_MC_ALT_RAD"]):
-            next_stage = {"climb": "return", "return": "descend", "descend": "loiter"}[stage]
-            self._rtl_set_stage(next_stage)
-
-    def _physics_target(self) -> list[float]:
-        return [float(v) for v in self._physics.position_setpoint_ned_m[self.index]]
-
-    def _reached(self, target: list[float], horizontal_m: float, vertical_m: float) -> bool:
-        pos = self.position_ned()
-        vel = self.velocity_ned()
-        return (
-            math.hypot(target[0] - pos[0], target[1] - pos[1]) <= horizontal_m
-            and abs(target[2] - pos[2]) <= vertical_m
-            and abs(vel[0]) + abs(vel[1]) + abs(vel[2]) < 1.5
-        )
-
-    # --------------------------------------------------------------- mission
-    def _mission_uploaded(self, mission_type: int, items: list[MissionItem]) -> None:
-        if mission_type != mavlink.MAV_MISSION_TYPE_MISSION:
-            return
-        self._mission_seq = 0
-        self._mission_started = False
-        self._mission_finished = False
-        self._mission_phase = ""
-        self._mission_warned.clear()
-        if self._state.mode is FlightMode.MISSION:
-            if items:
-                self._command_physics()
-            else:
-                self._set_mode(FlightMode.HOLD)
-        self._broadcast_mission_current()
-
-    def _mission_set_current(self, seq: int) -> bool:
-        if not 0 <= seq < len(self.mission.items):
-            return False
-        self._mission_seq = seq
-        self._mission_finished = False
-        if self._state.mode is FlightMode.MISSION and self._state.armed:
-            self._mission_start_item()
-        return True
-
-    def _mission_restart_if_finished(self) -> None:
-        if self._mission_finished:
-            self._mission_seq = 0
-            self._mission_finished = False
-
-    def _mission_start_item(self) -> None:
-        """Begin the current item; items that need no flying complete at once."""
-        items = self.mission.items
-        if not self._state.armed:
-            return
-        self._mission_started = True
-        for _ in range(len(items) + 1):
-            if self._mission_seq >= len(items):
-                self._mission_complete()
-                return
-            item = items[self._mission_seq]
-            command = item.command
-            self._mission_phase = ""
-            if command in (
-                mavlink.MAV_CMD_NAV_WAYPOINT,
-                mavlink.MAV_CMD_NAV_LOITER_UNLIM,
-                mavlink.MAV_CMD_NAV_LOITER_TIME,
-                mavlink.MAV_CMD_NAV_TAKEOFF,
-                mavlink.MAV_CMD_NAV_LAND,
-            ):
-                self._mission_fly_item(item)
-                return
-            if command == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
-                # PX4 hands over to Return mode; MAVSDK expects no ITEM_REACHED for this item.
-                self._mission_finished = True
-                self._broadcast_mission_current()
-                self._set_mode(FlightMode.RTL)
-                return
-            if command == mavlink.MAV_CMD_NAV_DELAY:
-                self._mission_phase = "hold"
-                delay = item.param1 if math.isfinite(item.param1) else 0.0
-                self._mission_hold_until_s = self._state.now_s + max(delay, 0.0)
-                self._hold_here()
-                return
-            if command == mavlink.MAV_CMD_DO_CHANGE_SPEED and math.isfinite(item.param2):
-                self._cruise_override_m_s = item.param2 if item.param2 > 0 else None
-                self._apply_limits()
-            elif command < mavlink.MAV_CMD_NAV_ROI and command not in self._mission_warned:
-                # A navigation item skipped changes the flight path: say so, once per command.
-                self._mission_warned.add(command)
-                self._vehicle.statustext(
-                    self._state.now_s,
-                    mavlink.MAV_SEVERITY_WARNING,
-                    f"Mission item {command} not supported",
-                )
-            self._mission_item_reached(advance_only=True)
-        self._mission_complete()
-
-    def _mission_item_target(self, item: MissionItem) -> list[float]:
-        pos = self.position_ned()
-        target = list(pos)
-        if item.x != 0 or item.y != 0:
-            target[0], target[1] = self._projection.to_local(item.latitude_deg, item.longitude_deg)
-        if math.isfinite(item.z):
-            target[2] = self._vehicle.down_from_altitude(item.z, item.frame in RELATIVE_ALT_FRAMES)
-        return target
-
-    def _mission_fly_item(self, item: MissionItem) -> None:
-        target = self._mission_item_target(item)
-        self._mission_target_ned_m = target
-        pos = self.position_ned()
-        if item.command == mavlink.MAV_CMD_NAV_LAND:
-            if math.hypot(target[0] - pos[0], target[1] - pos[1]) > 1.0 and not self._state.landed:
-                self._mission_phase = "go"
-                self._fly_to([target[0], target[1], pos[2]], self._heading_to(target))
-            else:
-                self._mission_phase = "land"
-                self._start_landing()
-            return
-        if item.command == mavlink.MAV_CMD_NAV_TAKEOFF:
-            self._mission_phase = "takeoff"
-            self._apply_limits()
-            self._fly_to([pos[0], pos[1], min(target[2], pos[2])], math.nan)
-            return
-        if self._state.landed:
-            # PX4 takes off vertically before flying to the first waypoint.
-            altitude = max(self._state.home_ned_m[2] - target[2], self.params["MIS_TAKEOFF_ALT"])
-            self._mission_phase = "takeoff"
-            self._apply_limits()
-            self._fly_to([pos[0], pos[1], self._state.home_ned_m[2] - altitude], math.nan)
-            return
-        self._mission_phase = "go"
-        self._apply_limits()
-        yaw = math.radians(item.param4) if math.isfinite(item.param4) else self._heading_to(target)
-        self._fly_to(target, yaw)
-
-    def _mission_update(self, now_s: float) -> None:
-        phase = self._mission_phase
-        if not self._state.armed or not phase or self._mission_finished:
-            return
-        items = self.mission.items
-        if self._mission_seq >= len(items):
-            return
-        item = items[self._mission_seq]
-        vertical = self.params["NAV_MC_ALT_RAD"]
-        if phase == "takeoff":
-            if self._reached(self._physics_target(), 1e9, vertical):
-                if item.command == mavlink.MAV_CMD_NAV_TAKEOFF:
-                    self._mission_phase = ""
-                    self._apply_limits()
-                    self._mission_item_reached()
-                else:
-                    self._mission_fly_item(item)
-        elif phase == "go":
-            radius = item.param2 if item.param2 > 0 else self.params["NAV_ACC_RAD"]
-            if item.command == mavlink.MAV_CMD_NAV_LAND:
-                radius = 1.0
-            if not self._reached(self._physics_target(), radius, vertical):
-                return
-            if item.command == mavlink.MAV_CMD_NAV_LAND:
-                self._mission_phase = "land"
-                self._start_landing()
-            elif item.command == mavlink.MAV_CMD_NAV_LOITER_UNLIM:
-                self._mission_phase = "loiter"
-            else:
-                hold = item.param1 if math.isfinite(item.param1) and item.param1 > 0 else 0.0
-                if hold > 0:
-                    self._mission_phase = "hold"
-                    self._mission_hold_until_s = now_s + hold
-                else:
-                    self._mission_item_reached()
-        elif phase == "hold":
-            if now_s >= self._mission_hold_until_s:
-                self._mission_item_reached()
-        elif phase == "land" and self._state.landed:
-            self._mission_phase = ""
-            self._mission_item_reached()
-
-    def _mission_item_reached(self, advance_only: bool = False) -> None:
-        self._vehicle.broadcast(mavlink.MAVLink_mission_item_reached_message(self._mission_seq))
-        self._mission_seq += 1
-        self._mission_phase = ""
-        if self._mission_seq >= len(self.mission.items):
-            self._mission_complete()
-            return
-        self._broadcast_mission_current()
-        if not advance_only:
-            self._mission_start_item()
-
-    def _mission_complete(self) -> None:
-        if self._mission_finished:
-            return
-        self._mission_finished = True
-        self._mission_phase = ""
-        self._mission_seq = max(len(self.mission.items) - 1, 0)
-        self._broadcast_mission_current()
-        if not self._state.landed:
-            self._vehicle.statustext(
-                self._state.now_s, mavlink.MAV_SEVERITY_INFO, "Mission finished, loitering"
-            )
-            self._hold_here()
-
-    def _broadcast_mission_current(self) -> None:
-        seq, total, state, mode = self.mission_status()
-        self._vehicle.broadcast(mavlink.MAVLink_mission_current_message(seq, total, state, mode))
+            self._navigator.enter_mode()
 
     # ================================================================ arming
     def _arm(self, now_s: float) -> None:
@@ -1150,8 +732,7 @@ class Px4Autopilot:
         if not self._state.alive:
             return
         self._state.now_s = now_s
-        taking_off = self._state.mode is FlightMode.TAKEOFF or self._mission_phase == "takeoff"
-        event = self._land_detector.update(now_s, taking_off=taking_off)
+        event = self._land_detector.update(now_s, taking_off=self._navigator.taking_off)
         if event is not None:
             self._on_land_event(event, now_s)
         dt_s = max(now_s - self._last_update_s, 0.0)
@@ -1160,19 +741,7 @@ class Px4Autopilot:
             self.battery_remaining_pct = max(
                 0.0, self.battery_remaining_pct - self.battery_drain_percent_per_min * dt_s / 60.0
             )
-            mode = self._state.mode
-            if mode is FlightMode.TAKEOFF:
-                target_down = self._state.home_ned_m[2] - self._target_altitude_m
-                pos = self.position_ned()
-                if pos[2] <= target_down + 0.1:
-                    self._set_mode(FlightMode.HOLD)
-                    self._fly_to([pos[0], pos[1], target_down], math.nan)
-            elif mode is FlightMode.RTL:
-                self._rtl_update(now_s)
-            elif mode is FlightMode.MISSION:
-                self._mission_update(now_s)
-            if self._state.landing:
-                self._physics.max_down_speed_m_s[self.index] = self._landing_speed()
+            self._navigator.update(now_s)
             self._check_failsafes(now_s)
             self._check_auto_disarm(now_s)
         self.mission.update(now_s)
@@ -1182,20 +751,10 @@ class Px4Autopilot:
         if event is LandEvent.TOUCHDOWN:
             if self._state.armed:
                 self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Landing detected")
-                self._apply_limits()
-                self._hold_on_ground()
+                self._navigator.on_touchdown()
         else:
             self._flown_since_arm = True
             self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Takeoff detected")
-
-    def _hold_on_ground(self) -> None:
-        """After touchdown keep the motors idle on the spot (until auto-disarm)."""
-        mode = self._state.mode
-        if mode in (FlightMode.LAND, FlightMode.RTL) or (
-            mode is FlightMode.MISSION and self._mission_phase == "land"
-        ):
-            pos = self.position_ned()
-            self._fly_to([pos[0], pos[1], 0.0], math.nan)
 
     def _check_failsafes(self, now_s: float) -> None:
         p = self.params
@@ -1275,12 +834,9 @@ AUTOPILOT_COMMANDS: CommandTable[Px4Autopilot] = {
     mavlink.MAV_CMD_NAV_LAND: Px4Autopilot._cmd_land,
     mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH: Px4Autopilot._cmd_rtl,
     mavlink.MAV_CMD_DO_SET_MODE: Px4Autopilot._cmd_set_mode,
-    mavlink.MAV_CMD_DO_REPOSITION: Px4Autopilot._cmd_reposition,
-    mavlink.MAV_CMD_DO_CHANGE_SPEED: Px4Autopilot._cmd_change_speed,
     mavlink.MAV_CMD_DO_SET_HOME: Px4Autopilot._cmd_set_home,
     mavlink.MAV_CMD_DO_FLIGHTTERMINATION: Px4Autopilot._cmd_flight_termination,
     mavlink.MAV_CMD_DO_PAUSE_CONTINUE: Px4Autopilot._cmd_pause_continue,
-    mavlink.MAV_CMD_DO_SET_MISSION_CURRENT: Px4Autopilot._cmd_set_mission_current,
     mavlink.MAV_CMD_MISSION_START: Px4Autopilot._cmd_mission_start,
     mavlink.MAV_CMD_GET_HOME_POSITION: Px4Autopilot._cmd_get_home_position,
     mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: Px4Autopilot._cmd_get_message_interval,
