@@ -21,15 +21,14 @@ import logging
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import physics as ph
+from sitl.commander import COMMANDER_COMMANDS, Commander
 from sitl.commands import Command, CommandDispatcher, CommandTable, bind
-from sitl.config import PX4_ARMING_DENIED_TEXT
 from sitl.geo import MapProjection
-from sitl.land_detector import LandDetector, LandEvent
+from sitl.land_detector import LandDetector
 from sitl.mission import MissionTransfer
 from sitl.modes import FlightMode
 from sitl.navigator import NAVIGATOR_COMMANDS, Navigator
@@ -42,21 +41,6 @@ from sitl.vehicle_state import Link, Snapshot, VehicleContext, VehicleState
 __all__ = ["Link", "Px4Autopilot", "Snapshot"]
 
 logger = logging.getLogger(__name__)
-
-# MAV_CMD_COMPONENT_ARM_DISARM param2 that forces arming/disarming: a magic number of the
-# MAVLink spec, with no constant in pymavlink.
-FORCE_MAGIC = 21196
-
-
-@dataclass(slots=True)
-class _ArmRefusal:
-    """Injected arm refusals still to come, and the attempt refused last (for retransmissions)."""
-
-    remaining: int = 0
-    text: str = PX4_ARMING_DENIED_TEXT
-    retry_window_s: float = 2.0
-    last_key: tuple[object, ...] | None = None
-    last_at_s: float = -math.inf
 
 
 class Px4Autopilot:
@@ -94,7 +78,6 @@ class Px4Autopilot:
         self._snap = snapshot
         self._projection = projection
         self.ground_amsl_m = ground_amsl_m
-        self.preflight_ready_after_s = preflight_ready_after_s
         self.battery_drain_percent_per_min = battery_drain_percent_per_min
         self.unix_epoch_start_us = unix_epoch_start_us
         self._unix_time_us = unix_time_us
@@ -114,14 +97,8 @@ class Px4Autopilot:
         )
         self.telemetry = TelemetryBuilder(self)
         self.battery_remaining_pct = 100.0
-        self._arm_refusal = _ArmRefusal()
 
         self._last_update_s = 0.0
-        self._armed_at_s = 0.0
-        self._flown_since_arm = False
-
-        self._gcs_last_heartbeat_s: float | None = None
-        self._gcs_lost = False
 
         self._cache_step = -1
         self._cache_global: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -130,16 +107,28 @@ class Px4Autopilot:
         self._land_detector = LandDetector(self._vehicle)
         self._navigator = Navigator(self._vehicle, set_mode=self._set_mode)
         self.mission: MissionTransfer = self._navigator.mission
+        self._commander = Commander(
+            self._vehicle,
+            navigator=self._navigator,
+            offboard=self._offboard,
+            land_detector=self._land_detector,
+            preflight_ready_after_s=preflight_ready_after_s,
+            on_home_changed=self._announce_home,
+        )
 
         self._commands = CommandDispatcher(
             self._vehicle,
-            [bind(self, AUTOPILOT_COMMANDS), bind(self._navigator, NAVIGATOR_COMMANDS)],
+            [
+                bind(self._commander, COMMANDER_COMMANDS),
+                bind(self._navigator, NAVIGATOR_COMMANDS),
+                bind(self, AUTOPILOT_COMMANDS),
+            ],
         )
         self._message_handlers: dict[str, Callable[[mavlink.MAVLink_message, Link], None]] = {
-            "HEARTBEAT": self._on_heartbeat,
+            "HEARTBEAT": self._commander.on_heartbeat,
             "COMMAND_LONG": self._commands.on_command_long,
             "COMMAND_INT": self._commands.on_command_int,
-            "SET_MODE": self._on_set_mode,
+            "SET_MODE": self._commander.on_set_mode,
             "SET_POSITION_TARGET_LOCAL_NED": self._offboard.on_position_target_local,
             "SET_POSITION_TARGET_GLOBAL_INT": self._offboard.on_position_target_global,
             "SET_ATTITUDE_TARGET": self._offboard.on_attitude_target,
@@ -162,7 +151,7 @@ class Px4Autopilot:
         ):
             self._message_handlers[kind] = self._on_mission_message
         self._navigator.apply_limits()
-        self._command_physics()
+        self._commander.command_physics()
 
     # ================================================================ state access
     @property
@@ -230,10 +219,13 @@ class Px4Autopilot:
     def on_statustext(self, observer: Callable[[float, int, str], None] | None) -> None:
         self._vehicle.on_statustext = observer
 
+    @property
+    def preflight_ready_after_s(self) -> float:
+        return self._commander.preflight_ready_after_s
+
     def ready(self, now_s: float) -> bool:
         """Preflight checks pass: estimator converged, a position source works, alive."""
-        state = self._state
-        return state.alive and now_s >= self.preflight_ready_after_s and state.position_ok
+        return self._commander.ready(now_s)
 
     def boot_time_s(self, now_s: float) -> float:
         """The autopilot's boot clock at simulated time ``now_s``."""
@@ -375,6 +367,15 @@ class Px4Autopilot:
         else:
             raise ValueError(f"unknown sensor {sensor!r}; use 'flow' or 'gps'")
 
+    def deny_arming(self, count: int, text: str, retry_window_s: float) -> None:
+        """Refuse the next ``count`` arm attempts with STATUSTEXT ``text`` (added to any
+        refusals still pending); see :class:`sitl.config.DenyArmingFault`."""
+        self._commander.deny_arming(count, text, retry_window_s)
+
+    @property
+    def arm_refusals_pending(self) -> int:
+        return self._commander.arm_refusals_pending
+
     # ================================================================ messages in
     def handle_message(self, msg: mavlink.MAVLink_message, link: Link, now_s: float) -> None:
         """React to one decoded message received on ``link``."""
@@ -384,26 +385,6 @@ class Px4Autopilot:
         handler = self._message_handlers.get(msg.get_type())
         if handler is not None:
             handler(msg, link)
-
-    def _on_heartbeat(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID or msg.get_srcSystem() == self.sysid:
-            return  # another vehicle, or our own echo: not a ground station / API client
-        self._gcs_last_heartbeat_s = self._state.now_s
-        if self._gcs_lost:
-            self._gcs_lost = False
-            self._vehicle.statustext(
-                self._state.now_s, mavlink.MAV_SEVERITY_INFO, "Data link regained"
-            )
-
-    def _on_set_mode(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if (
-            msg.target_system != self.sysid
-            or not msg.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-        ):
-            return
-        mode = FlightMode.from_custom_mode(msg.custom_mode)
-        if mode is not None:
-            self._request_mode(mode)
 
     def _on_ping(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         if msg.target_system == 0 and msg.target_component == 0:
@@ -475,155 +456,6 @@ class Px4Autopilot:
         self._navigator.apply_limits()
 
     # -------------------------------------------------------------- commands
-    def _cmd_arm_disarm(self, cmd: Command, link: Link) -> int:
-        p1, p2 = cmd.params[0], cmd.params[1]
-        force = p2 == FORCE_MAGIC
-        now = self._state.now_s
-        if p1 == 1.0:
-            if self._state.armed:
-                return mavlink.MAV_RESULT_ACCEPTED
-            if not force:
-                if not self.ready(now):
-                    reason = "estimator not ready" if self._state.position_ok else "no position"
-                    self._vehicle.statustext(
-                        now, mavlink.MAV_SEVERITY_CRITICAL, f"Arming denied: {reason}"
-                    )
-                    return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-                if self._state.mode is FlightMode.OFFBOARD and not self._offboard.signal_fresh():
-                    self._vehicle.statustext(
-                        now, mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: no offboard signal"
-                    )
-                    return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-            if self._injected_arm_refusal(cmd, link, now):
-                # PX4's commander: mavlink_log_critical(... "\t"), then TRANSITION_DENIED,
-                # which the arm command answers with MAV_RESULT_TEMPORARILY_REJECTED.
-                self._vehicle.statustext(
-                    now, mavlink.MAV_SEVERITY_CRITICAL, self._arm_refusal.text + "\t"
-                )
-                return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-            self._arm(now)
-            return mavlink.MAV_RESULT_ACCEPTED
-        if p1 == 0.0:
-            if not self._state.armed:
-                return mavlink.MAV_RESULT_ACCEPTED
-            if not (self._state.landed or force):
-                self._vehicle.statustext(
-                    now, mavlink.MAV_SEVERITY_CRITICAL, "Disarming denied: not landed"
-                )
-                return mavlink.MAV_RESULT_DENIED
-            self._disarm(now, "Disarmed by external command")
-            return mavlink.MAV_RESULT_ACCEPTED
-        return mavlink.MAV_RESULT_DENIED
-
-    def deny_arming(self, count: int, text: str, retry_window_s: float) -> None:
-        """Refuse the next ``count`` arm attempts with STATUSTEXT ``text`` (added to any
-        refusals still pending); see :class:`sitl.config.DenyArmingFault`."""
-        if count < 1:
-            raise ValueError(f"count must be >= 1, got {count!r}")
-        refusal = self._arm_refusal
-        refusal.remaining += count
-        refusal.text = text
-        refusal.retry_window_s = retry_window_s
-
-    @property
-    def arm_refusals_pending(self) -> int:
-        return self._arm_refusal.remaining
-
-    def _injected_arm_refusal(self, cmd: Command, link: Link, now_s: float) -> bool:
-        """Whether an injected health failure refuses this arm command (uses up one refusal
-        unless it retransmits the attempt refused last)."""
-        refusal = self._arm_refusal
-        force = cmd.params[1]
-        key = (link.name, cmd.source, cmd.command, None if math.isnan(force) else force)
-        window = refusal.retry_window_s
-        if window > 0 and key == refusal.last_key and now_s - refusal.last_at_s < window:
-            return True
-        if refusal.remaining <= 0:
-            return False
-        refusal.remaining -= 1
-        refusal.last_key = key
-        refusal.last_at_s = now_s
-        return True
-
-    def _cmd_takeoff(self, cmd: Command, link: Link) -> int:
-        if not self._state.armed:
-            self._vehicle.statustext(
-                self._state.now_s,
-                mavlink.MAV_SEVERITY_CRITICAL,
-                "Takeoff denied: vehicle not armed",
-            )
-            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        alt_amsl = cmd.params[6]
-        if math.isfinite(alt_amsl):
-            altitude = alt_amsl - (self.ground_amsl_m - self._state.home_ned_m[2])
-        else:
-            altitude = self.params["MIS_TAKEOFF_ALT"]
-        self._navigator.set_takeoff_altitude(max(altitude, 0.5))
-        self._set_mode(FlightMode.TAKEOFF)
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def _cmd_land(self, cmd: Command, link: Link) -> int:
-        self._set_mode(FlightMode.LAND)
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def _cmd_rtl(self, cmd: Command, link: Link) -> int:
-        self._set_mode(FlightMode.RTL)
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def _cmd_set_mode(self, cmd: Command, link: Link) -> int:
-        base, main, sub = cmd.params[0], cmd.params[1], cmd.params[2]
-        if not (math.isfinite(base) and math.isfinite(main) and math.isfinite(sub)):
-            return mavlink.MAV_RESULT_DENIED
-        # Only the custom-mode flag of param 1 matters: its armed bit may lag the real state.
-        if not int(base) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            return mavlink.MAV_RESULT_DENIED
-        mode = FlightMode.from_main_sub(int(main), int(sub))
-        if mode is None:
-            return mavlink.MAV_RESULT_DENIED
-        return self._request_mode(mode)
-
-    def _cmd_set_home(self, cmd: Command, link: Link) -> int:
-        p = cmd.params
-        if p[0] == 1.0:
-            self._state.home_ned_m = list(self.position_ned())
-        else:
-            if cmd.frame is None:
-                lat, lon = p[4], p[5]
-            else:
-                lat, lon = cmd.x_int * 1e-7, cmd.y_int * 1e-7
-            if not (math.isfinite(lat) and math.isfinite(lon) and math.isfinite(p[6])):
-                return mavlink.MAV_RESULT_DENIED
-            if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
-                return mavlink.MAV_RESULT_DENIED
-            n, e = self._projection.to_local(lat, lon)
-            self._state.home_ned_m = [n, e, self.ground_amsl_m - p[6]]
-        self._broadcast_message(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def _cmd_flight_termination(self, cmd: Command, link: Link) -> int:
-        if cmd.params[0] > 0.5:
-            self._disarm(self._state.now_s, "Flight termination active")
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def _cmd_pause_continue(self, cmd: Command, link: Link) -> int:
-        if cmd.params[0] == 0.0:
-            return self._request_mode(FlightMode.HOLD)
-        if cmd.params[0] == 1.0:
-            return self._request_mode(FlightMode.MISSION)
-        return mavlink.MAV_RESULT_DENIED
-
-    def _cmd_mission_start(self, cmd: Command, link: Link) -> int:
-        items = self.mission.items
-        if not items:
-            self._vehicle.statustext(
-                self._state.now_s, mavlink.MAV_SEVERITY_CRITICAL, "Mission start denied: no mission"
-            )
-            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        first = cmd.params[0]
-        if math.isfinite(first) and 0 <= first < len(items):
-            self._navigator.mission_set_current(int(first))
-        return self._request_mode(FlightMode.MISSION)
-
     def _cmd_get_home_position(self, cmd: Command, link: Link) -> int:
         self._commands.then(lambda: self._send_built(mavlink.MAVLINK_MSG_ID_HOME_POSITION, link))
         return mavlink.MAV_RESULT_ACCEPTED
@@ -661,71 +493,6 @@ class Px4Autopilot:
         )
         return mavlink.MAV_RESULT_ACCEPTED
 
-    # ================================================================ modes
-    def _request_mode(self, mode: FlightMode) -> int:
-        """A client asks for ``mode``: PX4's acceptance rules, then switch."""
-        now = self._state.now_s
-        if mode is self._state.mode:
-            return mavlink.MAV_RESULT_ACCEPTED
-        if mode in (FlightMode.MANUAL, FlightMode.ALTCTL, FlightMode.POSCTL):
-            self._vehicle.statustext(
-                now, mavlink.MAV_SEVERITY_CRITICAL, "Switching denied: no manual control input"
-            )
-            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        if mode is FlightMode.OFFBOARD and not self._offboard.signal_fresh():
-            self._vehicle.statustext(
-                now, mavlink.MAV_SEVERITY_CRITICAL, "Switching to Offboard denied: no setpoints"
-            )
-            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        if mode is FlightMode.MISSION and not self._navigator.has_mission:
-            self._vehicle.statustext(
-                now, mavlink.MAV_SEVERITY_CRITICAL, "Mission denied: no mission uploaded"
-            )
-            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        if mode is FlightMode.TAKEOFF:
-            self._navigator.set_takeoff_altitude(self.params["MIS_TAKEOFF_ALT"])
-        self._set_mode(mode)
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def _set_mode(self, mode: FlightMode, failsafe: bool = False) -> None:
-        previous = self._state.mode
-        self._state.mode = mode
-        self._state.failsafe_active = failsafe
-        self._navigator.mode_changed(previous)
-        self._command_physics()
-
-    def _command_physics(self) -> None:
-        """Set this vehicle's physics setpoints for the current mode (entry actions)."""
-        i = self.index
-        phys = self._physics
-        if not self._state.alive:
-            phys.control_mode[i] = ph.MOTORS_OFF
-            return
-        if not self._state.armed:
-            phys.control_mode[i] = ph.MOTORS_OFF
-            phys.velocity_setpoint_ned_m_s[i] = 0.0
-            return
-        if self._state.mode is FlightMode.OFFBOARD:
-            self._offboard.apply()
-        else:
-            self._navigator.enter_mode()
-
-    # ================================================================ arming
-    def _arm(self, now_s: float) -> None:
-        self._state.armed = True
-        self._armed_at_s = now_s
-        self._flown_since_arm = False
-        self._state.failsafe_active = False
-        self._gcs_lost = False
-        self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Armed by external command")
-        self._command_physics()
-
-    def _disarm(self, now_s: float, reason: str) -> None:
-        self._state.armed = False
-        self._state.landing = False
-        self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, reason)
-        self._command_physics()
-
     # ================================================================ per step
     def update(self, now_s: float) -> None:
         """Advance mode logic, failsafes and timers to ``now_s`` (call once per step)."""
@@ -734,7 +501,7 @@ class Px4Autopilot:
         self._state.now_s = now_s
         event = self._land_detector.update(now_s, taking_off=self._navigator.taking_off)
         if event is not None:
-            self._on_land_event(event, now_s)
+            self._commander.on_land_event(event, now_s)
         dt_s = max(now_s - self._last_update_s, 0.0)
         self._last_update_s = now_s
         if self._state.armed:
@@ -742,82 +509,16 @@ class Px4Autopilot:
                 0.0, self.battery_remaining_pct - self.battery_drain_percent_per_min * dt_s / 60.0
             )
             self._navigator.update(now_s)
-            self._check_failsafes(now_s)
-            self._check_auto_disarm(now_s)
+            self._commander.update(now_s)
         self.mission.update(now_s)
 
-    def _on_land_event(self, event: LandEvent, now_s: float) -> None:
-        """The land detector saw a touchdown or a take-off."""
-        if event is LandEvent.TOUCHDOWN:
-            if self._state.armed:
-                self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Landing detected")
-                self._navigator.on_touchdown()
-        else:
-            self._flown_since_arm = True
-            self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Takeoff detected")
-
-    def _check_failsafes(self, now_s: float) -> None:
-        p = self.params
-        if self._state.mode is FlightMode.OFFBOARD and not self._offboard.signal_fresh():
-            self._vehicle.statustext(
-                now_s, mavlink.MAV_SEVERITY_CRITICAL, "Failsafe activated: offboard control lost"
-            )
-            action = int(p["COM_OBL_RC_ACT"])
-            self._failsafe(
-                {3: FlightMode.RTL, 4: FlightMode.LAND, 6: None, 7: None}.get(
-                    action, FlightMode.HOLD
-                )
-            )
-        if (
-            self._gcs_last_heartbeat_s is not None
-            and not self._gcs_lost
-            and now_s - self._gcs_last_heartbeat_s > p["COM_DL_LOSS_T"]
-        ):
-            self._gcs_lost = True
-            self._vehicle.statustext(
-                now_s, mavlink.MAV_SEVERITY_CRITICAL, "Connection to ground station lost"
-            )
-            action = int(p["NAV_DLL_ACT"])
-            if action != 0:
-                self._failsafe(
-                    {1: FlightMode.HOLD, 2: FlightMode.RTL, 3: FlightMode.LAND}.get(action)
-                )
-        if (
-            not self._state.position_ok
-            and not self._state.landed
-            and self._state.mode is not FlightMode.LAND
-        ):
-            self._vehicle.statustext(
-                now_s, mavlink.MAV_SEVERITY_CRITICAL, "Failsafe activated: no position, landing"
-            )
-            self._failsafe(FlightMode.LAND)
-
-    def _failsafe(self, mode: FlightMode | None) -> None:
-        """Switch to ``mode`` as a failsafe; None means terminate/disarm."""
-        if mode is None:
-            self._disarm(self._state.now_s, "Failsafe: disarmed")
-            return
-        if self._state.landed and mode is not FlightMode.HOLD:
-            mode = FlightMode.HOLD
-        self._set_mode(mode, failsafe=True)
-
-    def _check_auto_disarm(self, now_s: float) -> None:
-        if not self._state.landed:
-            return
-        p = self.params
-        landed_at_s = self._land_detector.landed_at_s
-        if self._flown_since_arm:
-            timeout, since, reason = p["COM_DISARM_LAND"], landed_at_s, "Disarmed by landing"
-        else:
-            timeout = p["COM_DISARM_PRFLT"]
-            since = max(self._armed_at_s, landed_at_s)
-            reason = "Disarmed by auto preflight disarming"
-        if timeout >= 0 and now_s - since >= timeout:
-            self._disarm(now_s, reason)
-
     # ================================================================ output
-    def _broadcast_message(self, msg_id: int) -> None:
-        msg = self.telemetry.build(msg_id, self._state.now_s)
+    def _set_mode(self, mode: FlightMode, failsafe: bool = False) -> None:
+        """The navigator's way to the commander's mode switch."""
+        self._commander.set_mode(mode, failsafe)
+
+    def _announce_home(self) -> None:
+        msg = self.telemetry.build(mavlink.MAVLINK_MSG_ID_HOME_POSITION, self._state.now_s)
         if msg is not None:
             self._vehicle.broadcast(msg)
 
@@ -829,15 +530,6 @@ class Px4Autopilot:
 
 #: MAV_CMD -> the autopilot's handler.
 AUTOPILOT_COMMANDS: CommandTable[Px4Autopilot] = {
-    mavlink.MAV_CMD_COMPONENT_ARM_DISARM: Px4Autopilot._cmd_arm_disarm,
-    mavlink.MAV_CMD_NAV_TAKEOFF: Px4Autopilot._cmd_takeoff,
-    mavlink.MAV_CMD_NAV_LAND: Px4Autopilot._cmd_land,
-    mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH: Px4Autopilot._cmd_rtl,
-    mavlink.MAV_CMD_DO_SET_MODE: Px4Autopilot._cmd_set_mode,
-    mavlink.MAV_CMD_DO_SET_HOME: Px4Autopilot._cmd_set_home,
-    mavlink.MAV_CMD_DO_FLIGHTTERMINATION: Px4Autopilot._cmd_flight_termination,
-    mavlink.MAV_CMD_DO_PAUSE_CONTINUE: Px4Autopilot._cmd_pause_continue,
-    mavlink.MAV_CMD_MISSION_START: Px4Autopilot._cmd_mission_start,
     mavlink.MAV_CMD_GET_HOME_POSITION: Px4Autopilot._cmd_get_home_position,
     mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: Px4Autopilot._cmd_get_message_interval,
     mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: Px4Autopilot._cmd_set_message_interval,
