@@ -8,8 +8,19 @@
   detected, RTL stages, mission items), failsafes (offboard loss, data-link loss, position loss),
   auto-disarm.
 
-It steers the vehicle only by writing setpoints and limits into its row of the shared
-:class:`sitl.physics.MulticopterPhysics` arrays, and reads the vehicle's state from the per-step
+It is the façade the emulator, the telemetry builder and the tests use; the behaviour lives in
+parts split the way PX4 splits its modules, which share one
+:class:`sitl.vehicle_state.VehicleContext`:
+
+- :mod:`sitl.mavlink_receiver`: routes each message; parameters, PING, TIMESYNC, message requests;
+- :mod:`sitl.commands`: COMMAND_LONG/INT -> handler tables -> COMMAND_ACK;
+- :mod:`sitl.commander`: arming, mode switching, failsafes, auto-disarm;
+- :mod:`sitl.navigator`: TAKEOFF, HOLD/reposition, LAND, RTL, MISSION;
+- :mod:`sitl.offboard`: offboard setpoints and their timeout;
+- :mod:`sitl.land_detector`: landed / in air.
+
+The parts steer the vehicle only by writing setpoints and limits into its row of the shared
+:class:`sitl.physics.MulticopterPhysics` arrays, and read the vehicle's state from the per-step
 :class:`Snapshot`. Replies go to the link a request came on; events (STATUSTEXT, parameter
 changes, mission progress) go to every link. Anything a client sends that does not make sense is
 ignored, as PX4 does; nothing here raises on bad input.
@@ -25,17 +36,17 @@ from collections.abc import Callable
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import physics as ph
-from sitl.commander import COMMANDER_COMMANDS, Commander
-from sitl.commands import Command, CommandDispatcher, CommandTable, bind
+from sitl.commander import Commander
 from sitl.geo import MapProjection
 from sitl.land_detector import LandDetector
+from sitl.mavlink_receiver import MavlinkReceiver
 from sitl.mission import MissionTransfer
 from sitl.modes import FlightMode
-from sitl.navigator import NAVIGATOR_COMMANDS, Navigator
+from sitl.navigator import Navigator
 from sitl.odometry import Odometry
 from sitl.offboard import Offboard
 from sitl.params import ParamStore
-from sitl.telemetry import BUILDABLE, TelemetryBuilder
+from sitl.telemetry import TelemetryBuilder
 from sitl.vehicle_state import Link, Snapshot, VehicleContext, VehicleState
 
 __all__ = ["Link", "Px4Autopilot", "Snapshot"]
@@ -97,63 +108,35 @@ class Px4Autopilot:
         )
         self.telemetry = TelemetryBuilder(self)
         self.battery_remaining_pct = 100.0
-
         self._last_update_s = 0.0
-
         self._cache_step = -1
         self._cache_global: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
-        self._offboard = Offboard(self._vehicle)
-        self._land_detector = LandDetector(self._vehicle)
-        self._navigator = Navigator(self._vehicle, set_mode=self._set_mode)
+        vehicle = self._vehicle
+        self._offboard = Offboard(vehicle)
+        self._land_detector = LandDetector(vehicle)
+        self._navigator = Navigator(vehicle, set_mode=self._set_mode)
         self.mission: MissionTransfer = self._navigator.mission
         self._commander = Commander(
-            self._vehicle,
+            vehicle,
             navigator=self._navigator,
             offboard=self._offboard,
             land_detector=self._land_detector,
             preflight_ready_after_s=preflight_ready_after_s,
             on_home_changed=self._announce_home,
         )
-
-        self._commands = CommandDispatcher(
-            self._vehicle,
-            [
-                bind(self._commander, COMMANDER_COMMANDS),
-                bind(self._navigator, NAVIGATOR_COMMANDS),
-                bind(self, AUTOPILOT_COMMANDS),
-            ],
+        self._receiver = MavlinkReceiver(
+            vehicle,
+            commander=self._commander,
+            navigator=self._navigator,
+            offboard=self._offboard,
+            telemetry=self.telemetry,
+            boot_time_s=self.boot_time_s,
         )
-        self._message_handlers: dict[str, Callable[[mavlink.MAVLink_message, Link], None]] = {
-            "HEARTBEAT": self._commander.on_heartbeat,
-            "COMMAND_LONG": self._commands.on_command_long,
-            "COMMAND_INT": self._commands.on_command_int,
-            "SET_MODE": self._commander.on_set_mode,
-            "SET_POSITION_TARGET_LOCAL_NED": self._offboard.on_position_target_local,
-            "SET_POSITION_TARGET_GLOBAL_INT": self._offboard.on_position_target_global,
-            "SET_ATTITUDE_TARGET": self._offboard.on_attitude_target,
-            "PARAM_REQUEST_LIST": self._on_param_request_list,
-            "PARAM_REQUEST_READ": self._on_param_request_read,
-            "PARAM_SET": self._on_param_set,
-            "PING": self._on_ping,
-            "TIMESYNC": self._on_timesync,
-        }
-        for kind in (
-            "MISSION_COUNT",
-            "MISSION_ITEM_INT",
-            "MISSION_ITEM",
-            "MISSION_REQUEST_LIST",
-            "MISSION_REQUEST_INT",
-            "MISSION_REQUEST",
-            "MISSION_CLEAR_ALL",
-            "MISSION_SET_CURRENT",
-            "MISSION_ACK",
-        ):
-            self._message_handlers[kind] = self._on_mission_message
         self._navigator.apply_limits()
         self._commander.command_physics()
 
-    # ================================================================ state access
+    # ================================================================ state
     @property
     def alive(self) -> bool:
         return self._state.alive
@@ -197,6 +180,10 @@ class Px4Autopilot:
         return self._offboard.rejected_setpoints
 
     @property
+    def preflight_ready_after_s(self) -> float:
+        return self._commander.preflight_ready_after_s
+
+    @property
     def links(self) -> list[Link]:
         """Where this vehicle's messages go (set by whoever owns the links)."""
         return self._vehicle.links
@@ -218,10 +205,6 @@ class Px4Autopilot:
     @on_statustext.setter
     def on_statustext(self, observer: Callable[[float, int, str], None] | None) -> None:
         self._vehicle.on_statustext = observer
-
-    @property
-    def preflight_ready_after_s(self) -> float:
-        return self._commander.preflight_ready_after_s
 
     def ready(self, now_s: float) -> bool:
         """Preflight checks pass: estimator converged, a position source works, alive."""
@@ -348,22 +331,17 @@ class Px4Autopilot:
 
     def set_sensor(self, sensor: str, ok: bool, now_s: float) -> None:
         """Fail (``ok=False``) or restore the ``"flow"`` odometry or the ``"gps"`` receiver."""
+        state = self._state
+        severity = mavlink.MAV_SEVERITY_INFO if ok else mavlink.MAV_SEVERITY_WARNING
         if sensor == "flow":
-            if self._state.flow_ok != ok:
-                self._state.flow_ok = ok
-                self._vehicle.statustext(
-                    now_s,
-                    mavlink.MAV_SEVERITY_WARNING if not ok else mavlink.MAV_SEVERITY_INFO,
-                    "Optical flow lost" if not ok else "Optical flow regained",
-                )
+            if state.flow_ok != ok:
+                state.flow_ok = ok
+                text = "Optical flow regained" if ok else "Optical flow lost"
+                self._vehicle.statustext(now_s, severity, text)
         elif sensor == "gps":
-            if self._state.gps_ok != ok:
-                self._state.gps_ok = ok
-                self._vehicle.statustext(
-                    now_s,
-                    mavlink.MAV_SEVERITY_WARNING if not ok else mavlink.MAV_SEVERITY_INFO,
-                    "GPS lost" if not ok else "GPS regained",
-                )
+            if state.gps_ok != ok:
+                state.gps_ok = ok
+                self._vehicle.statustext(now_s, severity, "GPS regained" if ok else "GPS lost")
         else:
             raise ValueError(f"unknown sensor {sensor!r}; use 'flow' or 'gps'")
 
@@ -376,135 +354,26 @@ class Px4Autopilot:
     def arm_refusals_pending(self) -> int:
         return self._commander.arm_refusals_pending
 
-    # ================================================================ messages in
+    # ================================================================ driving
     def handle_message(self, msg: mavlink.MAVLink_message, link: Link, now_s: float) -> None:
         """React to one decoded message received on ``link``."""
         if not self._state.alive:
             return
         self._state.now_s = now_s
-        handler = self._message_handlers.get(msg.get_type())
-        if handler is not None:
-            handler(msg, link)
+        self._receiver.handle(msg, link)
 
-    def _on_ping(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if msg.target_system == 0 and msg.target_component == 0:
-            link.send(
-                mavlink.MAVLink_ping_message(
-                    msg.time_usec, msg.seq, msg.get_srcSystem(), msg.get_srcComponent()
-                )
-            )
-
-    def _on_timesync(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if msg.tc1 == 0:
-            boot_ns = int(self.boot_time_s(self._state.now_s) * 1e9)
-            link.send(mavlink.MAVLink_timesync_message(boot_ns, msg.ts1))
-
-    def _on_mission_message(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        self.mission.handle(msg, link, self._state.now_s)
-
-    # ---------------------------------------------------------------- params
-    def _on_param_request_list(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._vehicle.is_for_me(msg):
-            return
-        for name in self.params:
-            link.send(self._param_value(name))
-
-    def _on_param_request_read(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._vehicle.is_for_me(msg):
-            return
-        names = self.params
-        if msg.param_index >= 0:
-            if msg.param_index >= len(names):
-                return
-            name = list(names)[msg.param_index]
-        else:
-            name = _param_name(msg.param_id)
-            if name not in names:
-                return  # PX4 stays silent about unknown names
-        link.send(self._param_value(name))
-
-    def _on_param_set(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._vehicle.is_for_me(msg):
-            return
-        name = _param_name(msg.param_id)
-        if name not in self.params:
-            self._vehicle.statustext(
-                self._state.now_s, mavlink.MAV_SEVERITY_WARNING, f"Unknown parameter {name[:24]}"
-            )
-            return
-        if name in ("MAV_SYS_ID", "MAV_COMP_ID"):
-            pass  # changing ids needs a reboot on PX4 too; echo the value in use
-        else:
-            try:
-                value = self.params.decode_wire_value(name, msg.param_value, msg.param_type)
-                self.params.set(name, value)
-            except (ValueError, OverflowError) as exc:
-                self._vehicle.statustext(
-                    self._state.now_s, mavlink.MAV_SEVERITY_WARNING, f"Param {name} rejected"
-                )
-                logger.info("vehicle %d: PARAM_SET %s rejected: %s", self.sysid, name, exc)
-        # PX4 announces the (possibly unchanged) value on every link.
-        self._vehicle.broadcast(self._param_value(name))
-
-    def _param_value(self, name: str) -> mavlink.MAVLink_message:
-        value, mav_type = self.params.wire_value(name)
-        return mavlink.MAVLink_param_value_message(
-            name.encode(), value, mav_type, len(self.params), self.params.index_of(name)
-        )
-
-    def _param_changed(self, name: str, value: float) -> None:
-        self._navigator.apply_limits()
-
-    # -------------------------------------------------------------- commands
-    def _cmd_get_home_position(self, cmd: Command, link: Link) -> int:
-        self._commands.then(lambda: self._send_built(mavlink.MAVLINK_MSG_ID_HOME_POSITION, link))
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def _cmd_get_message_interval(self, cmd: Command, link: Link) -> int:
-        msg_id = cmd.params[0]
-        if not math.isfinite(msg_id) or not 0 <= msg_id < 2**24:
-            return mavlink.MAV_RESULT_DENIED
-        interval = link.streams.interval_us(int(msg_id)) if int(msg_id) in BUILDABLE else 0
-        self._commands.then(
-            lambda: link.send(mavlink.MAVLink_message_interval_message(int(msg_id), interval))
-        )
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def _cmd_set_message_interval(self, cmd: Command, link: Link) -> int:
-        msg_id, interval_us = cmd.params[0], cmd.params[1]
-        if not (math.isfinite(msg_id) and 0 <= msg_id < 2**24):
-            return mavlink.MAV_RESULT_DENIED
-        ok = link.streams.set_interval(int(msg_id), interval_us, self._state.now_s)
-        return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
-
-    def _cmd_request_message(self, cmd: Command, link: Link) -> int:
-        msg_id = cmd.params[0]
-        if not (math.isfinite(msg_id) and int(msg_id) in BUILDABLE):
-            return mavlink.MAV_RESULT_DENIED
-        msg = self.telemetry.build(int(msg_id), self._state.now_s)
-        if msg is None:
-            return mavlink.MAV_RESULT_FAILED
-        self._commands.then(lambda: link.send(msg))
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def _cmd_request_autopilot_capabilities(self, cmd: Command, link: Link) -> int:
-        self._commands.then(
-            lambda: self._send_built(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, link)
-        )
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    # ================================================================ per step
     def update(self, now_s: float) -> None:
         """Advance mode logic, failsafes and timers to ``now_s`` (call once per step)."""
-        if not self._state.alive:
+        state = self._state
+        if not state.alive:
             return
-        self._state.now_s = now_s
+        state.now_s = now_s
         event = self._land_detector.update(now_s, taking_off=self._navigator.taking_off)
         if event is not None:
             self._commander.on_land_event(event, now_s)
         dt_s = max(now_s - self._last_update_s, 0.0)
         self._last_update_s = now_s
-        if self._state.armed:
+        if state.armed:
             self.battery_remaining_pct = max(
                 0.0, self.battery_remaining_pct - self.battery_drain_percent_per_min * dt_s / 60.0
             )
@@ -512,35 +381,15 @@ class Px4Autopilot:
             self._commander.update(now_s)
         self.mission.update(now_s)
 
-    # ================================================================ output
+    # ================================================================ wiring
     def _set_mode(self, mode: FlightMode, failsafe: bool = False) -> None:
         """The navigator's way to the commander's mode switch."""
         self._commander.set_mode(mode, failsafe)
+
+    def _param_changed(self, name: str, value: float) -> None:
+        self._navigator.apply_limits()
 
     def _announce_home(self) -> None:
         msg = self.telemetry.build(mavlink.MAVLINK_MSG_ID_HOME_POSITION, self._state.now_s)
         if msg is not None:
             self._vehicle.broadcast(msg)
-
-    def _send_built(self, msg_id: int, link: Link) -> None:
-        msg = self.telemetry.build(msg_id, self._state.now_s)
-        if msg is not None:
-            link.send(msg)
-
-
-#: MAV_CMD -> the autopilot's handler.
-AUTOPILOT_COMMANDS: CommandTable[Px4Autopilot] = {
-    mavlink.MAV_CMD_GET_HOME_POSITION: Px4Autopilot._cmd_get_home_position,
-    mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: Px4Autopilot._cmd_get_message_interval,
-    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: Px4Autopilot._cmd_set_message_interval,
-    mavlink.MAV_CMD_REQUEST_MESSAGE: Px4Autopilot._cmd_request_message,
-    mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: (
-        Px4Autopilot._cmd_request_autopilot_capabilities
-    ),
-}
-
-
-def _param_name(param_id: str | bytes) -> str:
-    if isinstance(param_id, bytes):
-        param_id = param_id.decode("ascii", errors="replace")
-    return param_id.split("\x00", 1)[0]
