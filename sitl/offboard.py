@@ -131,21 +131,14 @@ class Offboard:
             pos = _rotate_yaw(pos, yaw_now)
             vel = _rotate_yaw(vel, yaw_now)
             acc = _rotate_yaw(acc, yaw_now)
+        world = None
         if use_pos:
             if frame == mavlink.MAV_FRAME_LOCAL_NED:
                 world = vehicle.odometry.to_world(vehicle.index, (pos[0], pos[1], pos[2]))
             else:
                 here = vehicle.position_ned()
                 world = [here[k] + pos[k] for k in range(3)]
-            sp = OffboardSetpoint("position", world, vel if use_vel else None, *_yaw(msg))
-        elif use_vel:
-            sp = OffboardSetpoint("velocity", vel, None, *_yaw(msg))
-        elif use_acc:
-            sp = OffboardSetpoint("acceleration", acc, None, *_yaw(msg))
-        else:
-            self.rejected_setpoints += 1
-            return
-        self._accept(sp)
+        self._accept_or_reject(msg, world, vel if use_vel else None, acc if use_acc else None)
 
     def on_position_target_global(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         vehicle = self._vehicle
@@ -161,6 +154,7 @@ class Offboard:
         if not _valid_vectors(vel=vel if use_vel else None):
             self.rejected_setpoints += 1
             return
+        world = None
         if use_pos:
             lat, lon, alt = msg.lat_int * 1e-7, msg.lon_int * 1e-7, msg.alt
             if not (-90 <= lat <= 90 and -180 <= lon <= 180 and math.isfinite(alt)):
@@ -169,13 +163,7 @@ class Offboard:
             n, e = vehicle.projection.to_local(lat, lon)
             relative = msg.coordinate_frame in _GLOBAL_RELATIVE_FRAMES
             world = [n, e, vehicle.down_from_altitude(alt, relative)]
-            sp = OffboardSetpoint("position", world, vel if use_vel else None, *_yaw(msg))
-        elif use_vel:
-            sp = OffboardSetpoint("velocity", vel, None, *_yaw(msg))
-        else:
-            self.rejected_setpoints += 1
-            return
-        self._accept(sp)
+        self._accept_or_reject(msg, world, vel if use_vel else None, None)
 
     def on_attitude_target(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         """Approximation: the tilt and thrust become an acceleration command."""
@@ -239,6 +227,30 @@ class Offboard:
             phys.acceleration_setpoint_ned_m_s2[i] = sp.vector_ned
         phys.yaw_setpoint_rad[i] = sp.yaw_rad
         phys.yaw_rate_setpoint_rad_s[i] = sp.yaw_rate_rad_s
+
+    def _accept_or_reject(
+        self,
+        msg: mavlink.MAVLink_message,
+        position_ned_m: list[float] | None,
+        velocity_ned_m_s: list[float] | None,
+        acceleration_ned_m_s2: list[float] | None,
+    ) -> None:
+        """Accept the setpoint of a SET_POSITION_TARGET_* whose used vectors (world NED, None
+        when ignored) are given: a position first (with the velocity as feed-forward), else a
+        velocity, else an acceleration; with none of them it is rejected."""
+        yaw, yaw_rate = _yaw(msg)
+        if position_ned_m is not None:
+            self._accept(
+                OffboardSetpoint("position", position_ned_m, velocity_ned_m_s, yaw, yaw_rate)
+            )
+        elif velocity_ned_m_s is not None:
+            self._accept(OffboardSetpoint("velocity", velocity_ned_m_s, None, yaw, yaw_rate))
+        elif acceleration_ned_m_s2 is not None:
+            self._accept(
+                OffboardSetpoint("acceleration", acceleration_ned_m_s2, None, yaw, yaw_rate)
+            )
+        else:
+            self.rejected_setpoints += 1
 
     def _accept(self, sp: OffboardSetpoint) -> None:
         state = self._vehicle.state
