@@ -82,19 +82,12 @@ class Px4Autopilot:
         boot_offset_s: float = 0.0,
     ) -> None:
         self.index = index
-        self.sysid = index + 1
-        self.compid = 1
-        self._physics = physics
-        self._odometry = odometry
-        self._snap = snapshot
-        self._projection = projection
         self.ground_amsl_m = ground_amsl_m
         self.battery_drain_percent_per_min = battery_drain_percent_per_min
         self.unix_epoch_start_us = unix_epoch_start_us
         self._unix_time_us = unix_time_us
         self.boot_offset_s = float(boot_offset_s)
         self.params = ParamStore(param_overrides, on_change=self._param_changed)
-        self.params.set_silently("MAV_SYS_ID", self.sysid)
         self._state = VehicleState(home_ned_m=list(map(float, physics.position_ned_m[index])))
         self._vehicle = VehicleContext(
             index,
@@ -106,6 +99,9 @@ class Px4Autopilot:
             projection=projection,
             ground_amsl_m=ground_amsl_m,
         )
+        self.sysid = self._vehicle.sysid
+        self.compid = self._vehicle.compid
+        self.params.set_silently("MAV_SYS_ID", self.sysid)
         self.telemetry = TelemetryBuilder(self)
         self.battery_remaining_pct = 100.0
         self._last_update_s = 0.0
@@ -239,8 +235,9 @@ class Px4Autopilot:
     def reported_position_ned(self) -> list[float]:
         """World NED position the vehicle reports as its own: the truth plus the GPS/EKF
         error (see :mod:`sitl.gnss`)."""
-        pos = self._snap.position_ned_m[self.index]
-        errors = self._snap.gps_error_ned_m
+        snapshot = self._vehicle.snapshot
+        pos = snapshot.position_ned_m[self.index]
+        errors = snapshot.gps_error_ned_m
         if errors is None:
             return pos
         err = errors[self.index]
@@ -249,17 +246,17 @@ class Px4Autopilot:
     def global_position(self) -> tuple[float, float, float]:
         """(latitude deg, longitude deg, altitude AMSL m) the vehicle reports: the true
         position plus the GPS/EKF error."""
-        if self._cache_step != self._snap.step_id:
+        if self._cache_step != self._vehicle.snapshot.step_id:
             n, e, d = self.reported_position_ned()
-            lat, lon = self._projection.to_global(n, e)
+            lat, lon = self._vehicle.projection.to_global(n, e)
             self._cache_global = (lat, lon, self.ground_amsl_m - d)
-            self._cache_step = self._snap.step_id
+            self._cache_step = self._vehicle.snapshot.step_id
         return self._cache_global
 
     def true_global_position(self) -> tuple[float, float, float]:
         """(latitude deg, longitude deg, altitude AMSL m) of the true position."""
         n, e, d = self.position_ned()
-        lat, lon = self._projection.to_global(n, e)
+        lat, lon = self._vehicle.projection.to_global(n, e)
         return lat, lon, self.ground_amsl_m - d
 
     def altitude_above_home_m(self) -> float:
@@ -272,7 +269,7 @@ class Px4Autopilot:
         """Body rates (roll, pitch, yaw; rad/s, FRD), NED acceleration (m/s^2) and the wind
         (NED m/s) of the true state, for the ground-truth stream."""
         i = self.index
-        phys = self._physics
+        phys = self._vehicle.physics
         roll, pitch, _, yaw_rate = self.attitude()
         roll_rate = float(phys.roll_rate_rad_s[i])
         pitch_rate = float(phys.pitch_rate_rad_s[i])
@@ -291,23 +288,23 @@ class Px4Autopilot:
 
     def home_global(self) -> tuple[float, float, float]:
         n, e, d = self._state.home_ned_m
-        lat, lon = self._projection.to_global(n, e)
+        lat, lon = self._vehicle.projection.to_global(n, e)
         return lat, lon, self.ground_amsl_m - d
 
     def home_local_ned(self) -> tuple[float, float, float]:
-        origin = self._odometry.origin_ned_m[self.index]
+        origin = self._vehicle.odometry.origin_ned_m[self.index]
         n, e, d = self._state.home_ned_m
         return float(n - origin[0]), float(e - origin[1]), float(d - origin[2])
 
     def local_origin_global(self) -> tuple[float, float, float]:
-        n, e, d = (float(v) for v in self._odometry.origin_ned_m[self.index])
-        lat, lon = self._projection.to_global(n, e)
+        n, e, d = (float(v) for v in self._vehicle.odometry.origin_ned_m[self.index])
+        lat, lon = self._vehicle.projection.to_global(n, e)
         return lat, lon, self.ground_amsl_m - d
 
     def odometry_sample(self) -> tuple[float, float, float, float, float, float]:
         i = self.index
-        s = self._snap
-        return self._odometry.sample(
+        s = self._vehicle.snapshot
+        return self._vehicle.odometry.sample(
             i, s.position_ned_m[i], s.velocity_ned_m_s[i], s.drift_ned_m[i]
         )
 

@@ -113,41 +113,41 @@ class VehicleState:
         return self.gps_ok or self.flow_ok
 
 
+@dataclass(slots=True, eq=False)
 class VehicleContext:
     """One vehicle as the parts of its autopilot see it: ``state``, ``params``, row ``index``
     of the shared ``physics``/``snapshot``/``odometry``, and the outbox to ``links``.
 
     ``projection`` maps world north/east to latitude/longitude; ``ground_amsl_m`` is the
-    altitude of the flat ground.
+    altitude of the flat ground. ``status_log`` keeps the latest STATUSTEXTs as (time_s, text)
+    for observers (tests, a world module); ``on_statustext(time_s, severity, text)`` is called
+    for each.
     """
 
-    def __init__(
-        self,
-        index: int,
-        *,
-        state: VehicleState,
-        params: ParamStore,
-        physics: ph.MulticopterPhysics,
-        odometry: Odometry,
-        snapshot: Snapshot,
-        projection: MapProjection,
-        ground_amsl_m: float,
-    ) -> None:
-        self.index = index
-        self.sysid = index + 1
-        self.compid = 1
-        self.state = state
-        self.params = params
-        self.physics = physics
-        self.odometry = odometry
-        self.snapshot = snapshot
-        self.projection = projection
-        self.ground_amsl_m = ground_amsl_m
-        self.links: list[Link] = []
-        #: The latest STATUSTEXTs as (time_s, text), for observers (tests, a world module).
-        self.status_log: deque[tuple[float, str]] = deque(maxlen=STATUS_LOG_LENGTH)
-        self.on_statustext: Callable[[float, int, str], None] | None = None
-        self._statustext_id = 0
+    index: int
+    state: VehicleState
+    params: ParamStore
+    physics: ph.MulticopterPhysics
+    odometry: Odometry
+    snapshot: Snapshot
+    projection: MapProjection
+    ground_amsl_m: float
+    links: list[Link] = field(default_factory=list)
+    status_log: deque[tuple[float, str]] = field(
+        default_factory=lambda: deque(maxlen=STATUS_LOG_LENGTH)
+    )
+    on_statustext: Callable[[float, int, str], None] | None = None
+    _statustext_id: int = field(default=0, init=False, repr=False)
+
+    @property
+    def sysid(self) -> int:
+        """MAVLink system id: PX4 SITL instance ``index`` is system ``index + 1``."""
+        return self.index + 1
+
+    @property
+    def compid(self) -> int:
+        """MAVLink component id of the autopilot."""
+        return 1
 
     # ---------------------------------------------------------------- reading
     def is_for_me(self, msg: mavlink.MAVLink_message) -> bool:
