@@ -8,8 +8,19 @@
   detected, RTL stages, mission items), failsafes (offboard loss, data-link loss, position loss),
   auto-disarm.
 
-It steers the vehicle only by writing setpoints and limits into its row of the shared
-:class:`sitl.physics.MulticopterPhysics` arrays, and reads the vehicle's state from the per-step
+It is the façade the emulator, the telemetry builder and the tests use; the behaviour lives in
+parts split the way PX4 splits its modules, which share one
+:class:`sitl.vehicle_state.VehicleContext`:
+
+- :mod:`sitl.mavlink_receiver`: routes each message; parameters, PING, TIMESYNC, message requests;
+- :mod:`sitl.commands`: COMMAND_LONG/INT -> handler tables -> COMMAND_ACK;
+- :mod:`sitl.commander`: arming, mode switching, failsafes, auto-disarm;
+- :mod:`sitl.navigator`: TAKEOFF, HOLD/reposition, LAND, RTL, MISSION;
+- :mod:`sitl.offboard`: offboard setpoints and their timeout;
+- :mod:`sitl.land_detector`: landed / in air.
+
+The parts steer the vehicle only by writing setpoints and limits into its row of the shared
+:class:`sitl.physics.MulticopterPhysics` arrays, and read the vehicle's state from the per-step
 :class:`Snapshot`. Replies go to the link a request came on; events (STATUSTEXT, parameter
 changes, mission progress) go to every link. Anything a client sends that does not make sense is
 ignored, as PX4 does; nothing here raises on bad input.
@@ -21,173 +32,26 @@ import logging
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Protocol
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import physics as ph
-from sitl.config import PX4_ARMING_DENIED_TEXT
+from sitl.commander import Commander
 from sitl.geo import MapProjection
-from sitl.gnss import GnssError
-from sitl.mission import MISSION_TYPE_MISSION, RELATIVE_ALT_FRAMES, MissionItem, MissionTransfer
-from sitl.modes import MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, FlightMode
+from sitl.land_detector import LandDetector
+from sitl.mavlink_receiver import MavlinkReceiver
+from sitl.mission import MissionTransfer
+from sitl.modes import FlightMode
+from sitl.navigator import Navigator
 from sitl.odometry import Odometry
+from sitl.offboard import Offboard
 from sitl.params import ParamStore
-from sitl.telemetry import BUILDABLE, StreamScheduler, TelemetryBuilder, quaternion_to_euler
+from sitl.telemetry import TelemetryBuilder
+from sitl.vehicle_state import Link, Snapshot, VehicleContext, VehicleState
+
+__all__ = ["Link", "Px4Autopilot", "Snapshot"]
 
 logger = logging.getLogger(__name__)
-
-# MAV_RESULT
-ACCEPTED = 0
-TEMPORARILY_REJECTED = 1
-DENIED = 2
-UNSUPPORTED = 3
-FAILED = 4
-
-# MAV_LANDED_STATE
-LANDED_UNDEFINED = 0
-ON_GROUND = 1
-IN_AIR = 2
-TAKING_OFF = 3
-LANDING = 4
-
-# MAV_SEVERITY
-CRITICAL = 2
-WARNING = 4
-NOTICE = 5
-INFO = 6
-
-MAV_AUTOPILOT_INVALID = 8
-FORCE_MAGIC = 21196
-INT32_MAX = 2**31 - 1
-
-# MAV_CMD
-CMD_NAV_WAYPOINT = 16
-CMD_NAV_LOITER_UNLIM = 17
-CMD_NAV_LOITER_TIME = 19
-CMD_NAV_RETURN_TO_LAUNCH = 20
-CMD_NAV_LAND = 21
-CMD_NAV_TAKEOFF = 22
-CMD_NAV_DELAY = 93
-CMD_DO_SET_MODE = 176
-CMD_DO_CHANGE_SPEED = 178
-CMD_DO_SET_HOME = 179
-CMD_DO_FLIGHTTERMINATION = 185
-CMD_DO_REPOSITION = 192
-CMD_DO_PAUSE_CONTINUE = 193
-CMD_DO_SET_MISSION_CURRENT = 224
-CMD_MISSION_START = 300
-CMD_COMPONENT_ARM_DISARM = 400
-CMD_GET_HOME_POSITION = 410
-CMD_GET_MESSAGE_INTERVAL = 510
-CMD_SET_MESSAGE_INTERVAL = 511
-CMD_REQUEST_MESSAGE = 512
-CMD_REQUEST_PROTOCOL_VERSION = 519
-CMD_REQUEST_AUTOPILOT_CAPABILITIES = 520
-
-# MISSION_CURRENT.mission_state
-MISSION_STATE_NO_MISSION = 1
-MISSION_STATE_NOT_STARTED = 2
-MISSION_STATE_ACTIVE = 3
-MISSION_STATE_PAUSED = 4
-MISSION_STATE_COMPLETE = 5
-
-# SET_POSITION_TARGET type_mask bits
-_IGNORE_POS = 0x7
-_IGNORE_VEL = 0x38
-_IGNORE_ACC = 0x1C0
-_IGNORE_YAW = 0x400
-_IGNORE_YAW_RATE = 0x800
-_MAX_POSITION_M = 1e6
-_MAX_SPEED_M_S = 100.0
-_MAX_ACCEL_M_S2 = 100.0
-_HOVER_THRUST = 0.5
-
-_LANDED_AFTER_S = 0.5
-STATUS_LOG_LENGTH = 256
-_TAKEOFF_HEIGHT_M = 0.1
-_RTL_ARRIVED_M = 1.0
-
-
-class Link(Protocol):
-    """Where the autopilot's messages go: one MAVLink link (API or GCS) of this vehicle."""
-
-    name: str
-    streams: StreamScheduler
-
-    def send(self, msg: mavlink.MAVLink_message) -> None: ...
-
-
-@dataclass(slots=True)
-class Snapshot:
-    """Python-list copies of the physics state, refreshed once per step for cheap scalar reads.
-
-    ``position_ned_m[i]`` etc. are lists of 3 floats (world NED); ``step_id`` increments on every
-    refresh so per-vehicle caches know when they are stale.
-    """
-
-    position_ned_m: list[list[float]] = field(default_factory=list)
-    velocity_ned_m_s: list[list[float]] = field(default_factory=list)
-    roll_rad: list[float] = field(default_factory=list)
-    pitch_rad: list[float] = field(default_factory=list)
-    yaw_rad: list[float] = field(default_factory=list)
-    yaw_rate_rad_s: list[float] = field(default_factory=list)
-    drift_ned_m: list[list[float]] = field(default_factory=list)
-    gps_error_ned_m: list[list[float]] | None = None
-    """Error of the reported global position (world NED m), None while there is none."""
-    step_id: int = 0
-
-    def refresh(
-        self,
-        physics: ph.MulticopterPhysics,
-        odometry: Odometry,
-        gnss: GnssError | None = None,
-    ) -> None:
-        self.position_ned_m = physics.position_ned_m.tolist()
-        self.velocity_ned_m_s = physics.velocity_ned_m_s.tolist()
-        self.roll_rad = physics.roll_rad.tolist()
-        self.pitch_rad = physics.pitch_rad.tolist()
-        self.yaw_rad = physics.yaw_rad.tolist()
-        self.yaw_rate_rad_s = physics.yaw_rate_rad_s.tolist()
-        self.drift_ned_m = odometry.drift_ned_m.tolist()
-        if gnss is not None and gnss.active:
-            self.gps_error_ned_m = gnss.error_ned_m.tolist()
-        else:
-            self.gps_error_ned_m = None
-        self.step_id += 1
-
-
-@dataclass(slots=True)
-class _Command:
-    """COMMAND_LONG and COMMAND_INT in one shape (x/y stay integers for COMMAND_INT)."""
-
-    command: int
-    params: tuple[float, float, float, float, float, float, float]
-    frame: int | None  # None for COMMAND_LONG
-    x_int: int = 0
-    y_int: int = 0
-    source: tuple[int, int] = (0, 0)  # sender's system and component id
-
-
-@dataclass(slots=True)
-class _ArmRefusal:
-    """Injected arm refusals still to come, and the attempt refused last (for retransmissions)."""
-
-    remaining: int = 0
-    text: str = PX4_ARMING_DENIED_TEXT
-    retry_window_s: float = 2.0
-    last_key: tuple[object, ...] | None = None
-    last_at_s: float = -math.inf
-
-
-@dataclass(slots=True)
-class _OffboardSetpoint:
-    kind: str  # "velocity" | "position" | "acceleration"
-    vector_ned: list[float]
-    feedforward_ned_m_s: list[float] | None
-    yaw_rad: float
-    yaw_rate_rad_s: float
 
 
 class Px4Autopilot:
@@ -218,135 +82,129 @@ class Px4Autopilot:
         boot_offset_s: float = 0.0,
     ) -> None:
         self.index = index
-        self.sysid = index + 1
-        self.compid = 1
-        self._physics = physics
-        self._odometry = odometry
-        self._snap = snapshot
-        self._projection = projection
         self.ground_amsl_m = ground_amsl_m
-        self.preflight_ready_after_s = preflight_ready_after_s
         self.battery_drain_percent_per_min = battery_drain_percent_per_min
         self.unix_epoch_start_us = unix_epoch_start_us
         self._unix_time_us = unix_time_us
         self.boot_offset_s = float(boot_offset_s)
         self.params = ParamStore(param_overrides, on_change=self._param_changed)
-        self.params.set_silently("MAV_SYS_ID", self.sysid)
-        self.links: list[Link] = []
-        self.telemetry = TelemetryBuilder(self)
-        self.mission = MissionTransfer(
-            self.sysid,
-            self.compid,
-            on_uploaded=self._mission_uploaded,
-            on_set_current=self._mission_set_current,
-            send_current=self._broadcast_mission_current,
+        self._state = VehicleState(home_ned_m=list(map(float, physics.position_ned_m[index])))
+        self._vehicle = VehicleContext(
+            index,
+            state=self._state,
+            params=self.params,
+            physics=physics,
+            odometry=odometry,
+            snapshot=snapshot,
+            projection=projection,
+            ground_amsl_m=ground_amsl_m,
         )
-        #: The latest STATUSTEXTs as (time_s, text), for observers (tests, a world module).
-        self.status_log: deque[tuple[float, str]] = deque(maxlen=STATUS_LOG_LENGTH)
-        self.on_statustext: Callable[[float, int, str], None] | None = None
-
-        self.alive = True
-        self.armed = False
-        self.mode = FlightMode.HOLD
-        self.landed = True
-        self.landed_state = ON_GROUND
-        self.flow_ok = True
-        self.gps_ok = True
-        self.failsafe_active = False
+        self.sysid = self._vehicle.sysid
+        self.compid = self._vehicle.compid
+        self.params.set_silently("MAV_SYS_ID", self.sysid)
+        self.telemetry = TelemetryBuilder(self)
         self.battery_remaining_pct = 100.0
-        self.rejected_setpoints = 0
-        self._arm_refusal = _ArmRefusal()
-        self._statustext_id = 0
-
-        self._now_s = 0.0
         self._last_update_s = 0.0
-        self._after_ack: Callable[[], None] | None = None
-        self._armed_at_s = 0.0
-        self._flown_since_arm = False
-        self._ground_since_s: float | None = 0.0
-        self._landed_at_s = 0.0
-        self._home_ned_m = list(map(float, physics.position_ned_m[index]))
-        self._cruise_override_m_s: float | None = None
-        self._target_altitude_m = 0.0  # takeoff target, above home
-        self._landing = False  # descending to land in any mode
-
-        self._offboard_sp: _OffboardSetpoint | None = None
-        self._last_setpoint_s = -math.inf
-
-        self._gcs_last_heartbeat_s: float | None = None
-        self._gcs_lost = False
-
-        self._rtl_stage = ""
-        self._rtl_altitude_m = 0.0
-        self._rtl_loiter_until_s = 0.0
-
-        self._mission_seq = 0
-        self._mission_started = False
-        self._mission_finished = False
-        self._mission_phase = ""
-        self._mission_target_ned_m: list[float] | None = None
-        self._mission_hold_until_s = 0.0
-        self._mission_warned: set[int] = set()
-
         self._cache_step = -1
         self._cache_global: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
-        self._message_handlers: dict[str, Callable[[mavlink.MAVLink_message, Link], None]] = {
-            "HEARTBEAT": self._on_heartbeat,
-            "COMMAND_LONG": self._on_command_long,
-            "COMMAND_INT": self._on_command_int,
-            "SET_MODE": self._on_set_mode,
-            "SET_POSITION_TARGET_LOCAL_NED": self._on_position_target_local,
-            "SET_POSITION_TARGET_GLOBAL_INT": self._on_position_target_global,
-            "SET_ATTITUDE_TARGET": self._on_attitude_target,
-            "PARAM_REQUEST_LIST": self._on_param_request_list,
-            "PARAM_REQUEST_READ": self._on_param_request_read,
-            "PARAM_SET": self._on_param_set,
-            "PING": self._on_ping,
-            "TIMESYNC": self._on_timesync,
-        }
-        for kind in (
-            "MISSION_COUNT",
-            "MISSION_ITEM_INT",
-            "MISSION_ITEM",
-            "MISSION_REQUEST_LIST",
-            "MISSION_REQUEST_INT",
-            "MISSION_REQUEST",
-            "MISSION_CLEAR_ALL",
-            "MISSION_SET_CURRENT",
-            "MISSION_ACK",
-        ):
-            self._message_handlers[kind] = self._on_mission_message
-        self._command_handlers: dict[int, Callable[[_Command, Link], int]] = {
-            CMD_COMPONENT_ARM_DISARM: self._cmd_arm_disarm,
-            CMD_NAV_TAKEOFF: self._cmd_takeoff,
-            CMD_NAV_LAND: self._cmd_land,
-            CMD_NAV_RETURN_TO_LAUNCH: self._cmd_rtl,
-            CMD_DO_SET_MODE: self._cmd_set_mode,
-            CMD_DO_REPOSITION: self._cmd_reposition,
-            CMD_DO_CHANGE_SPEED: self._cmd_change_speed,
-            CMD_DO_SET_HOME: self._cmd_set_home,
-            CMD_DO_FLIGHTTERMINATION: self._cmd_flight_termination,
-            CMD_DO_PAUSE_CONTINUE: self._cmd_pause_continue,
-            CMD_DO_SET_MISSION_CURRENT: self._cmd_set_mission_current,
-            CMD_MISSION_START: self._cmd_mission_start,
-            CMD_GET_HOME_POSITION: self._cmd_get_home_position,
-            CMD_GET_MESSAGE_INTERVAL: self._cmd_get_message_interval,
-            CMD_SET_MESSAGE_INTERVAL: self._cmd_set_message_interval,
-            CMD_REQUEST_MESSAGE: self._cmd_request_message,
-            CMD_REQUEST_AUTOPILOT_CAPABILITIES: self._cmd_request_autopilot_capabilities,
-        }
-        self._apply_limits()
-        self._command_physics()
+        vehicle = self._vehicle
+        self._offboard = Offboard(vehicle)
+        self._land_detector = LandDetector(vehicle)
+        self._navigator = Navigator(vehicle, set_mode=self._set_mode)
+        self.mission: MissionTransfer = self._navigator.mission
+        self._commander = Commander(
+            vehicle,
+            navigator=self._navigator,
+            offboard=self._offboard,
+            land_detector=self._land_detector,
+            preflight_ready_after_s=preflight_ready_after_s,
+            on_home_changed=self._announce_home,
+        )
+        self._receiver = MavlinkReceiver(
+            vehicle,
+            commander=self._commander,
+            navigator=self._navigator,
+            offboard=self._offboard,
+            telemetry=self.telemetry,
+            boot_time_s=self.boot_time_s,
+        )
+        self._navigator.apply_limits()
+        self._commander.command_physics()
 
-    # ================================================================ state access
-    def ready(self, now_s: float) -> bool:
-        """Preflight checks pass: estimator converged, a position source works, alive."""
-        return self.alive and now_s >= self.preflight_ready_after_s and self.position_ok
+    # ================================================================ state
+    @property
+    def alive(self) -> bool:
+        return self._state.alive
+
+    @property
+    def armed(self) -> bool:
+        return self._state.armed
+
+    @property
+    def mode(self) -> FlightMode:
+        return self._state.mode
+
+    @property
+    def landed(self) -> bool:
+        return self._state.landed
+
+    @property
+    def landed_state(self) -> int:
+        """MAV_LANDED_STATE as of the last :meth:`update`."""
+        return self._state.landed_state
+
+    @property
+    def failsafe_active(self) -> bool:
+        return self._state.failsafe_active
+
+    @property
+    def flow_ok(self) -> bool:
+        return self._state.flow_ok
+
+    @property
+    def gps_ok(self) -> bool:
+        return self._state.gps_ok
 
     @property
     def position_ok(self) -> bool:
-        return self.gps_ok or self.flow_ok
+        return self._state.position_ok
+
+    @property
+    def rejected_setpoints(self) -> int:
+        """Offboard setpoints ignored as implausible so far."""
+        return self._offboard.rejected_setpoints
+
+    @property
+    def preflight_ready_after_s(self) -> float:
+        return self._commander.preflight_ready_after_s
+
+    @property
+    def links(self) -> list[Link]:
+        """Where this vehicle's messages go (set by whoever owns the links)."""
+        return self._vehicle.links
+
+    @links.setter
+    def links(self, links: list[Link]) -> None:
+        self._vehicle.links = links
+
+    @property
+    def status_log(self) -> deque[tuple[float, str]]:
+        """The latest STATUSTEXTs as (time_s, text), for observers (tests, a world module)."""
+        return self._vehicle.status_log
+
+    @property
+    def on_statustext(self) -> Callable[[float, int, str], None] | None:
+        """Called with (time_s, severity, text) for every STATUSTEXT."""
+        return self._vehicle.on_statustext
+
+    @on_statustext.setter
+    def on_statustext(self, observer: Callable[[float, int, str], None] | None) -> None:
+        self._vehicle.on_statustext = observer
+
+    def ready(self, now_s: float) -> bool:
+        """Preflight checks pass: estimator converged, a position source works, alive."""
+        return self._commander.ready(now_s)
 
     def boot_time_s(self, now_s: float) -> float:
         """The autopilot's boot clock at simulated time ``now_s``."""
@@ -365,22 +223,21 @@ class Px4Autopilot:
 
     def position_ned(self) -> list[float]:
         """True world NED position, m."""
-        return self._snap.position_ned_m[self.index]
+        return self._vehicle.position_ned()
 
     def velocity_ned(self) -> list[float]:
-        return self._snap.velocity_ned_m_s[self.index]
+        return self._vehicle.velocity_ned()
 
     def attitude(self) -> tuple[float, float, float, float]:
         """(roll, pitch, yaw, yaw rate), rad and rad/s."""
-        i = self.index
-        s = self._snap
-        return s.roll_rad[i], s.pitch_rad[i], s.yaw_rad[i], s.yaw_rate_rad_s[i]
+        return self._vehicle.attitude()
 
     def reported_position_ned(self) -> list[float]:
         """World NED position the vehicle reports as its own: the truth plus the GPS/EKF
         error (see :mod:`sitl.gnss`)."""
-        pos = self._snap.position_ned_m[self.index]
-        errors = self._snap.gps_error_ned_m
+        snapshot = self._vehicle.snapshot
+        pos = snapshot.position_ned_m[self.index]
+        errors = snapshot.gps_error_ned_m
         if errors is None:
             return pos
         err = errors[self.index]
@@ -389,30 +246,30 @@ class Px4Autopilot:
     def global_position(self) -> tuple[float, float, float]:
         """(latitude deg, longitude deg, altitude AMSL m) the vehicle reports: the true
         position plus the GPS/EKF error."""
-        if self._cache_step != self._snap.step_id:
+        if self._cache_step != self._vehicle.snapshot.step_id:
             n, e, d = self.reported_position_ned()
-            lat, lon = self._projection.to_global(n, e)
+            lat, lon = self._vehicle.projection.to_global(n, e)
             self._cache_global = (lat, lon, self.ground_amsl_m - d)
-            self._cache_step = self._snap.step_id
+            self._cache_step = self._vehicle.snapshot.step_id
         return self._cache_global
 
     def true_global_position(self) -> tuple[float, float, float]:
         """(latitude deg, longitude deg, altitude AMSL m) of the true position."""
         n, e, d = self.position_ned()
-        lat, lon = self._projection.to_global(n, e)
+        lat, lon = self._vehicle.projection.to_global(n, e)
         return lat, lon, self.ground_amsl_m - d
 
     def altitude_above_home_m(self) -> float:
-        return self._home_ned_m[2] - self.position_ned()[2]
+        return self._vehicle.altitude_above_home_m()
 
     def reported_altitude_above_home_m(self) -> float:
-        return self._home_ned_m[2] - self.reported_position_ned()[2]
+        return self._state.home_ned_m[2] - self.reported_position_ned()[2]
 
     def truth_rates(self) -> tuple[float, float, float, list[float], list[float]]:
         """Body rates (roll, pitch, yaw; rad/s, FRD), NED acceleration (m/s^2) and the wind
         (NED m/s) of the true state, for the ground-truth stream."""
         i = self.index
-        phys = self._physics
+        phys = self._vehicle.physics
         roll, pitch, _, yaw_rate = self.attitude()
         roll_rate = float(phys.roll_rate_rad_s[i])
         pitch_rate = float(phys.pitch_rate_rad_s[i])
@@ -427,27 +284,27 @@ class Px4Autopilot:
         return p, q, r, accel, wind_ned
 
     def height_above_ground_m(self) -> float:
-        return -self.position_ned()[2]
+        return self._vehicle.height_above_ground_m()
 
     def home_global(self) -> tuple[float, float, float]:
-        n, e, d = self._home_ned_m
-        lat, lon = self._projection.to_global(n, e)
+        n, e, d = self._state.home_ned_m
+        lat, lon = self._vehicle.projection.to_global(n, e)
         return lat, lon, self.ground_amsl_m - d
 
     def home_local_ned(self) -> tuple[float, float, float]:
-        origin = self._odometry.origin_ned_m[self.index]
-        n, e, d = self._home_ned_m
+        origin = self._vehicle.odometry.origin_ned_m[self.index]
+        n, e, d = self._state.home_ned_m
         return float(n - origin[0]), float(e - origin[1]), float(d - origin[2])
 
     def local_origin_global(self) -> tuple[float, float, float]:
-        n, e, d = (float(v) for v in self._odometry.origin_ned_m[self.index])
-        lat, lon = self._projection.to_global(n, e)
+        n, e, d = (float(v) for v in self._vehicle.odometry.origin_ned_m[self.index])
+        lat, lon = self._vehicle.projection.to_global(n, e)
         return lat, lon, self.ground_amsl_m - d
 
     def odometry_sample(self) -> tuple[float, float, float, float, float, float]:
         i = self.index
-        s = self._snap
-        return self._odometry.sample(
+        s = self._vehicle.snapshot
+        return self._vehicle.odometry.sample(
             i, s.position_ned_m[i], s.velocity_ned_m_s[i], s.drift_ned_m[i]
         )
 
@@ -458,1113 +315,78 @@ class Px4Autopilot:
 
     def mission_status(self) -> tuple[int, int, int, int]:
         """MISSION_CURRENT fields (seq, total, mission_state, mission_mode)."""
-        total = len(self.mission.items)
-        in_mission = 1 if self.mode is FlightMode.MISSION else 2
-        if total == 0:
-            return 0, 0, MISSION_STATE_NO_MISSION, in_mission
-        seq = min(self._mission_seq, total - 1)
-        if self._mission_finished:
-            state = MISSION_STATE_COMPLETE
-        elif not self._mission_started:
-            state = MISSION_STATE_NOT_STARTED
-        elif self.mode is FlightMode.MISSION:
-            state = MISSION_STATE_ACTIVE
-        else:
-            state = MISSION_STATE_PAUSED
-        return seq, total, state, in_mission
+        return self._navigator.mission_status()
 
     # ================================================================ faults
     def kill(self, now_s: float) -> None:
         """The autopilot dies: motors stop, nothing is sent or answered from now on."""
-        if not self.alive:
+        if not self._state.alive:
             return
-        self.alive = False
-        self._physics.control_mode[self.index] = ph.MOTORS_OFF
+        self._state.alive = False
+        self._vehicle.motors_off()
         logger.info("vehicle %d killed at %.2f s", self.sysid, now_s)
 
     def set_sensor(self, sensor: str, ok: bool, now_s: float) -> None:
         """Fail (``ok=False``) or restore the ``"flow"`` odometry or the ``"gps"`` receiver."""
+        state = self._state
+        severity = mavlink.MAV_SEVERITY_INFO if ok else mavlink.MAV_SEVERITY_WARNING
         if sensor == "flow":
-            if self.flow_ok != ok:
-                self.flow_ok = ok
-                self._statustext(
-                    now_s,
-                    WARNING if not ok else INFO,
-                    "Optical flow lost" if not ok else "Optical flow regained",
-                )
+            if state.flow_ok != ok:
+                state.flow_ok = ok
+                text = "Optical flow regained" if ok else "Optical flow lost"
+                self._vehicle.statustext(now_s, severity, text)
         elif sensor == "gps":
-            if self.gps_ok != ok:
-                self.gps_ok = ok
-                self._statustext(
-                    now_s, WARNING if not ok else INFO, "GPS lost" if not ok else "GPS regained"
-                )
+            if state.gps_ok != ok:
+                state.gps_ok = ok
+                self._vehicle.statustext(now_s, severity, "GPS regained" if ok else "GPS lost")
         else:
             raise ValueError(f"unknown sensor {sensor!r}; use 'flow' or 'gps'")
-
-    # ================================================================ messages in
-    def handle_message(self, msg: mavlink.MAVLink_message, link: Link, now_s: float) -> None:
-        """React to one decoded message received on ``link``."""
-        if not self.alive:
-            return
-        self._now_s = now_s
-        handler = self._message_handlers.get(msg.get_type())
-        if handler is not None:
-            handler(msg, link)
-
-    def _for_me(self, msg: mavlink.MAVLink_message) -> bool:
-        return msg.target_system == self.sysid and msg.target_component in (0, self.compid)
-
-    def _on_heartbeat(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if msg.autopilot != MAV_AUTOPILOT_INVALID or msg.get_srcSystem() == self.sysid:
-            return  # another vehicle, or our own echo: not a ground station / API client
-        self._gcs_last_heartbeat_s = self._now_s
-        if self._gcs_lost:
-            self._gcs_lost = False
-            self._statustext(self._now_s, INFO, "Data link regained")
-
-    def _on_set_mode(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if msg.target_system != self.sysid or not msg.base_mode & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            return
-        mode = FlightMode.from_custom_mode(msg.custom_mode)
-        if mode is not None:
-            self._request_mode(mode)
-
-    def _on_ping(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if msg.target_system == 0 and msg.target_component == 0:
-            link.send(
-                mavlink.MAVLink_ping_message(
-                    msg.time_usec, msg.seq, msg.get_srcSystem(), msg.get_srcComponent()
-                )
-            )
-
-    def _on_timesync(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if msg.tc1 == 0:
-            boot_ns = int(self.boot_time_s(self._now_s) * 1e9)
-            link.send(mavlink.MAVLink_timesync_message(boot_ns, msg.ts1))
-
-    def _on_mission_message(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        self.mission.handle(msg, link, self._now_s)
-
-    # ---------------------------------------------------------------- params
-    def _on_param_request_list(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._for_me(msg):
-            return
-        for name in self.params:
-            link.send(self._param_value(name))
-
-    def _on_param_request_read(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._for_me(msg):
-            return
-        names = self.params
-        if msg.param_index >= 0:
-            if msg.param_index >= len(names):
-                return
-            name = list(names)[msg.param_index]
-        else:
-            name = _param_name(msg.param_id)
-            if name not in names:
-                return  # PX4 stays silent about unknown names
-        link.send(self._param_value(name))
-
-    def _on_param_set(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._for_me(msg):
-            return
-        name = _param_name(msg.param_id)
-        if name not in self.params:
-            self._statustext(self._now_s, WARNING, f"Unknown parameter {name[:24]}")
-            return
-        if name in ("MAV_SYS_ID", "MAV_COMP_ID"):
-            pass  # changing ids needs a reboot on PX4 too; echo the value in use
-        else:
-            try:
-                value = self.params.decode_wire_value(name, msg.param_value, msg.param_type)
-                self.params.set(name, value)
-            except (ValueError, OverflowError) as exc:
-                self._statustext(self._now_s, WARNING, f"Param {name} rejected")
-                logger.info("vehicle %d: PARAM_SET %s rejected: %s", self.sysid, name, exc)
-        # PX4 announces the (possibly unchanged) value on every link.
-        self._broadcast(self._param_value(name))
-
-    def _param_value(self, name: str) -> mavlink.MAVLink_message:
-        value, mav_type = self.params.wire_value(name)
-        return mavlink.MAVLink_param_value_message(
-            name.encode(), value, mav_type, len(self.params), self.params.index_of(name)
-        )
-
-    def _param_changed(self, name: str, value: float) -> None:
-        self._apply_limits()
-
-    # -------------------------------------------------------------- commands
-    def _on_command_long(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        command = msg.command
-        broadcast_ok = command in (CMD_REQUEST_AUTOPILOT_CAPABILITIES, CMD_REQUEST_PROTOCOL_VERSION)
-        if not (self._for_me(msg) or (broadcast_ok and msg.target_system in (0, self.sysid))):
-            return
-        cmd = _Command(
-            command,
-            (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7),
-            None,
-            source=(msg.get_srcSystem(), msg.get_srcComponent()),
-        )
-        self._run_command(cmd, msg, link)
-
-    def _on_command_int(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._for_me(msg):
-            return
-        cmd = _Command(
-            msg.command,
-            (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z),
-            msg.frame,
-            msg.x,
-            msg.y,
-            source=(msg.get_srcSystem(), msg.get_srcComponent()),
-        )
-        self._run_command(cmd, msg, link)
-
-    def _run_command(self, cmd: _Command, msg: mavlink.MAVLink_message, link: Link) -> None:
-        handler = self._command_handlers.get(cmd.command)
-        result = UNSUPPORTED if handler is None else handler(cmd, link)
-        # Every copy of a command gets an answer: MAVSDK may miss a very fast first one.
-        ack = mavlink.MAVLink_command_ack_message(
-            cmd.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
-        )
-        link.send(ack)
-        follow_up = self._after_ack
-        if follow_up is not None:
-            self._after_ack = None
-            follow_up()
-
-    def _then(self, action: Callable[[], None]) -> None:
-        """Run ``action`` right after the COMMAND_ACK is sent (e.g. the requested message)."""
-        self._after_ack = action
-
-    def _cmd_arm_disarm(self, cmd: _Command, link: Link) -> int:
-        p1, p2 = cmd.params[0], cmd.params[1]
-        force = p2 == FORCE_MAGIC
-        now = self._now_s
-        if p1 == 1.0:
-            if self.armed:
-                return ACCEPTED
-            if not force:
-                if not self.ready(now):
-                    reason = "estimator not ready" if self.position_ok else "no position"
-                    self._statustext(now, CRITICAL, f"Arming denied: {reason}")
-                    return TEMPORARILY_REJECTED
-                if self.mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
-                    self._statustext(now, CRITICAL, "Arming denied: no offboard signal")
-                    return TEMPORARILY_REJECTED
-            if self._injected_arm_refusal(cmd, link, now):
-                # PX4's commander: mavlink_log_critical(... "\t"), then TRANSITION_DENIED,
-                # which the arm command answers with TEMPORARILY_REJECTED.
-                self._statustext(now, CRITICAL, self._arm_refusal.text + "\t")
-                return TEMPORARILY_REJECTED
-            self._arm(now)
-            return ACCEPTED
-        if p1 == 0.0:
-            if not self.armed:
-                return ACCEPTED
-            if not (self.landed or force):
-                self._statustext(now, CRITICAL, "Disarming denied: not landed")
-                return DENIED
-            self._disarm(now, "Disarmed by external command")
-            return ACCEPTED
-        return DENIED
 
     def deny_arming(self, count: int, text: str, retry_window_s: float) -> None:
         """Refuse the next ``count`` arm attempts with STATUSTEXT ``text`` (added to any
         refusals still pending); see :class:`sitl.config.DenyArmingFault`."""
-        if count < 1:
-            raise ValueError(f"count must be >= 1, got {count!r}")
-        refusal = self._arm_refusal
-        refusal.remaining += count
-        refusal.text = text
-        refusal.retry_window_s = retry_window_s
+        self._commander.deny_arming(count, text, retry_window_s)
 
     @property
     def arm_refusals_pending(self) -> int:
-        return self._arm_refusal.remaining
+        return self._commander.arm_refusals_pending
 
-    def _injected_arm_refusal(self, cmd: _Command, link: Link, now_s: float) -> bool:
-        """Whether an injected health failure refuses this arm command (uses up one refusal
-        unless it retransmits the attempt refused last)."""
-        refusal = self._arm_refusal
-        force = cmd.params[1]
-        key = (link.name, cmd.source, cmd.command, None if math.isnan(force) else force)
-        window = refusal.retry_window_s
-        if window > 0 and key == refusal.last_key and now_s - refusal.last_at_s < window:
-            return True
-        if refusal.remaining <= 0:
-            return False
-        refusal.remaining -= 1
-        refusal.last_key = key
-        refusal.last_at_s = now_s
-        return True
-
-    def _cmd_takeoff(self, cmd: _Command, link: Link) -> int:
-        if not self.armed:
-            self._statustext(self._now_s, CRITICAL, "Takeoff denied: vehicle not armed")
-            return TEMPORARILY_REJECTED
-        alt_amsl = cmd.params[6]
-        if math.isfinite(alt_amsl):
-            altitude = alt_amsl - (self.ground_amsl_m - self._home_ned_m[2])
-        else:
-            altitude = self.params["MIS_TAKEOFF_ALT"]
-        self._target_altitude_m = max(altitude, 0.5)
-        self._set_mode(FlightMode.TAKEOFF)
-        return ACCEPTED
-
-    def _cmd_land(self, cmd: _Command, link: Link) -> int:
-        self._set_mode(FlightMode.LAND)
-        return ACCEPTED
-
-    def _cmd_rtl(self, cmd: _Command, link: Link) -> int:
-        self._set_mode(FlightMode.RTL)
-        return ACCEPTED
-
-    def _cmd_set_mode(self, cmd: _Command, link: Link) -> int:
-        base, main, sub = cmd.params[0], cmd.params[1], cmd.params[2]
-        if not (math.isfinite(base) and math.isfinite(main) and math.isfinite(sub)):
-            return DENIED
-        # Only the custom-mode flag of param 1 matters: its armed bit may lag the real state.
-        if not int(base) & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            return DENIED
-        mode = FlightMode.from_main_sub(int(main), int(sub))
-        if mode is None:
-            return DENIED
-        return self._request_mode(mode)
-
-    def _cmd_reposition(self, cmd: _Command, link: Link) -> int:
-        if not self.armed:
-            return DENIED
-        if self.landed:
-            self._statustext(self._now_s, CRITICAL, "Reposition denied: vehicle landed")
-            return TEMPORARILY_REJECTED
-        p = cmd.params
-        pos = self.position_ned()
-        target = list(pos)
-        if cmd.frame is None:
-            lat, lon = p[4], p[5]
-            valid_xy = math.isfinite(lat) and math.isfinite(lon)
-        else:
-            valid_xy = INT32_MAX not in (cmd.x_int, cmd.y_int)
-            lat, lon = cmd.x_int * 1e-7, cmd.y_int * 1e-7
-        if valid_xy:
-            if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
-                return DENIED
-            target[0], target[1] = self._projection.to_local(lat, lon)
-        alt = p[6]
-        if math.isfinite(alt):
-            relative = cmd.frame in RELATIVE_ALT_FRAMES
-            target[2] = self._down_from_altitude(alt, relative)
-        speed = p[0]
-        if math.isfinite(speed) and speed > 0:
-            self._cruise_override_m_s = speed
-        yaw = p[3] if math.isfinite(p[3]) else None
-        if self.mode is not FlightMode.HOLD:
-            self.mode = FlightMode.HOLD
-            self._mode_changed()
-        self._fly_to(target, yaw if yaw is not None else self._heading_to(target))
-        self._apply_limits()
-        return ACCEPTED
-
-    def _cmd_change_speed(self, cmd: _Command, link: Link) -> int:
-        speed = cmd.params[1]
-        if not math.isfinite(speed):
-            return DENIED
-        self._cruise_override_m_s = speed if speed > 0 else None
-        self._apply_limits()
-        return ACCEPTED
-
-    def _cmd_set_home(self, cmd: _Command, link: Link) -> int:
-        p = cmd.params
-        if p[0] == 1.0:
-            self._home_ned_m = list(self.position_ned())
-        else:
-            if cmd.frame is None:
-                lat, lon = p[4], p[5]
-            else:
-                lat, lon = cmd.x_int * 1e-7, cmd.y_int * 1e-7
-            if not (math.isfinite(lat) and math.isfinite(lon) and math.isfinite(p[6])):
-                return DENIED
-            if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
-                return DENIED
-            n, e = self._projection.to_local(lat, lon)
-            self._home_ned_m = [n, e, self.ground_amsl_m - p[6]]
-        self._broadcast_message(242)
-        return ACCEPTED
-
-    def _cmd_flight_termination(self, cmd: _Command, link: Link) -> int:
-        if cmd.params[0] > 0.5:
-            self._disarm(self._now_s, "Flight termination active")
-        return ACCEPTED
-
-    def _cmd_pause_continue(self, cmd: _Command, link: Link) -> int:
-        if cmd.params[0] == 0.0:
-            return self._request_mode(FlightMode.HOLD)
-        if cmd.params[0] == 1.0:
-            return self._request_mode(FlightMode.MISSION)
-        return DENIED
-
-    def _cmd_set_mission_current(self, cmd: _Command, link: Link) -> int:
-        seq = cmd.params[0]
-        if not math.isfinite(seq) or not self._mission_set_current(int(seq)):
-            return DENIED
-        self._broadcast_mission_current()
-        return ACCEPTED
-
-    def _cmd_mission_start(self, cmd: _Command, link: Link) -> int:
-        items = self.mission.items
-        if not items:
-            self._statustext(self._now_s, CRITICAL, "Mission start denied: no mission")
-            return TEMPORARILY_REJECTED
-        first = cmd.params[0]
-        if math.isfinite(first) and 0 <= first < len(items):
-            self._mission_set_current(int(first))
-        return self._request_mode(FlightMode.MISSION)
-
-    def _cmd_get_home_position(self, cmd: _Command, link: Link) -> int:
-        self._then(lambda: self._send_built(242, link))
-        return ACCEPTED
-
-    def _cmd_get_message_interval(self, cmd: _Command, link: Link) -> int:
-        msg_id = cmd.params[0]
-        if not math.isfinite(msg_id) or not 0 <= msg_id < 2**24:
-            return DENIED
-        interval = link.streams.interval_us(int(msg_id)) if int(msg_id) in BUILDABLE else 0
-        self._then(
-            lambda: link.send(mavlink.MAVLink_message_interval_message(int(msg_id), interval))
-        )
-        return ACCEPTED
-
-    def _cmd_set_message_interval(self, cmd: _Command, link: Link) -> int:
-        msg_id, interval_us = cmd.params[0], cmd.params[1]
-        if not (math.isfinite(msg_id) and 0 <= msg_id < 2**24):
-            return DENIED
-        ok = link.streams.set_interval(int(msg_id), interval_us, self._now_s)
-        return ACCEPTED if ok else DENIED
-
-    def _cmd_request_message(self, cmd: _Command, link: Link) -> int:
-        msg_id = cmd.params[0]
-        if not (math.isfinite(msg_id) and int(msg_id) in BUILDABLE):
-            return DENIED
-        msg = self.telemetry.build(int(msg_id), self._now_s)
-        if msg is None:
-            return FAILED
-        self._then(lambda: link.send(msg))
-        return ACCEPTED
-
-    def _cmd_request_autopilot_capabilities(self, cmd: _Command, link: Link) -> int:
-        self._then(lambda: self._send_built(148, link))
-        return ACCEPTED
-
-    # ------------------------------------------------------------- setpoints
-    def _on_position_target_local(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._for_me(msg):
+    # ================================================================ driving
+    def handle_message(self, msg: mavlink.MAVLink_message, link: Link, now_s: float) -> None:
+        """React to one decoded message received on ``link``."""
+        if not self._state.alive:
             return
-        mask = msg.type_mask
-        frame = msg.coordinate_frame
-        if frame not in (1, 7, 8, 9):  # LOCAL_NED, LOCAL_OFFSET_NED, BODY_NED, BODY_OFFSET_NED
-            self.rejected_setpoints += 1
-            return
-        use_pos = not mask & _IGNORE_POS
-        use_vel = not mask & _IGNORE_VEL
-        use_acc = not mask & _IGNORE_ACC
-        pos = [msg.x, msg.y, msg.z]
-        vel = [msg.vx, msg.vy, msg.vz]
-        acc = [msg.afx, msg.afy, msg.afz]
-        if not self._valid_vectors(
-            pos=pos if use_pos else None,
-            vel=vel if use_vel else None,
-            acc=acc if use_acc else None,
-        ):
-            self.rejected_setpoints += 1
-            return
-        yaw_now = self.attitude()[2]
-        if frame in (8, 9):
-            pos = _rotate_yaw(pos, yaw_now)
-            vel = _rotate_yaw(vel, yaw_now)
-            acc = _rotate_yaw(acc, yaw_now)
-        if use_pos:
-            if frame == 1:
-                world = self._odometry.to_world(self.index, (pos[0], pos[1], pos[2]))
-            else:
-                here = self.position_ned()
-                world = [here[k] + pos[k] for k in range(3)]
-            sp = _OffboardSetpoint("position", world, vel if use_vel else None, *self._yaw(msg))
-        elif use_vel:
-            sp = _OffboardSetpoint("velocity", vel, None, *self._yaw(msg))
-        elif use_acc:
-            sp = _OffboardSetpoint("acceleration", acc, None, *self._yaw(msg))
-        else:
-            self.rejected_setpoints += 1
-            return
-        self._accept_setpoint(sp)
+        self._state.now_s = now_s
+        self._receiver.handle(msg, link)
 
-    def _on_position_target_global(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        if not self._for_me(msg):
-            return
-        mask = msg.type_mask
-        if msg.coordinate_frame not in (0, 3, 5, 6, 10, 11):
-            self.rejected_setpoints += 1
-            return
-        use_pos = not mask & _IGNORE_POS
-        use_vel = not mask & _IGNORE_VEL
-        vel = [msg.vx, msg.vy, msg.vz]
-        if not self._valid_vectors(vel=vel if use_vel else None):
-            self.rejected_setpoints += 1
-            return
-        if use_pos:
-            lat, lon, alt = msg.lat_int * 1e-7, msg.lon_int * 1e-7, msg.alt
-            if not (-90 <= lat <= 90 and -180 <= lon <= 180 and math.isfinite(alt)):
-                self.rejected_setpoints += 1
-                return
-            n, e = self._projection.to_local(lat, lon)
-            relative = msg.coordinate_frame in (3, 6, 10, 11)
-            world = [n, e, self._down_from_altitude(alt, relative)]
-            sp = _OffboardSetpoint("position", world, vel if use_vel else None, *self._yaw(msg))
-        elif use_vel:
-            sp = _OffboardSetpoint("velocity", vel, None, *self._yaw(msg))
-        else:
-            self.rejected_setpoints += 1
-            return
-        self._accept_setpoint(sp)
-
-    def _on_attitude_target(self, msg: mavlink.MAVLink_message, link: Link) -> None:
-        """Approximation: the tilt and thrust become an acceleration command."""
-        if not self._for_me(msg):
-            return
-        mask = msg.type_mask
-        thrust = msg.thrust if not mask & 0x40 else _HOVER_THRUST
-        q = list(msg.q)
-        if not (math.isfinite(thrust) and all(math.isfinite(v) for v in q)):
-            self.rejected_setpoints += 1
-            return
-        norm = math.sqrt(sum(v * v for v in q))
-        yaw_rate = math.nan
-        if not mask & 0x4 and math.isfinite(msg.body_yaw_rate):
-            yaw_rate = msg.body_yaw_rate
-        if mask & 0x80 or norm < 1e-6:
-            roll = pitch = 0.0
-            yaw = math.nan
-        else:
-            roll, pitch, yaw = quaternion_to_euler(*(v / norm for v in q))
-            if math.isfinite(yaw_rate):
-                yaw = math.nan
-        g = ph.GRAVITY_M_S2
-        forward = -g * math.tan(max(-0.8, min(0.8, pitch)))
-        right = g * math.tan(max(-0.8, min(0.8, roll)))
-        heading = self.attitude()[2]
-        acc = [
-            forward * math.cos(heading) - right * math.sin(heading),
-            forward * math.sin(heading) + right * math.cos(heading),
-            g * (1.0 - max(0.0, min(1.0, thrust)) / _HOVER_THRUST),
-        ]
-        self._accept_setpoint(_OffboardSetpoint("acceleration", acc, None, yaw, yaw_rate))
-
-    @staticmethod
-    def _valid_vectors(
-        *,
-        pos: list[float] | None = None,
-        vel: list[float] | None = None,
-        acc: list[float] | None = None,
-    ) -> bool:
-        """The used vectors (not None) are finite and physically plausible."""
-        for vector, limit in (
-            (pos, _MAX_POSITION_M),
-            (vel, _MAX_SPEED_M_S),
-            (acc, _MAX_ACCEL_M_S2),
-        ):
-            if vector is not None and not all(math.isfinite(v) and abs(v) < limit for v in vector):
-                return False
-        return True
-
-    @staticmethod
-    def _yaw(msg: mavlink.MAVLink_message) -> tuple[float, float]:
-        mask = msg.type_mask
-        yaw = msg.yaw if not mask & _IGNORE_YAW and math.isfinite(msg.yaw) else math.nan
-        rate = math.nan
-        if not mask & _IGNORE_YAW_RATE and math.isfinite(msg.yaw_rate):
-            rate = msg.yaw_rate
-        return yaw, rate
-
-    def _accept_setpoint(self, sp: _OffboardSetpoint) -> None:
-        self._offboard_sp = sp
-        self._last_setpoint_s = self._now_s
-        if self.mode is FlightMode.OFFBOARD and self.armed:
-            self._apply_offboard()
-
-    def _offboard_signal_fresh(self) -> bool:
-        return self._now_s - self._last_setpoint_s <= self.params["COM_OF_LOSS_T"]
-
-    def _apply_offboard(self) -> None:
-        sp = self._offboard_sp
-        if sp is None:
-            return
-        i = self.index
-        phys = self._physics
-        if sp.kind == "velocity":
-            phys.control_mode[i] = ph.VELOCITY
-            phys.velocity_setpoint_ned_m_s[i] = sp.vector_ned
-        elif sp.kind == "position":
-            phys.control_mode[i] = ph.POSITION
-            phys.position_setpoint_ned_m[i] = sp.vector_ned
-            phys.velocity_feedforward_ned_m_s[i] = sp.feedforward_ned_m_s or (0.0, 0.0, 0.0)
-        else:
-            phys.control_mode[i] = ph.ACCELERATION
-            phys.acceleration_setpoint_ned_m_s2[i] = sp.vector_ned
-        phys.yaw_setpoint_rad[i] = sp.yaw_rad
-        phys.yaw_rate_setpoint_rad_s[i] = sp.yaw_rate_rad_s
-
-    # ================================================================ modes
-    def _request_mode(self, mode: FlightMode) -> int:
-        """A client asks for ``mode``: PX4's acceptance rules, then switch."""
-        now = self._now_s
-        if mode is self.mode:
-            return ACCEPTED
-        if mode in (FlightMode.MANUAL, FlightMode.ALTCTL, FlightMode.POSCTL):
-            self._statustext(now, CRITICAL, "Switching denied: no manual control input")
-            return TEMPORARILY_REJECTED
-        if mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
-            self._statustext(now, CRITICAL, "Switching to Offboard denied: no setpoints")
-            return TEMPORARILY_REJECTED
-        if mode is FlightMode.MISSION and not self.mission.items:
-            self._statustext(now, CRITICAL, "Mission denied: no mission uploaded")
-            return TEMPORARILY_REJECTED
-        if mode is FlightMode.TAKEOFF:
-            self._target_altitude_m = self.params["MIS_TAKEOFF_ALT"]
-        self._set_mode(mode)
-        return ACCEPTED
-
-    def _set_mode(self, mode: FlightMode, failsafe: bool = False) -> None:
-        previous = self.mode
-        self.mode = mode
-        self.failsafe_active = failsafe
-        if mode is FlightMode.MISSION and previous is not FlightMode.MISSION:
-            self._mission_restart_if_finished()
-        self._mode_changed()
-
-    def _mode_changed(self) -> None:
-        self._landing = False
-        self._rtl_stage = ""
-        self._apply_limits()
-        self._command_physics()
-
-    def _command_physics(self) -> None:
-        """Set this vehicle's physics setpoints for the current mode (entry actions)."""
-        i = self.index
-        phys = self._physics
-        if not self.alive:
-            phys.control_mode[i] = ph.MOTORS_OFF
-            return
-        if not self.armed:
-            phys.control_mode[i] = ph.MOTORS_OFF
-            phys.velocity_setpoint_ned_m_s[i] = 0.0
-            return
-        mode = self.mode
-        if mode is FlightMode.OFFBOARD:
-            self._apply_offboard()
-        elif mode is FlightMode.TAKEOFF:
-            pos = self.position_ned()
-            down = self._home_ned_m[2] - self._target_altitude_m
-            self._fly_to([pos[0], pos[1], min(down, pos[2])], math.nan)
-        elif mode is FlightMode.LAND:
-            self._start_landing()
-        elif mode is FlightMode.RTL:
-            self._rtl_begin()
-        elif mode is FlightMode.MISSION:
-            self._mission_start_item()
-        else:
-            self._hold_here()
-
-    def _apply_limits(self) -> None:
-        """Speed/acceleration limits of this vehicle for the current mode, from the params."""
-        i = self.index
-        p = self.params
-        phys = self._physics
-        phys.max_horizontal_speed_m_s[i] = p["MPC_XY_VEL_MAX"]
-        phys.max_up_speed_m_s[i] = p["MPC_Z_VEL_MAX_UP"]
-        phys.max_down_speed_m_s[i] = p["MPC_Z_VEL_MAX_DN"]
-        phys.max_horizontal_accel_m_s2[i] = p["MPC_ACC_HOR"]
-        phys.max_up_accel_m_s2[i] = p["MPC_ACC_UP_MAX"]
-        phys.max_down_accel_m_s2[i] = p["MPC_ACC_DOWN_MAX"]
-        phys.max_yaw_rate_rad_s[i] = math.radians(p["MPC_YAWRAUTO_MAX"])
-        if self.mode is FlightMode.OFFBOARD:
-            cruise = p["MPC_XY_VEL_MAX"]
-        else:
-            cruise = self._cruise_override_m_s or p["MPC_XY_CRUISE"]
-        phys.cruise_speed_m_s[i] = min(cruise, p["MPC_XY_VEL_MAX"])
-        if self.mode is FlightMode.TAKEOFF or self._mission_phase == "takeoff":
-            phys.max_up_speed_m_s[i] = min(p["MPC_TKO_SPEED"], p["MPC_Z_VEL_MAX_UP"])
-        if self._landing:
-            phys.max_down_speed_m_s[i] = self._landing_speed()
-
-    def _landing_speed(self) -> float:
-        """PX4 descends fast high up and at MPC_LAND_SPEED close to the ground."""
-        p = self.params
-        height = self.height_above_ground_m() if self._snap.position_ned_m else 0.0
-        slow, fast = p["MPC_LAND_SPEED"], max(p["MPC_Z_VEL_MAX_DN"], p["MPC_LAND_SPEED"])
-        high, low = 10.0, 5.0  # PX4 MPC_LAND_ALT1 / MPC_LAND_ALT2 defaults
-        if height >= high:
-            return fast
-        if height <= low:
-            return slow
-        return slow + (fast - slow) * (height - low) / (high - low)
-
-    def _fly_to(self, target_ned_m: list[float], yaw_rad: float) -> None:
-        i = self.index
-        phys = self._physics
-        phys.control_mode[i] = ph.POSITION
-        phys.position_setpoint_ned_m[i] = target_ned_m
-        phys.velocity_feedforward_ned_m_s[i] = 0.0
-        phys.yaw_setpoint_rad[i] = yaw_rad
-        phys.yaw_rate_setpoint_rad_s[i] = math.nan
-
-    def _hold_here(self) -> None:
-        """Brake and hold: target the stopping point of the current motion."""
-        pos = self.position_ned()
-        if self.landed:
-            self._fly_to([pos[0], pos[1], max(pos[2], 0.0)], math.nan)
-            return
-        vel = self.velocity_ned()
-        accel = max(self.params["MPC_ACC_HOR"], 0.1)
-        speed = math.hypot(vel[0], vel[1])
-        k = speed / (2.0 * accel)
-        self._fly_to([pos[0] + vel[0] * k, pos[1] + vel[1] * k, pos[2]], math.nan)
-
-    def _heading_to(self, target: list[float]) -> float:
-        pos = self.position_ned()
-        dn, de = target[0] - pos[0], target[1] - pos[1]
-        if math.hypot(dn, de) < 2.0:
-            return math.nan
-        return math.atan2(de, dn)
-
-    def _down_from_altitude(self, altitude_m: float, relative_to_home: bool) -> float:
-        if relative_to_home:
-            return self._home_ned_m[2] - altitude_m
-        return self.ground_amsl_m - altitude_m
-
-    def _start_landing(self) -> None:
-        pos = self.position_ned()
-        self._landing = True
-        self._apply_limits()
-        # Aim below the ground: the descent is limited by the landing speed, the ground stops it.
-        self._fly_to([pos[0], pos[1], 10.0], math.nan)
-
-    # -------------------------------------------------------------------- RTL
-    def _rtl_begin(self) -> None:
-        if self.landed:
-            self._rtl_stage = "done"
-            self._hold_here()
-            return
-        altitude = self.altitude_above_home_m()
-        self._rtl_altitude_m = max(altitude, self.params["RTL_RETURN_ALT"])
-        self._rtl_set_stage("climb")
-
-    def _rtl_set_stage(self, stage: str) -> None:
-        self._rtl_stage = stage
-        pos = self.position_ned()
-        home = self._home_ned_m
-        if stage == "climb":
-            self._fly_to([pos[0], pos[1], home[2] - self._rtl_altitude_m], math.nan)
-        elif stage == "return":
-            target = [home[0], home[1], home[2] - self._rtl_altitude_m]
-            self._fly_to(target, self._heading_to(target))
-        elif stage == "descend":
-            altitude = min(self._rtl_altitude_m, self.params["RTL_DESCEND_ALT"])
-            self._fly_to([home[0], home[1], home[2] - altitude], math.nan)
-        elif stage == "loiter":
-            delay = self.params["RTL_LAND_DELAY"]
-            self._rtl_loiter_until_s = math.inf if delay < 0 else self._now_s + delay
-        elif stage == "land":
-            self._start_landing()
-
-    def _rtl_update(self, now_s: float) -> None:
-        stage = self._rtl_stage
-        if stage in ("", "done", "land"):
-            return
-        if stage == "loiter":
-            if now_s >= self._rtl_loiter_until_s:
-                self._rtl_set_stage("land")
-            return
-        if self._reached(self._physics_target(), _RTL_ARRIVED_M, self.params["NAV_MC_ALT_RAD"]):
-            next_stage = {"climb": "return", "return": "descend", "descend": "loiter"}[stage]
-            self._rtl_set_stage(next_stage)
-
-    def _physics_target(self) -> list[float]:
-        return [float(v) for v in self._physics.position_setpoint_ned_m[self.index]]
-
-    def _reached(self, target: list[float], horizontal_m: float, vertical_m: float) -> bool:
-        pos = self.position_ned()
-        vel = self.velocity_ned()
-        return (
-            math.hypot(target[0] - pos[0], target[1] - pos[1]) <= horizontal_m
-            and abs(target[2] - pos[2]) <= vertical_m
-            and abs(vel[0]) + abs(vel[1]) + abs(vel[2]) < 1.5
-        )
-
-    # --------------------------------------------------------------- mission
-    def _mission_uploaded(self, mission_type: int, items: list[MissionItem]) -> None:
-        if mission_type != MISSION_TYPE_MISSION:
-            return
-        self._mission_seq = 0
-        self._mission_started = False
-        self._mission_finished = False
-        self._mission_phase = ""
-        self._mission_warned.clear()
-        if self.mode is FlightMode.MISSION:
-            if items:
-                self._command_physics()
-            else:
-                self._set_mode(FlightMode.HOLD)
-        self._broadcast_mission_current()
-
-    def _mission_set_current(self, seq: int) -> bool:
-        if not 0 <= seq < len(self.mission.items):
-            return False
-        self._mission_seq = seq
-        self._mission_finished = False
-        if self.mode is FlightMode.MISSION and self.armed:
-            self._mission_start_item()
-        return True
-
-    def _mission_restart_if_finished(self) -> None:
-        if self._mission_finished:
-            self._mission_seq = 0
-            self._mission_finished = False
-
-    def _mission_start_item(self) -> None:
-        """Begin the current item; items that need no flying complete at once."""
-        items = self.mission.items
-        if not self.armed:
-            return
-        self._mission_started = True
-        for _ in range(len(items) + 1):
-            if self._mission_seq >= len(items):
-                self._mission_complete()
-                return
-            item = items[self._mission_seq]
-            command = item.command
-            self._mission_phase = ""
-            if command in (
-                CMD_NAV_WAYPOINT,
-                CMD_NAV_LOITER_UNLIM,
-                CMD_NAV_LOITER_TIME,
-                CMD_NAV_TAKEOFF,
-                CMD_NAV_LAND,
-            ):
-                self._mission_fly_item(item)
-                return
-            if command == CMD_NAV_RETURN_TO_LAUNCH:
-                # PX4 hands over to Return mode; MAVSDK expects no ITEM_REACHED for this item.
-                self._mission_finished = True
-                self._broadcast_mission_current()
-                self._set_mode(FlightMode.RTL)
-                return
-            if command == CMD_NAV_DELAY:
-                self._mission_phase = "hold"
-                delay = item.param1 if math.isfinite(item.param1) else 0.0
-                self._mission_hold_until_s = self._now_s + max(delay, 0.0)
-                self._hold_here()
-                return
-            if command == CMD_DO_CHANGE_SPEED and math.isfinite(item.param2):
-                self._cruise_override_m_s = item.param2 if item.param2 > 0 else None
-                self._apply_limits()
-            elif command < 80 and command not in self._mission_warned:
-                self._mission_warned.add(command)
-                self._statustext(self._now_s, WARNING, f"Mission item {command} not supported")
-            self._mission_item_reached(advance_only=True)
-        self._mission_complete()
-
-    def _mission_item_target(self, item: MissionItem) -> list[float]:
-        pos = self.position_ned()
-        target = list(pos)
-        if item.x != 0 or item.y != 0:
-            target[0], target[1] = self._projection.to_local(item.latitude_deg, item.longitude_deg)
-        if math.isfinite(item.z):
-            target[2] = self._down_from_altitude(item.z, item.frame in RELATIVE_ALT_FRAMES)
-        return target
-
-    def _mission_fly_item(self, item: MissionItem) -> None:
-        target = self._mission_item_target(item)
-        self._mission_target_ned_m = target
-        pos = self.position_ned()
-        if item.command == CMD_NAV_LAND:
-            if math.hypot(target[0] - pos[0], target[1] - pos[1]) > 1.0 and not self.landed:
-                self._mission_phase = "go"
-                self._fly_to([target[0], target[1], pos[2]], self._heading_to(target))
-            else:
-                self._mission_phase = "land"
-                self._start_landing()
-            return
-        if item.command == CMD_NAV_TAKEOFF:
-            self._mission_phase = "takeoff"
-            self._apply_limits()
-            self._fly_to([pos[0], pos[1], min(target[2], pos[2])], math.nan)
-            return
-        if self.landed:
-            # PX4 takes off vertically before flying to the first waypoint.
-            altitude = max(self._home_ned_m[2] - target[2], self.params["MIS_TAKEOFF_ALT"])
-            self._mission_phase = "takeoff"
-            self._apply_limits()
-            self._fly_to([pos[0], pos[1], self._home_ned_m[2] - altitude], math.nan)
-            return
-        self._mission_phase = "go"
-        self._apply_limits()
-        yaw = math.radians(item.param4) if math.isfinite(item.param4) else self._heading_to(target)
-        self._fly_to(target, yaw)
-
-    def _mission_update(self, now_s: float) -> None:
-        phase = self._mission_phase
-        if not self.armed or not phase or self._mission_finished:
-            return
-        items = self.mission.items
-        if self._mission_seq >= len(items):
-            return
-        item = items[self._mission_seq]
-        vertical = self.params["NAV_MC_ALT_RAD"]
-        if phase == "takeoff":
-            if self._reached(self._physics_target(), 1e9, vertical):
-                if item.command == CMD_NAV_TAKEOFF:
-                    self._mission_phase = ""
-                    self._apply_limits()
-                    self._mission_item_reached()
-                else:
-                    self._mission_fly_item(item)
-        elif phase == "go":
-            radius = item.param2 if item.param2 > 0 else self.params["NAV_ACC_RAD"]
-            if item.command == CMD_NAV_LAND:
-                radius = 1.0
-            if not self._reached(self._physics_target(), radius, vertical):
-                return
-            if item.command == CMD_NAV_LAND:
-                self._mission_phase = "land"
-                self._start_landing()
-            elif item.command == CMD_NAV_LOITER_UNLIM:
-                self._mission_phase = "loiter"
-            else:
-                hold = item.param1 if math.isfinite(item.param1) and item.param1 > 0 else 0.0
-                if hold > 0:
-                    self._mission_phase = "hold"
-                    self._mission_hold_until_s = now_s + hold
-                else:
-                    self._mission_item_reached()
-        elif phase == "hold":
-            if now_s >= self._mission_hold_until_s:
-                self._mission_item_reached()
-        elif phase == "land" and self.landed:
-            self._mission_phase = ""
-            self._mission_item_reached()
-
-    def _mission_item_reached(self, advance_only: bool = False) -> None:
-        self._broadcast(mavlink.MAVLink_mission_item_reached_message(self._mission_seq))
-        self._mission_seq += 1
-        self._mission_phase = ""
-        if self._mission_seq >= len(self.mission.items):
-            self._mission_complete()
-            return
-        self._broadcast_mission_current()
-        if not advance_only:
-            self._mission_start_item()
-
-    def _mission_complete(self) -> None:
-        if self._mission_finished:
-            return
-        self._mission_finished = True
-        self._mission_phase = ""
-        self._mission_seq = max(len(self.mission.items) - 1, 0)
-        self._broadcast_mission_current()
-        if not self.landed:
-            self._statustext(self._now_s, INFO, "Mission finished, loitering")
-            self._hold_here()
-
-    def _broadcast_mission_current(self) -> None:
-        seq, total, state, mode = self.mission_status()
-        self._broadcast(mavlink.MAVLink_mission_current_message(seq, total, state, mode))
-
-    # ================================================================ arming
-    def _arm(self, now_s: float) -> None:
-        self.armed = True
-        self._armed_at_s = now_s
-        self._flown_since_arm = False
-        self.failsafe_active = False
-        self._gcs_lost = False
-        self._statustext(now_s, INFO, "Armed by external command")
-        self._command_physics()
-
-    def _disarm(self, now_s: float, reason: str) -> None:
-        self.armed = False
-        self._landing = False
-        self._statustext(now_s, INFO, reason)
-        self._command_physics()
-
-    # ================================================================ per step
     def update(self, now_s: float) -> None:
         """Advance mode logic, failsafes and timers to ``now_s`` (call once per step)."""
-        if not self.alive:
+        state = self._state
+        if not state.alive:
             return
-        self._now_s = now_s
-        self._update_landed(now_s)
+        state.now_s = now_s
+        event = self._land_detector.update(now_s, taking_off=self._navigator.taking_off)
+        if event is not None:
+            self._commander.on_land_event(event, now_s)
         dt_s = max(now_s - self._last_update_s, 0.0)
         self._last_update_s = now_s
-        if self.armed:
+        if state.armed:
             self.battery_remaining_pct = max(
                 0.0, self.battery_remaining_pct - self.battery_drain_percent_per_min * dt_s / 60.0
             )
-            mode = self.mode
-            if mode is FlightMode.TAKEOFF:
-                target_down = self._home_ned_m[2] - self._target_altitude_m
-                pos = self.position_ned()
-                if pos[2] <= target_down + 0.1:
-                    self._set_mode(FlightMode.HOLD)
-                    self._fly_to([pos[0], pos[1], target_down], math.nan)
-            elif mode is FlightMode.RTL:
-                self._rtl_update(now_s)
-            elif mode is FlightMode.MISSION:
-                self._mission_update(now_s)
-            if self._landing:
-                self._physics.max_down_speed_m_s[self.index] = self._landing_speed()
-            self._check_failsafes(now_s)
-            self._check_auto_disarm(now_s)
+            self._navigator.update(now_s)
+            self._commander.update(now_s)
         self.mission.update(now_s)
 
-    def _update_landed(self, now_s: float) -> None:
-        pos = self.position_ned()
-        vel = self.velocity_ned()
-        on_ground = pos[2] >= -0.05 and abs(vel[2]) < 0.5
-        if on_ground:
-            if self._ground_since_s is None:
-                self._ground_since_s = now_s
-        else:
-            self._ground_since_s = None
-        if self.landed:
-            # Hysteresis: airborne only once clearly off the ground.
-            landed = pos[2] > -_TAKEOFF_HEIGHT_M or not self.armed
-        else:
-            landed = not self.armed and on_ground
-            if self._ground_since_s is not None:
-                landed = landed or now_s - self._ground_since_s >= _LANDED_AFTER_S
-        if landed != self.landed:
-            self.landed = landed
-            if landed:
-                self._landed_at_s = now_s
-                self._landing = False
-                if self.armed:
-                    self._statustext(now_s, INFO, "Landing detected")
-                    self._apply_limits()
-                    self._hold_on_ground()
-            else:
-                self._flown_since_arm = True
-                self._statustext(now_s, INFO, "Takeoff detected")
-        if landed:
-            self.landed_state = ON_GROUND
-        elif self._landing:
-            self.landed_state = LANDING
-        elif self.mode is FlightMode.TAKEOFF or self._mission_phase == "takeoff":
-            self.landed_state = TAKING_OFF
-        else:
-            self.landed_state = IN_AIR
+    # ================================================================ wiring
+    def _set_mode(self, mode: FlightMode, failsafe: bool = False) -> None:
+        """The navigator's way to the commander's mode switch."""
+        self._commander.set_mode(mode, failsafe)
 
-    def _hold_on_ground(self) -> None:
-        """After touchdown keep the motors idle on the spot (until auto-disarm)."""
-        mode = self.mode
-        if mode in (FlightMode.LAND, FlightMode.RTL) or (
-            mode is FlightMode.MISSION and self._mission_phase == "land"
-        ):
-            pos = self.position_ned()
-            self._fly_to([pos[0], pos[1], 0.0], math.nan)
+    def _param_changed(self, name: str, value: float) -> None:
+        self._navigator.apply_limits()
 
-    def _check_failsafes(self, now_s: float) -> None:
-        p = self.params
-        if self.mode is FlightMode.OFFBOARD and not self._offboard_signal_fresh():
-            self._statustext(now_s, CRITICAL, "Failsafe activated: offboard control lost")
-            action = int(p["COM_OBL_RC_ACT"])
-            self._failsafe(
-                {3: FlightMode.RTL, 4: FlightMode.LAND, 6: None, 7: None}.get(
-                    action, FlightMode.HOLD
-                )
-            )
-        if (
-            self._gcs_last_heartbeat_s is not None
-            and not self._gcs_lost
-            and now_s - self._gcs_last_heartbeat_s > p["COM_DL_LOSS_T"]
-        ):
-            self._gcs_lost = True
-            self._statustext(now_s, CRITICAL, "Connection to ground station lost")
-            action = int(p["NAV_DLL_ACT"])
-            if action != 0:
-                self._failsafe(
-                    {1: FlightMode.HOLD, 2: FlightMode.RTL, 3: FlightMode.LAND}.get(action)
-                )
-        if not self.position_ok and not self.landed and self.mode is not FlightMode.LAND:
-            self._statustext(now_s, CRITICAL, "Failsafe activated: no position, landing")
-            self._failsafe(FlightMode.LAND)
-
-    def _failsafe(self, mode: FlightMode | None) -> None:
-        """Switch to ``mode`` as a failsafe; None means terminate/disarm."""
-        if mode is None:
-            self._disarm(self._now_s, "Failsafe: disarmed")
-            return
-        if self.landed and mode is not FlightMode.HOLD:
-            mode = FlightMode.HOLD
-        self._set_mode(mode, failsafe=True)
-
-    def _check_auto_disarm(self, now_s: float) -> None:
-        if not self.landed:
-            return
-        p = self.params
-        if self._flown_since_arm:
-            timeout, since, reason = p["COM_DISARM_LAND"], self._landed_at_s, "Disarmed by landing"
-        else:
-            timeout = p["COM_DISARM_PRFLT"]
-            since = max(self._armed_at_s, self._landed_at_s)
-            reason = "Disarmed by auto preflight disarming"
-        if timeout >= 0 and now_s - since >= timeout:
-            self._disarm(now_s, reason)
-
-    # ================================================================ output
-    def _statustext(self, now_s: float, severity: int, text: str) -> None:
-        """Log ``text`` and send it; PX4 sends texts over 50 bytes in 50-byte chunks that share
-        a non-zero id (a tab that PX4 appends to many texts is kept on the wire only)."""
-        shown = text.rstrip("\t")
-        self.status_log.append((now_s, shown))
-        logger.debug("vehicle %d: %s", self.sysid, shown)
-        if self.on_statustext is not None:
-            self.on_statustext(now_s, severity, shown)
-        if not self.alive:
-            return
-        data = text.encode()
-        if len(data) <= 50:
-            self._broadcast(mavlink.MAVLink_statustext_message(severity, data))
-            return
-        self._statustext_id = self._statustext_id % 0xFFFF + 1
-        for seq, start in enumerate(range(0, len(data), 50)):
-            chunk = data[start : start + 50]
-            self._broadcast(
-                mavlink.MAVLink_statustext_message(severity, chunk, self._statustext_id, seq)
-            )
-
-    def _broadcast(self, msg: mavlink.MAVLink_message) -> None:
-        for link in self.links:
-            link.send(msg)
-
-    def _broadcast_message(self, msg_id: int) -> None:
-        msg = self.telemetry.build(msg_id, self._now_s)
+    def _announce_home(self) -> None:
+        msg = self.telemetry.build(mavlink.MAVLINK_MSG_ID_HOME_POSITION, self._state.now_s)
         if msg is not None:
-            self._broadcast(msg)
-
-    def _send_built(self, msg_id: int, link: Link) -> None:
-        msg = self.telemetry.build(msg_id, self._now_s)
-        if msg is not None:
-            link.send(msg)
-
-
-def _param_name(param_id: str | bytes) -> str:
-    if isinstance(param_id, bytes):
-        param_id = param_id.decode("ascii", errors="replace")
-    return param_id.split("\x00", 1)[0]
-
-
-def _rotate_yaw(v: list[float], yaw_rad: float) -> list[float]:
-    """Body (forward, right, down) -> NED for a vehicle heading ``yaw_rad``."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return [v[0] * c - v[1] * s, v[0] * s + v[1] * c, v[2]]
+            self._vehicle.broadcast(msg)

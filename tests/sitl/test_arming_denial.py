@@ -10,9 +10,11 @@ import pytest
 from mavsdk.asyncio.plugins.action import ActionError, ActionResult
 from mavsdk.asyncio.plugins.telemetry import StatusTextType
 from pydantic import ValidationError
+from pymavlink.dialects.v20.common import MAV_RESULT_ACCEPTED as ACCEPTED
+from pymavlink.dialects.v20.common import MAV_RESULT_TEMPORARILY_REJECTED as TEMPORARILY_REJECTED
+from pymavlink.dialects.v20.common import MAV_SEVERITY_CRITICAL as CRITICAL
 
 from sitl import Emulator, EmulatorConfig
-from sitl.autopilot import ACCEPTED, CRITICAL, TEMPORARILY_REJECTED
 from sitl.config import PX4_ARMING_DENIED_TEXT, ClockConfig, DenyArmingFault
 from sitl.errors import EmulatorStateError
 from tests.sitl.helpers import Bench, free_port_config

@@ -6,8 +6,11 @@ import math
 
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
+from pymavlink.dialects.v20.common import MAV_RESULT_ACCEPTED as ACCEPTED
+from pymavlink.dialects.v20.common import MAV_RESULT_DENIED as DENIED
+from pymavlink.dialects.v20.common import MAV_RESULT_TEMPORARILY_REJECTED as TEMPORARILY_REJECTED
+from pymavlink.dialects.v20.common import MAV_RESULT_UNSUPPORTED as UNSUPPORTED
 
-from sitl.autopilot import ACCEPTED, DENIED, TEMPORARILY_REJECTED, UNSUPPORTED
 from sitl.modes import FlightMode
 from sitl.params import int32_to_wire_float, wire_float_to_int32
 from tests.sitl.helpers import Bench

@@ -1,0 +1,224 @@
+"""The MAVLink side of one vehicle's autopilot: each incoming message to the part that owns it.
+
+As PX4's mavlink module (MavlinkReceiver, the parameter manager), :class:`MavlinkReceiver`
+takes every decoded message a link delivers and routes it by type: heartbeats and SET_MODE to
+the commander (:mod:`sitl.commander`), setpoints to offboard (:mod:`sitl.offboard`), mission
+protocol to the navigator's mission store (:mod:`sitl.mission`), commands to the
+:class:`sitl.commands.CommandDispatcher`. It answers the protocol-level requests itself:
+parameters (PARAM_REQUEST_LIST / READ / SET), PING, TIMESYNC, and the commands that ask for
+messages (REQUEST_MESSAGE, SET/GET_MESSAGE_INTERVAL, GET_HOME_POSITION,
+REQUEST_AUTOPILOT_CAPABILITIES). Replies go to the link a request came on; parameter changes to
+every link. Messages that do not make sense are ignored, as PX4 does.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from sitl.commander import COMMANDER_COMMANDS, Commander
+from sitl.commands import Command, CommandDispatcher, CommandTable, bind
+from sitl.navigator import NAVIGATOR_COMMANDS, Navigator
+from sitl.offboard import Offboard
+from sitl.telemetry import BUILDABLE, TelemetryBuilder
+from sitl.vehicle_state import Link, VehicleContext
+
+logger = logging.getLogger(__name__)
+
+MessageHandler = Callable[[mavlink.MAVLink_message, Link], None]
+
+_MISSION_MESSAGES = (
+    "MISSION_COUNT",
+    "MISSION_ITEM_INT",
+    "MISSION_ITEM",
+    "MISSION_REQUEST_LIST",
+    "MISSION_REQUEST_INT",
+    "MISSION_REQUEST",
+    "MISSION_CLEAR_ALL",
+    "MISSION_SET_CURRENT",
+    "MISSION_ACK",
+)
+_READ_ONLY_PARAMS = frozenset(["MAV_SYS_ID", "MAV_COMP_ID"])  # PX4 changes them on reboot only
+_MAX_MESSAGE_ID = 2**24  # MAVLink 2 message ids are 24 bits
+
+
+class MavlinkReceiver:
+    """Routes one vehicle's incoming messages; answers parameters, pings and message requests.
+
+    ``boot_time_s(now_s)`` is the autopilot's boot clock (for TIMESYNC); ``telemetry`` builds
+    the messages that commands ask for.
+    """
+
+    def __init__(
+        self,
+        vehicle: VehicleContext,
+        *,
+        commander: Commander,
+        navigator: Navigator,
+        offboard: Offboard,
+        telemetry: TelemetryBuilder,
+        boot_time_s: Callable[[float], float],
+    ) -> None:
+        self._vehicle = vehicle
+        self._telemetry = telemetry
+        self._boot_time_s = boot_time_s
+        self._commands = CommandDispatcher(
+            vehicle,
+            [
+                bind(commander, COMMANDER_COMMANDS),
+                bind(navigator, NAVIGATOR_COMMANDS),
+                bind(self, RECEIVER_COMMANDS),
+            ],
+        )
+        self._mission = navigator.mission
+        self._handlers: dict[str, MessageHandler] = {
+            "HEARTBEAT": commander.on_heartbeat,
+            "COMMAND_LONG": self._commands.on_command_long,
+            "COMMAND_INT": self._commands.on_command_int,
+            "SET_MODE": commander.on_set_mode,
+            "SET_POSITION_TARGET_LOCAL_NED": offboard.on_position_target_local,
+            "SET_POSITION_TARGET_GLOBAL_INT": offboard.on_position_target_global,
+            "SET_ATTITUDE_TARGET": offboard.on_attitude_target,
+            "PARAM_REQUEST_LIST": self._on_param_request_list,
+            "PARAM_REQUEST_READ": self._on_param_request_read,
+            "PARAM_SET": self._on_param_set,
+            "PING": self._on_ping,
+            "TIMESYNC": self._on_timesync,
+        }
+        for kind in _MISSION_MESSAGES:
+            self._handlers[kind] = self._on_mission_message
+
+    def handle(self, msg: mavlink.MAVLink_message, link: Link) -> None:
+        """React to one decoded message received on ``link``."""
+        handler = self._handlers.get(msg.get_type())
+        if handler is not None:
+            handler(msg, link)
+
+    # ------------------------------------------------------------------ misc
+    def _on_mission_message(self, msg: mavlink.MAVLink_message, link: Link) -> None:
+        self._mission.handle(msg, link, self._vehicle.state.now_s)
+
+    def _on_ping(self, msg: mavlink.MAVLink_message, link: Link) -> None:
+        if msg.target_system == 0 and msg.target_component == 0:
+            link.send(
+                mavlink.MAVLink_ping_message(
+                    msg.time_usec, msg.seq, msg.get_srcSystem(), msg.get_srcComponent()
+                )
+            )
+
+    def _on_timesync(self, msg: mavlink.MAVLink_message, link: Link) -> None:
+        if msg.tc1 == 0:
+            boot_ns = int(self._boot_time_s(self._vehicle.state.now_s) * 1e9)
+            link.send(mavlink.MAVLink_timesync_message(boot_ns, msg.ts1))
+
+    # ---------------------------------------------------------------- params
+    def _on_param_request_list(self, msg: mavlink.MAVLink_message, link: Link) -> None:
+        if not self._vehicle.is_for_me(msg):
+            return
+        for name in self._vehicle.params:
+            link.send(self._param_value(name))
+
+    def _on_param_request_read(self, msg: mavlink.MAVLink_message, link: Link) -> None:
+        if not self._vehicle.is_for_me(msg):
+            return
+        names = self._vehicle.params
+        if msg.param_index >= 0:
+            if msg.param_index >= len(names):
+                return
+            name = list(names)[msg.param_index]
+        else:
+            name = _param_name(msg.param_id)
+            if name not in names:
+                return  # PX4 stays silent about unknown names
+        link.send(self._param_value(name))
+
+    def _on_param_set(self, msg: mavlink.MAVLink_message, link: Link) -> None:
+        vehicle = self._vehicle
+        if not vehicle.is_for_me(msg):
+            return
+        params = vehicle.params
+        now = vehicle.state.now_s
+        name = _param_name(msg.param_id)
+        if name not in params:
+            vehicle.statustext(now, mavlink.MAV_SEVERITY_WARNING, f"Unknown parameter {name[:24]}")
+            return
+        if name not in _READ_ONLY_PARAMS:  # for those: echo the value in use
+            try:
+                value = params.decode_wire_value(name, msg.param_value, msg.param_type)
+                params.set(name, value)
+            except (ValueError, OverflowError) as exc:
+                vehicle.statustext(now, mavlink.MAV_SEVERITY_WARNING, f"Param {name} rejected")
+                logger.info("vehicle %d: PARAM_SET %s rejected: %s", vehicle.sysid, name, exc)
+        # PX4 announces the (possibly unchanged) value on every link.
+        vehicle.broadcast(self._param_value(name))
+
+    def _param_value(self, name: str) -> mavlink.MAVLink_message:
+        params = self._vehicle.params
+        value, mav_type = params.wire_value(name)
+        return mavlink.MAVLink_param_value_message(
+            name.encode(), value, mav_type, len(params), params.index_of(name)
+        )
+
+    # -------------------------------------------------------------- commands
+    def _cmd_get_home_position(self, cmd: Command, link: Link) -> int:
+        self._commands.then(lambda: self._send_built(mavlink.MAVLINK_MSG_ID_HOME_POSITION, link))
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _cmd_get_message_interval(self, cmd: Command, link: Link) -> int:
+        msg_id = cmd.params[0]
+        if not math.isfinite(msg_id) or not 0 <= msg_id < _MAX_MESSAGE_ID:
+            return mavlink.MAV_RESULT_DENIED
+        interval = link.streams.interval_us(int(msg_id)) if int(msg_id) in BUILDABLE else 0
+        self._commands.then(
+            lambda: link.send(mavlink.MAVLink_message_interval_message(int(msg_id), interval))
+        )
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _cmd_set_message_interval(self, cmd: Command, link: Link) -> int:
+        msg_id, interval_us = cmd.params[0], cmd.params[1]
+        if not (math.isfinite(msg_id) and 0 <= msg_id < _MAX_MESSAGE_ID):
+            return mavlink.MAV_RESULT_DENIED
+        ok = link.streams.set_interval(int(msg_id), interval_us, self._vehicle.state.now_s)
+        return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
+
+    def _cmd_request_message(self, cmd: Command, link: Link) -> int:
+        msg_id = cmd.params[0]
+        if not (math.isfinite(msg_id) and int(msg_id) in BUILDABLE):
+            return mavlink.MAV_RESULT_DENIED
+        msg = self._telemetry.build(int(msg_id), self._vehicle.state.now_s)
+        if msg is None:
+            return mavlink.MAV_RESULT_FAILED
+        self._commands.then(lambda: link.send(msg))
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _cmd_request_autopilot_capabilities(self, cmd: Command, link: Link) -> int:
+        self._commands.then(
+            lambda: self._send_built(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, link)
+        )
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _send_built(self, msg_id: int, link: Link) -> None:
+        msg = self._telemetry.build(msg_id, self._vehicle.state.now_s)
+        if msg is not None:
+            link.send(msg)
+
+
+#: The commands PX4's MAVLink module answers itself: requests for messages.
+RECEIVER_COMMANDS: CommandTable[MavlinkReceiver] = {
+    mavlink.MAV_CMD_GET_HOME_POSITION: MavlinkReceiver._cmd_get_home_position,
+    mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: MavlinkReceiver._cmd_get_message_interval,
+    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: MavlinkReceiver._cmd_set_message_interval,
+    mavlink.MAV_CMD_REQUEST_MESSAGE: MavlinkReceiver._cmd_request_message,
+    mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: (
+        MavlinkReceiver._cmd_request_autopilot_capabilities
+    ),
+}
+
+
+def _param_name(param_id: str | bytes) -> str:
+    if isinstance(param_id, bytes):
+        param_id = param_id.decode("ascii", errors="replace")
+    return param_id.split("\x00", 1)[0]
