@@ -158,17 +158,20 @@ class MavsdkVehicle:
         self._updated = asyncio.Event()
         self._group = None
         self._tasks = []
+        self._stack = contextlib.AsyncExitStack()
         self.in_offboard = False
 
     def _boot_s(self, mission_s):
         return self.boot_s_at(mission_s)  # late-bound: follow_clock replaces boot_s_at
 
     async def __aenter__(self):
-        self._group = asyncio.TaskGroup()
-        await self._group.__aenter__()
-        self._spawn(self._stream_odometry(), "odometry")
-        self._spawn(self._collect_status_texts(), "statustext")
-        await self.request_rate(self.telemetry.set_rate_position_velocity_ned(ODOMETRY_RATE_HZ))
+        async with contextlib.AsyncExitStack() as stack:
+            self._group = await stack.enter_async_context(asyncio.TaskGroup())
+            stack.callback(self._cancel_streams)  # they run for ever: end them, then the group
+            self._spawn(self._stream_odometry(), "odometry")
+            self._spawn(self._collect_status_texts(), "statustext")
+            await self.request_rate(self.telemetry.set_rate_position_velocity_ned(ODOMETRY_RATE_HZ))
+            self._stack = stack.pop_all()
         return self
 
     async def request_rate(self, request):
@@ -180,9 +183,11 @@ class MavsdkVehicle:
             logger.info("vehicle %s: rate change not taken (%s)", self.system_id, error)
 
     async def __aexit__(self, *exc_info):
+        return await self._stack.__aexit__(*exc_info)
+
+    def _cancel_streams(self):
         for task in self._tasks:
             task.cancel()
-        await self._group.__aexit__(*exc_info)
 
     def _spawn(self, coroutine, what):
         self._tasks.append(
