@@ -8,10 +8,13 @@ constants, sinusoids, waypoints or safe expressions of ``t`` (see :mod:`.express
 Python code.
 """
 
+from __future__ import annotations
+
 import itertools
 import math
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal, get_args
 
 import numpy as np
 import yaml
@@ -20,6 +23,12 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from .bus.settings import BusSettings
 from .errors import ConfigError
 from .expressions import ExpressionError, compile_expression
+
+if TYPE_CHECKING:
+    from .outputs import PathName
+
+#: A scenario problem: the YAML path a user would edit (``vehicles[2].id``) and what is wrong.
+Problem = tuple[str, str]
 
 Pair = Annotated[list[float], Field(min_length=2, max_length=2)]
 PositiveFloat = Annotated[float, Field(gt=0)]
@@ -32,7 +41,7 @@ class Model(BaseModel):
     model_config = ConfigDict(strict=True, extra="forbid", allow_inf_nan=False, frozen=True)
 
 
-def _expression(text):
+def _expression(text: str) -> str:
     try:
         compile_expression(text)
     except ExpressionError as error:
@@ -40,7 +49,7 @@ def _expression(text):
     return text
 
 
-def _increasing_times(points):
+def _increasing_times(points: list[list[float]]) -> list[list[float]]:
     if any(b[0] <= a[0] for a, b in itertools.pairwise(points)):
         raise ValueError("times must be strictly increasing")
     return points
@@ -283,9 +292,14 @@ class EventConfig(Model):
         None, title="Sensor", description="sensor_lost: which sensor stops."
     )
 
-    def step(self, step_s):
+    def step(self, step_s: float) -> int:
         """The step index at which the event takes effect."""
-        return self.at_step if self.at_step is not None else math.ceil(self.at_s / step_s - 1e-9)
+        if self.at_step is not None:
+            return self.at_step
+        if self.at_s is None:
+            # Scenario validation reports this at the event's YAML path before anything asks.
+            raise ValueError(f"event {self.kind} of vehicle {self.vehicle}: no at_step or at_s")
+        return math.ceil(self.at_s / step_s - 1e-9)
 
 
 class BatchConfig(Model):
@@ -309,7 +323,7 @@ class MetricsConfig(Model):
     phase_tolerance_rad: PositiveFloat = Field(0.01, title="Phase tol.", description="[rad].")
 
 
-METRICS = (
+SimulationMetricName = Literal[
     "final_tracking_error_m",
     "tail_tracking_error_rms_m",
     "tail_localization_error_median_m",
@@ -322,12 +336,15 @@ METRICS = (
     "max_speed_m_s",
     "min_separation_m",
     "final_live_vehicles",
-)
-FLIGHT_METRICS = (
+]
+FlightMetricName = Literal[
     "vehicles_disarmed_at_end",
     "vehicles_in_formation_at_end",
-)
-MetricName = Literal[METRICS + FLIGHT_METRICS]
+]
+#: Every metric an ``expect:`` bound may name (nested literals flatten into one).
+MetricName = Literal[SimulationMetricName, FlightMetricName]
+METRICS: tuple[SimulationMetricName, ...] = get_args(SimulationMetricName)
+FLIGHT_METRICS: tuple[FlightMetricName, ...] = get_args(FlightMetricName)
 
 
 class Expectation(Model):
@@ -430,7 +447,7 @@ class FlightConfig(Model):
         "as the paper's model assumes; needed on airframes whose velocity loop lags or loses "
         "to drag (PX4 SIH), off by default.",
     )
-    emulator: dict = Field(
+    emulator: dict[str, Any] = Field(
         {},
         title="Emulator",
         description="Settings passed to the bundled emulator (sitl.config.EmulatorConfig: "
@@ -473,17 +490,17 @@ class Scenario(Model):
 # --- Loading --------------------------------------------------------------------------------------
 
 
-def load_scenario(path):
+def load_scenario(path: PathName) -> Scenario:
     """Read and validate a scenario file. Raises :class:`ConfigError` listing every problem."""
-    path = Path(path)
+    file = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = file.read_text(encoding="utf-8")
     except OSError as error:
-        raise ConfigError(str(path), [("", f"cannot read file: {error.strerror}")]) from None
-    return parse_scenario(text, source=str(path))
+        raise ConfigError(str(file), [("", f"cannot read file: {error.strerror}")]) from None
+    return parse_scenario(text, source=str(file))
 
 
-def parse_scenario(text, source="<string>"):
+def parse_scenario(text: str, source: str = "<string>") -> Scenario:
     """Validate scenario YAML text; see :func:`load_scenario`."""
     try:
         data = yaml.safe_load(text)
@@ -497,7 +514,7 @@ def parse_scenario(text, source="<string>"):
     return validate_scenario(data, source)
 
 
-def validate_scenario(data, source="<data>"):
+def validate_scenario(data: dict[str, Any], source: str = "<data>") -> Scenario:
     """Validate already-parsed scenario data (a dict)."""
     try:
         scenario = Scenario.model_validate(data)
@@ -509,7 +526,7 @@ def validate_scenario(data, source="<data>"):
     return scenario
 
 
-def yaml_path(location):
+def yaml_path(location: Iterable[int | str]) -> str:
     """``("vehicles", 2, "id")`` -> ``"vehicles[2].id"``."""
     text = ""
     for part in location:
@@ -517,9 +534,11 @@ def yaml_path(location):
     return text
 
 
-def _clean_location(location, data):
+def _clean_location(location: Iterable[int | str], data: object) -> tuple[int | str, ...]:
     """Drop pydantic's union-branch markers so the location is the YAML path that was written."""
-    cleaned, node, skip_tag = [], data, False
+    cleaned: list[int | str] = []
+    node: Any = data  # the parsed YAML below the part reached so far, whatever it holds
+    skip_tag = False
     for part in location:
         if skip_tag:
             skip_tag = False
@@ -542,7 +561,7 @@ def _clean_location(location, data):
     return tuple(cleaned)
 
 
-def _pydantic_problems(error, data):
+def _pydantic_problems(error: ValidationError, data: object) -> list[Problem]:
     problems = []
     for item in error.errors(include_url=False):
         location = _clean_location(item["loc"], data)
@@ -558,9 +577,9 @@ def _pydantic_problems(error, data):
     return problems
 
 
-def _rule_problems(scenario):
+def _rule_problems(scenario: Scenario) -> list[Problem]:
     """Rules that span several fields, each reported at the path a user would edit."""
-    problems = []
+    problems: list[Problem] = []
     step_s = scenario.timing.step_s
     if scenario.algorithm.beta >= 1 / step_s:
         problems.append(
@@ -582,7 +601,7 @@ def _rule_problems(scenario):
             )
     if not any(vehicle.senses_target for vehicle in scenario.vehicles):
         problems.append(("vehicles", "at least one vehicle must have senses_target: true"))
-    joined_later = set()
+    joined_later: set[int] = set()
     for index, event in enumerate(scenario.events):
         where = f"events[{index}]"
         if (event.at_step is None) == (event.at_s is None):
@@ -608,7 +627,7 @@ def _rule_problems(scenario):
     return problems
 
 
-def _emulator_problems(scenario):
+def _emulator_problems(scenario: Scenario) -> list[Problem]:
     """Check ``flight.emulator`` at load time; the vehicle count is checked when flying (a
     simulate-only scenario may have more vehicles than one emulator process holds)."""
     from .wiring import emulator_config  # noqa: PLC0415 - wiring imports this module
@@ -628,12 +647,12 @@ def _emulator_problems(scenario):
     return []
 
 
-def _shape_problems(scenario):
+def _shape_problems(scenario: Scenario) -> list[Problem]:
     from .scenario import signal_values  # noqa: PLC0415 - scenario imports this module
 
     step_s, steps = scenario.timing.step_s, scenario.timing.steps
     times = np.arange(steps + 1) * step_s
-    problems = []
+    problems: list[Problem] = []
     for name in ("scale_north", "scale_east"):
         values = signal_values(getattr(scenario.algorithm.shape, name), times)
         if not np.all(np.isfinite(values)) or np.min(values) <= 0:

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..config import FLIGHT_METRICS, Expectation
+from ..config import FLIGHT_METRICS, Expectation, MetricName
 
 if TYPE_CHECKING:
     from .simulator import SimulationResult
@@ -99,7 +99,7 @@ def distribution(values: ArrayLike, name: str) -> dict[str, float | int | None]:
 
 
 def check_expectations(
-    expect: Mapping[str, Expectation], metrics: Mapping[str, MetricValue]
+    expect: Mapping[MetricName, Expectation], metrics: Mapping[str, MetricValue]
 ) -> list[str]:
     """Failed expectations as readable strings (empty when the run passes).
 
