@@ -118,7 +118,7 @@ def summary(
     metrics = run_metrics(result)
     first = {name: _plain(values[0]) for name, values in metrics.items()}
     failures = check_expectations(scenario.expect, first)
-    document = {
+    document: dict[str, Any] = {
         "scenario": scenario.name,
         "description": scenario.description,
         "config": None if config_path is None else str(config_path),

@@ -7,9 +7,14 @@ flying vehicle runs. Runs are batched on a leading axis: ``runs=N`` simulates N 
 at once. Ground truth is used here only to make measurements and to score the run.
 """
 
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..config import Scenario
 from ..enclosing import SwarmEnclosing, splay_spacing_error
@@ -32,25 +37,28 @@ class SimulationResult:
     """
 
     scenario: Scenario
-    times_s: np.ndarray
-    target_m: np.ndarray
-    positions_m: np.ndarray
-    phases_rad: np.ndarray
-    commands_m_s: np.ndarray
-    live: np.ndarray
-    tracking_error_m: np.ndarray
-    localization_error_m: np.ndarray
-    phase_spacing_error_rad: np.ndarray
-    consensus_speed_m_s: np.ndarray
-    separation_m: np.ndarray
-    extra_metrics: dict = field(default_factory=dict)
+    times_s: NDArray[np.float64]
+    target_m: NDArray[np.float64]
+    positions_m: NDArray[np.float64]
+    phases_rad: NDArray[np.float64]
+    commands_m_s: NDArray[np.float64]
+    live: NDArray[np.bool_]
+    tracking_error_m: NDArray[np.float64]
+    localization_error_m: NDArray[np.float64]
+    phase_spacing_error_rad: NDArray[np.float64]
+    consensus_speed_m_s: NDArray[np.float64]
+    separation_m: NDArray[np.float64]
+    #: Flight-only metrics, ``{name: (B,) array}`` (see ``config.FLIGHT_METRICS``).
+    extra_metrics: dict[str, NDArray[Any]] = field(default_factory=dict)
 
     @property
-    def runs(self):
+    def runs(self) -> int:
         return self.tracking_error_m.shape[0]
 
 
-def initial_conditions(scenario, runs):
+def initial_conditions(
+    scenario: Scenario, runs: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Initial positions ``(B, N, 2)`` and phases ``(B, N)``: run 0 as pinned, the rest drawn."""
     positions = np.array([v.initial_position_m for v in scenario.vehicles], dtype=float)
     phases = np.array([v.initial_phase_rad for v in scenario.vehicles], dtype=float)
@@ -70,17 +78,20 @@ def initial_conditions(scenario, runs):
 class _Noise:
     """Measurement noise for a batch; run 0 draws from its own stream so it equals a single run."""
 
-    def __init__(self, seed, runs):
+    def __init__(self, seed: int, runs: int) -> None:
         self._first = np.random.default_rng([seed, 0])
         self._rest = np.random.default_rng([seed, 2]) if runs > 1 else None
 
-    def normal(self, scale=1.0, size=()):
+    def normal(self, scale: float = 1.0, size: tuple[int, ...] = ()) -> NDArray[np.float64]:
         return self._draw("normal", size, scale=scale)
 
-    def uniform(self, low=0.0, high=1.0, size=()):
+    def uniform(
+        self, low: float = 0.0, high: float = 1.0, size: tuple[int, ...] = ()
+    ) -> NDArray[np.float64]:
         return self._draw("uniform", size, low=low, high=high)
 
-    def _draw(self, method, shape, **kwargs):
+    def _draw(self, method: str, shape: tuple[int, ...], **kwargs: float) -> NDArray[np.float64]:
+        """``shape`` ``(B, ...)``: run 0 from its own stream, the other B - 1 runs from the rest."""
         first = getattr(self._first, method)(size=(1, *shape[1:]), **kwargs)
         if self._rest is None:
             return first
@@ -88,7 +99,7 @@ class _Noise:
         return np.concatenate([first, rest], axis=0)
 
 
-def _event_schedule(scenario):
+def _event_schedule(scenario: Scenario) -> Callable[[int], NDArray[np.bool_]]:
     """live_from_schedule(k) -> ``(N,)`` bool, and the steps at which membership changes."""
     ids = [v.id for v in scenario.vehicles]
     joins = {
@@ -106,7 +117,9 @@ def _event_schedule(scenario):
     return lambda k: (start <= k) & (k < stop)
 
 
-def simulate(scenario, runs=1, on_step=None):
+def simulate(
+    scenario: Scenario, runs: int = 1, on_step: Callable[[int, int], None] | None = None
+) -> SimulationResult:
     """Run ``scenario`` ``runs`` times (vectorised). ``on_step(k, total)`` reports progress."""
     if runs < 1:
         raise SimulationError(f"runs must be >= 1, got {runs}")
@@ -120,7 +133,7 @@ def simulate(scenario, runs=1, on_step=None):
     sensors = scenario.sensors
     n = len(scenario.vehicles)
     params = algorithm_params(scenario)
-    times = np.arange(steps + 1) * step_s
+    times = np.arange(steps + 1, dtype=np.float64) * step_s
     target = target_positions(scenario.target.path, np.append(times, times[-1] + step_s))
     shapes = shape_matrices(scenario.algorithm.shape, np.append(times, times[-1] + step_s))
     omega = np.array([omega_of(scenario, v) for v in scenario.vehicles])
@@ -207,9 +220,19 @@ def simulate(scenario, runs=1, on_step=None):
     return score(scenario, times, target[: steps + 1], out)
 
 
-def score(scenario, times, target, out, extra_metrics=None):
+def score(
+    scenario: Scenario,
+    times: NDArray[np.float64],
+    target: NDArray[np.float64],
+    out: Mapping[str, NDArray[Any]],
+    extra_metrics: dict[str, NDArray[Any]] | None = None,
+) -> SimulationResult:
     """A :class:`SimulationResult` from recorded series (simulated or flown): adds the tracking
-    error (centroid of live vehicles to target) and the phase-spacing error."""
+    error (centroid of live vehicles to target) and the phase-spacing error.
+
+    times ``(K+1,)``, target ``(K+1, 2)``; ``out`` the series named as the result's fields
+    (positions_m, phases_rad, commands_m_s, live, localization_error_m, consensus_speed_m_s,
+    separation_m), shaped as documented there."""
     positions, live = out["positions_m"], out["live"]
     tracking = tracking_error(positions, live, target)
     spacing = splay_spacing_error(out["phases_rad"], live)
