@@ -22,18 +22,24 @@ placed so that the first vehicle's first fix is at its ``initial_position_m``; t
 follows the scenario's path on the mission clock from k = 0.
 """
 
+from __future__ import annotations
+
 import asyncio
 import contextlib
+import functools
 import json
 import logging
 import math
 import time
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 
-from ..bus import RangeMessage, open_bus
+from ..bus import Bus, RangeMessage, Topics, open_bus
 from ..scenario import target_positions
 from ..sim.metrics import TruthSample
 from ..world.world import step_measurements
@@ -41,7 +47,10 @@ from .errors import RunnerError
 from .handshake import start_command
 from .links import MavsdkVehicle, connected_vehicles
 from .odometry import OdometrySample, OdometryTrack
-from .timesync import MissionTime
+from .timesync import ClockMapping, MissionTime
+
+if TYPE_CHECKING:
+    from ..config import Scenario
 
 logger = logging.getLogger(__name__)
 
@@ -60,12 +69,14 @@ class GeodeticFrame:
     first vehicle's first fix, which is placed at its ``initial_position_m``. Fixes of other
     vehicles before that one are dropped (the frame is not known yet)."""
 
-    def __init__(self, first_id, first_position_m):
+    def __init__(self, first_id: int, first_position_m: Sequence[float]) -> None:
         self.first_id = first_id
         self.first_position_m = first_position_m
-        self.reference = None  # (lat, lon, alt) of the first fix
+        self.reference: tuple[float, float, float] | None = None  # (lat, lon, alt) of first fix
 
-    def local(self, vehicle_id, lat_deg, lon_deg, alt_m):
+    def local(
+        self, vehicle_id: int, lat_deg: float, lon_deg: float, alt_m: float
+    ) -> tuple[float, float, float] | None:
         """``(north_m, east_m, down_m)`` in the scenario frame, or None before the first fix."""
         if self.reference is None:
             if vehicle_id != self.first_id:
@@ -89,7 +100,7 @@ class VehiclePositions:
     track: OdometryTrack = field(default_factory=lambda: OdometryTrack(capacity=512))
     received: int = 0
 
-    def newest_s(self):
+    def newest_s(self) -> float:
         latest = self.track.latest
         return -math.inf if latest is None else latest.time_s
 
@@ -101,10 +112,10 @@ class RangeStats:
     steps: int = 0
     ranges: int = 0
     missing_vehicles: int = 0
-    lateness_s: list = field(default_factory=list)
-    truth: list = field(default_factory=list)  # TruthSample per step, for scoring only
+    lateness_s: list[float] = field(default_factory=list)
+    truth: list[TruthSample] = field(default_factory=list)  # per step, for scoring only
 
-    def lateness_percentiles_ms(self):
+    def lateness_percentiles_ms(self) -> dict[str, float]:
         if not self.lateness_s:
             return {}
         values = np.asarray(self.lateness_s) * 1000.0
@@ -116,13 +127,15 @@ class RangeStats:
 class _Positions:
     """Every vehicle's positions, with a wake-up on each new sample."""
 
-    def __init__(self, scenario):
+    def __init__(self, scenario: Scenario) -> None:
         self.ids = [v.id for v in scenario.vehicles]
         self.vehicles = {i: VehiclePositions(i) for i in self.ids}
         self.frame = GeodeticFrame(self.ids[0], scenario.vehicles[0].initial_position_m)
         self.changed = asyncio.Event()
 
-    def add(self, vehicle_id, unix_s, lat_deg, lon_deg, alt_m):
+    def add(
+        self, vehicle_id: int, unix_s: float, lat_deg: float, lon_deg: float, alt_m: float
+    ) -> None:
         local = self.frame.local(vehicle_id, lat_deg, lon_deg, alt_m)
         if local is None:
             return
@@ -131,11 +144,11 @@ class _Positions:
             positions.received += 1
             self.changed.set()
 
-    async def bracketing(self, unix_s, max_wait_s):
+    async def bracketing(self, unix_s: float, max_wait_s: float) -> NDArray[np.float64]:
         """Wait until every vehicle heard recently has a sample after ``unix_s`` (or
         ``max_wait_s``); return ``(n, 3)`` positions at ``unix_s``, NaN rows where unknown."""
 
-        def ready():
+        def ready() -> bool:
             return all(
                 p.newest_s() >= unix_s or p.newest_s() < unix_s - STALE_AFTER_S
                 for p in self.vehicles.values()
@@ -146,7 +159,7 @@ class _Positions:
                 while not ready():
                     self.changed.clear()
                     await self.changed.wait()
-        rows = []
+        rows: list[tuple[float, float, float]] = []
         for vehicle_id in self.ids:
             at = self.vehicles[vehicle_id].track.at(unix_s)
             rows.append(at if at is not None else (math.nan,) * 3)
@@ -156,14 +169,14 @@ class _Positions:
 class _TruthProtocol(asyncio.DatagramProtocol):
     """HIL_STATE_QUATERNION datagrams from one SIH instance, stamped on arrival."""
 
-    def __init__(self, positions, vehicle_id):
+    def __init__(self, positions: _Positions, vehicle_id: int) -> None:
         self.positions = positions
         self.vehicle_id = vehicle_id
         self.parser = mavlink.MAVLink(None)
         self.parser.robust_parsing = True
         self.malformed = 0
 
-    def datagram_received(self, data, addr):
+    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
         arrived_s = time.time()
         try:
             messages = self.parser.parse_buffer(data) or []
@@ -181,13 +194,15 @@ class _TruthProtocol(asyncio.DatagramProtocol):
             )
 
 
-async def _sih_source(stack, positions, scenario, port_base):
+async def _sih_source(
+    stack: contextlib.AsyncExitStack, positions: _Positions, scenario: Scenario, port_base: int
+) -> None:
     loop = asyncio.get_running_loop()
     for vehicle_id in positions.ids:
         port = port_base + vehicle_id - 1
         try:
             transport, _ = await loop.create_datagram_endpoint(
-                lambda vehicle_id=vehicle_id: _TruthProtocol(positions, vehicle_id),
+                functools.partial(_TruthProtocol, positions, vehicle_id),
                 local_addr=("127.0.0.1", port),
             )
         except OSError as error:
@@ -198,11 +213,17 @@ async def _sih_source(stack, positions, scenario, port_base):
         stack.callback(transport.close)
 
 
-async def _gps_source(stack, positions, urls, mission_time, group):
+async def _gps_source(
+    stack: contextlib.AsyncExitStack,
+    positions: _Positions,
+    urls: list[str],
+    mission_time: MissionTime,
+    group: asyncio.TaskGroup,
+) -> None:
     """Stream every vehicle's GLOBAL_POSITION_INT into ``positions`` (tasks in ``group``, cancelled
     when ``stack`` closes)."""
     ids = positions.ids
-    tasks = []
+    tasks: list[asyncio.Task[None]] = []
     systems = await stack.enter_async_context(connected_vehicles(urls, ids))
     for vehicle_id in ids:
         vehicle = await stack.enter_async_context(MavsdkVehicle(systems[vehicle_id], vehicle_id))
@@ -214,7 +235,7 @@ async def _gps_source(stack, positions, urls, mission_time, group):
     stack.callback(lambda: [task.cancel() for task in tasks])
 
 
-async def _gps_stream(vehicle, mapping, positions):
+async def _gps_stream(vehicle: MavsdkVehicle, mapping: ClockMapping, positions: _Positions) -> None:
     stream = vehicle.raw.subscribe_message("GLOBAL_POSITION_INT")
     async with contextlib.aclosing(stream):
         async for message in stream:
@@ -231,15 +252,15 @@ async def _gps_stream(vehicle, mapping, positions):
 
 
 async def run_range_provider(
-    scenario,
+    scenario: Scenario,
     *,
-    source="sih",
-    urls=(),
-    truth_port_base=TRUTH_PORT_BASE,
-    steps=None,
-    seed=0,
-    start_timeout_s=600.0,
-):
+    source: str = "sih",
+    urls: Iterable[str] = (),
+    truth_port_base: int = TRUTH_PORT_BASE,
+    steps: int | None = None,
+    seed: int = 0,
+    start_timeout_s: float = 600.0,
+) -> RangeStats:
     """Publish synthetic ranges for ``steps`` steps (default: the scenario's) from the ground
     station's start. Returns :class:`RangeStats`."""
     if scenario.bus.kind != "mqtt":
@@ -274,7 +295,19 @@ async def run_range_provider(
     return stats
 
 
-async def _publish_step(bus, topics, scenario, positions_m, k, t_k, start_s, rng, stats):  # noqa: PLR0917
+async def _publish_step(  # noqa: PLR0917
+    bus: Bus,
+    topics: Topics,
+    scenario: Scenario,
+    positions_m: NDArray[np.float64],
+    k: int,
+    t_k: float,
+    start_s: float,
+    rng: np.random.Generator,
+    stats: RangeStats,
+) -> None:
+    """Publish step ``k``'s ranges and target observations from ``positions_m`` ``(n, 3)``
+    (north-east-down [m], NaN rows: no position) and record its truth in ``stats``."""
     ids = [v.id for v in scenario.vehicles]
     known = ~np.isnan(positions_m[:, 0])
     stats.steps += 1
