@@ -20,20 +20,27 @@ Statuses and commands carry the mission id, so retained messages of an earlier m
 taken for this one's.
 """
 
+from __future__ import annotations
+
 import asyncio
 import contextlib
 import logging
 import math
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..bus import (
+    Bus,
     BusError,
     ControlCommand,
     MissionControl,
+    Subscription,
+    Topics,
     VehicleStatus,
     lost_vehicle_will,
     open_bus,
@@ -41,11 +48,16 @@ from ..bus import (
 from ..tasks import first_completed
 from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
-from .controller import build_controller
+from .controller import StepRecord, VehicleController, build_controller
 from .errors import RunnerError, RunnerTimeoutError
 from .handshake import next_command
 from .links import MavsdkVehicle, connected_vehicles
-from .timesync import MissionTime
+from .timesync import ClockMapping, MissionTime
+
+if TYPE_CHECKING:
+    from ..config import Scenario
+    from ..outputs import PathName
+    from ..sim.simulator import SimulationResult
 
 logger = logging.getLogger(__name__)
 
@@ -58,7 +70,7 @@ class MissionAbortedError(RunnerError):
     """The ground station aborted the mission (a vehicle refused, or not all were ready)."""
 
 
-def default_url(scenario, vehicle_id):
+def default_url(scenario: Scenario, vehicle_id: int) -> str:
     """Where vehicle ``vehicle_id`` is when the scenario gives no url: PX4 SITL's (and the
     emulator's) API port for its instance."""
     index = [v.id for v in scenario.vehicles].index(vehicle_id)
@@ -73,22 +85,24 @@ class VehicleRun:
     mission_id: str | None = None
     state: str = "connecting"
     detail: str = ""
-    records: list = field(default_factory=list)
+    records: list[StepRecord] = field(default_factory=list)
     start_s: float | None = None
     clock_rate: float = 1.0
     autopilot_clock_rate: float | None = None
     clock_residual_s: float | None = None
     skipped_steps: int = 0
-    params: dict = field(default_factory=dict)
+    params: dict[str, float | int] = field(default_factory=dict)
 
 
 class _Reporter:
     """Publishes this vehicle's status (retained) under the current mission id."""
 
-    def __init__(self, bus, topics, run):
+    def __init__(self, bus: Bus, topics: Topics, run: VehicleRun) -> None:
         self.bus, self.topics, self.run = bus, topics, run
 
-    async def __call__(self, state, *, step=0, detail="", clock_rate=None):
+    async def __call__(
+        self, state: str, *, step: int = 0, detail: str = "", clock_rate: float | None = None
+    ) -> None:
         self.run.state, self.run.detail = state, detail
         status = VehicleStatus(
             self.run.vehicle_id,
@@ -111,8 +125,14 @@ class _Reporter:
 
 
 async def run_vehicle(
-    scenario, vehicle_id, *, url=None, ready_timeout_s=180.0, on_step=None, run=None
-):
+    scenario: Scenario,
+    vehicle_id: int,
+    *,
+    url: str | None = None,
+    ready_timeout_s: float = 180.0,
+    on_step: Callable[[int, StepRecord], None] | None = None,
+    run: VehicleRun | None = None,
+) -> VehicleRun:
     """Fly vehicle ``vehicle_id`` of ``scenario`` as its own process. Returns its
     :class:`VehicleRun` (``run``, if given, is filled in as the flight goes, so the caller has it
     even when this raises); raises :class:`RunnerError` when it could not fly (after reporting it
@@ -179,7 +199,16 @@ async def run_vehicle(
     return run
 
 
-async def _fly(scenario, vehicle, controller, control, report, run, mapping, mission_time):  # noqa: PLR0917
+async def _fly(  # noqa: PLR0917
+    scenario: Scenario,
+    vehicle: MavsdkVehicle,
+    controller: VehicleController,
+    control: Subscription,
+    report: _Reporter,
+    run: VehicleRun,
+    mapping: ClockMapping,
+    mission_time: MissionTime,
+) -> None:
     steps = scenario.timing.steps
     controller.mission_id = run.mission_id
     start = asyncio.get_running_loop().create_future()
@@ -226,7 +255,13 @@ async def _fly(scenario, vehicle, controller, control, report, run, mapping, mis
     await report("done", step=len(controller.records))
 
 
-async def _abort(vehicle, report, run, scenario, command):
+async def _abort(
+    vehicle: MavsdkVehicle,
+    report: _Reporter,
+    run: VehicleRun,
+    scenario: Scenario,
+    command: MissionControl,
+) -> None:
     detail = f"mission aborted by the ground station: {command.reason or command.command.value}"
     logger.warning("vehicle %s: %s", run.vehicle_id, detail)
     await report("aborted", detail=detail)
@@ -234,7 +269,13 @@ async def _abort(vehicle, report, run, scenario, command):
     await vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S)
 
 
-async def _until_start(control, report, run, mapping, scenario):
+async def _until_start(
+    control: Subscription,
+    report: _Reporter,
+    run: VehicleRun,
+    mapping: ClockMapping,
+    scenario: Scenario,
+) -> MissionControl:
     """Report ready (again for every new prepare) until this mission's start, land or stop."""
     wanted = {
         ControlCommand.PREPARE,
@@ -267,14 +308,20 @@ class GroundOutcome:
     mission_id: str
     start_s: float | None
     clock_rate: float
-    statuses: dict
+    statuses: dict[int, VehicleStatus]
 
     @property
-    def lost(self):
+    def lost(self) -> list[int]:
         return sorted(i for i, s in self.statuses.items() if s.state != "done")
 
 
-async def run_ground(scenario, *, start_delay_s=2.0, ready_timeout_s=180.0, on_status=None):
+async def run_ground(
+    scenario: Scenario,
+    *,
+    start_delay_s: float = 2.0,
+    ready_timeout_s: float = 180.0,
+    on_status: Callable[[VehicleStatus], None] | None = None,
+) -> GroundOutcome:
     """Prepare, start and watch a mission of vehicle processes. Returns a :class:`GroundOutcome`
     once every vehicle is done or lost; raises :class:`MissionAbortedError` (after commanding
     every vehicle to land) when a vehicle failed or not all were ready in time."""
@@ -285,20 +332,20 @@ async def run_ground(scenario, *, start_delay_s=2.0, ready_timeout_s=180.0, on_s
     step_s = scenario.timing.step_s
     duration_s = scenario.timing.steps * step_s
     mission_id = uuid.uuid4().hex[:12]
-    latest = {}
-    started = {"at": None}
+    latest: dict[int, VehicleStatus] = {}
+    started: dict[str, float | None] = {"at": None}
     async with (
         open_bus(scenario.bus, client_id=f"{scenario.name}-ground") as bus,
         bus.subscribe(topics.all_status()) as statuses,
     ):
 
-        async def control(command, time_s, **fields):
+        async def control(command: ControlCommand, time_s: float, **fields: Any) -> None:
             message = MissionControl(command, time_s, mission_id=mission_id, **fields)
             await bus.publish_message(
                 topics.control(), message, retain=command is ControlCommand.PREPARE, timeout=5.0
             )
 
-        def ours(status):
+        def ours(status: VehicleStatus) -> bool:
             if status.mission_id == mission_id:
                 return True
             # The last will has no mission id; after the start it can only be this mission's.
@@ -309,7 +356,7 @@ async def run_ground(scenario, *, start_delay_s=2.0, ready_timeout_s=180.0, on_s
                 and status.vehicle_id in latest
             )
 
-        async def until(condition, timeout_s, what):
+        async def until(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
             try:
                 async with asyncio.timeout(timeout_s):
                     async for _, status in statuses.messages(VehicleStatus):
@@ -325,7 +372,7 @@ async def run_ground(scenario, *, start_delay_s=2.0, ready_timeout_s=180.0, on_s
             except TimeoutError:
                 raise RunnerTimeoutError(what, timeout_s) from None
 
-        def states(*wanted):
+        def states(*wanted: str) -> set[int]:
             return {i for i, s in latest.items() if s.state in wanted}
 
         try:
@@ -378,7 +425,7 @@ async def run_ground(scenario, *, start_delay_s=2.0, ready_timeout_s=180.0, on_s
     return GroundOutcome(mission_id, started["at"], rate, latest)
 
 
-def _final_already(last, status):
+def _final_already(last: VehicleStatus | None, status: VehicleStatus) -> bool:
     """Whether ``last`` was final (lost, failed, aborted) so ``status`` changes nothing: a lost
     vehicle stays lost; only its reason may still arrive (the controller's own status first)."""
     if last is None or last.state not in ("lost", "failed", "aborted"):
@@ -386,7 +433,9 @@ def _final_already(last, status):
     return status.state != last.state or not status.detail or bool(last.detail)
 
 
-async def wait_and_merge(scenario, mission_dir, outcome, *, timeout_s=20.0):
+async def wait_and_merge(
+    scenario: Scenario, mission_dir: PathName, outcome: GroundOutcome, *, timeout_s: float = 20.0
+) -> SimulationResult | None:
     """After the mission: wait (up to ``timeout_s``) for every vehicle that finished to write its
     ``steps.csv`` and for the range aid's truth under ``mission_dir``, then score the mission
     (:func:`.scoring.merge_mission`); None when there is no truth to score against.
