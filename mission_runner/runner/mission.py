@@ -11,12 +11,16 @@ Ground truth (the world's samples at every t_k) is used only to score the flight
 the same :class:`mission_runner.sim.simulator.SimulationResult` the numeric simulator produces.
 """
 
+from __future__ import annotations
+
 import asyncio
 import contextlib
 import logging
 import math
 import time
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -25,10 +29,21 @@ from ..sim.metrics import tracking_error
 from ..wiring import altitude_of, autopilot_params, emulator_config, shape_schedule
 from ..world import World
 from .clock import EmulatorClock
-from .controller import build_controller
+from .controller import StepRecord, VehicleController, build_controller
 from .errors import RunnerError
 from .links import MavsdkVehicle, connected_vehicles
+from .ports import ControllerBus, ControllerClock, ControllerLink
 from .scoring import score_flight, worst_estimate
+
+if TYPE_CHECKING:
+    from sitl.clock import Clock, Participant
+    from sitl.emulator import Emulator, EmulatorStats
+
+    from ..config import Scenario
+    from ..sim.simulator import SimulationResult
+
+#: Sees every controller step: ``(vehicle_id, record)``.
+StepCallback = Callable[[int, StepRecord], None]
 
 logger = logging.getLogger(__name__)
 
@@ -49,7 +64,7 @@ class Progress:
     step: int
     steps: int
     time_s: float
-    states: dict
+    states: dict[int, str]
     tracking_error_m: float
     localization_error_m: float
 
@@ -57,13 +72,19 @@ class Progress:
 class _ProgressAggregator:
     """Turns the controllers' per-vehicle step records into one :class:`Progress` per step."""
 
-    def __init__(self, scenario, world, emulator, callback):
+    def __init__(
+        self,
+        scenario: Scenario,
+        world: World,
+        emulator: Emulator,
+        callback: Callable[[Progress], None],
+    ) -> None:
         self.ids = [vehicle.id for vehicle in scenario.vehicles]
         self.steps = scenario.timing.steps
         self.world, self.emulator, self.callback = world, emulator, callback
-        self.pending = {}
+        self.pending: dict[int, dict[int, StepRecord]] = {}  # step -> {vehicle_id: record}
 
-    def __call__(self, vehicle_id, record):
+    def __call__(self, vehicle_id: int, record: StepRecord) -> None:
         step = self.pending.setdefault(record.step, {})
         step[vehicle_id] = record
         alive = {i for i, a in zip(self.ids, self.emulator.truth.alive, strict=True) if a}
@@ -91,15 +112,21 @@ class _ProgressAggregator:
 class FlightOutcome:
     """A flown mission: the scored result, every controller's records, timings."""
 
-    result: object
-    records: dict
+    result: SimulationResult
+    records: dict[int, list[StepRecord]]
     start_s: float
     wall_time_s: float
     mission_wall_time_s: float
-    emulator_stats: object
+    emulator_stats: EmulatorStats
 
 
-async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=None):
+async def fly(
+    scenario: Scenario,
+    *,
+    emulator_overrides: Mapping[str, Any] | None = None,
+    on_step: StepCallback | None = None,
+    on_progress: Callable[[Progress], None] | None = None,
+) -> FlightOutcome:
     """Fly ``scenario`` on the bundled emulator. Returns a :class:`FlightOutcome`.
 
     on_step(vehicle_id, record) sees every controller step; on_progress(Progress) every step of
@@ -142,23 +169,23 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
         ]
         params = autopilot_params(scenario)
         async with asyncio.TaskGroup() as group:
-            for vehicle, config in zip(vehicles, scenario.vehicles, strict=True):
+            for vehicle, vehicle_config in zip(vehicles, scenario.vehicles, strict=True):
                 group.create_task(
-                    _prepare(vehicle, params, altitude_of(scenario, config)),
+                    _prepare(vehicle, params, altitude_of(scenario, vehicle_config)),
                     name=f"takeoff-{vehicle.system_id}",
                 )
 
-        callbacks = [on_step] if on_step else []
+        callbacks: list[StepCallback] = [on_step] if on_step else []
         if on_progress is not None:
             callbacks.append(_ProgressAggregator(scenario, world, emulator, on_progress))
 
-        def step_callback(vehicle_id, record):
+        def step_callback(vehicle_id: int, record: StepRecord) -> None:
             for callback in callbacks:
                 callback(vehicle_id, record)
 
         # Over MQTT every vehicle has its own client, as on a real swarm (one companion computer
         # each, with its last will on its status topic); in-process they share the one bus.
-        buses = [bus] * len(ids)
+        buses: list[ControllerBus] = [bus] * len(ids)
         if scenario.bus.kind == "mqtt":
             buses = [
                 await stack.enter_async_context(
@@ -170,16 +197,18 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
                 )
                 for vehicle_id in ids
             ]
-        controllers = _controllers(scenario, vehicles, buses, emulator, step_callback)
-        start = asyncio.get_running_loop().create_future()
-        mission_started = None
+        # Each controller's own view of the emulator's clock: a lockstep participant while its
+        # controller flies.
+        clocks = [EmulatorClock(emulator.clock, f"vehicle-{i}") for i in ids]
+        controllers = _controllers(scenario, vehicles, buses, clocks, step_callback)
+        start: asyncio.Future[float] = asyncio.get_running_loop().create_future()
         async with asyncio.TaskGroup() as group:
             flying = [
                 group.create_task(
-                    _fly_one(controller, start, scenario.timing.steps),
+                    _fly_one(controller, clock, start, scenario.timing.steps),
                     name=f"controller-{controller.vehicle_id}",
                 )
-                for controller in controllers
+                for controller, clock in zip(controllers, clocks, strict=True)
             ]
             async with asyncio.TaskGroup() as entering:
                 for vehicle, controller in zip(vehicles, controllers, strict=True):
@@ -215,20 +244,22 @@ async def fly(scenario, *, emulator_overrides=None, on_step=None, on_progress=No
     )
 
 
-async def _enter_offboard(vehicle, altitude_m):
+async def _enter_offboard(vehicle: MavsdkVehicle, altitude_m: float) -> None:
     """OFFBOARD, then the climb to the vehicle's own altitude (its controller's altitude hold):
     ranges are 3-D, and a height difference cancels out of the estimator only while constant."""
     await vehicle.start_offboard()
     await vehicle.wait_altitude(altitude_m)
 
 
-async def _prepare(vehicle, params, altitude_m):
+async def _prepare(
+    vehicle: MavsdkVehicle, params: Mapping[str, float | int], altitude_m: float
+) -> None:
     await vehicle.apply_params(params)
     await vehicle.take_off(altitude_m)
 
 
 @contextlib.asynccontextmanager
-async def _paced(clock, speed=PACED_SPEED):
+async def _paced(clock: Clock, speed: float = PACED_SPEED) -> AsyncIterator[None]:
     """While the block runs, lockstep time advances at most ``speed`` x wall time (a clock
     participant releasing ``speed * PACE_PERIOD_S`` beyond the current time every period; a late
     period slows it down, never bursts it). A no-op in real time."""
@@ -236,7 +267,7 @@ async def _paced(clock, speed=PACED_SPEED):
         yield
         return
 
-    async def pace(participant):
+    async def pace(participant: Participant) -> None:
         released = clock.now_s
         while True:
             released = max(released, clock.now_s + speed * PACE_PERIOD_S)
@@ -252,15 +283,27 @@ async def _paced(clock, speed=PACED_SPEED):
             await asyncio.wait({task})
 
 
-async def _fly_one(controller, start, steps):
-    """One controller from hover to the end; it leaves the mission clock as soon as it is done,
-    so a lost vehicle never holds the others' lockstep time."""
-    async with controller.clock:
+async def _fly_one(
+    controller: VehicleController,
+    clock: EmulatorClock,
+    start: asyncio.Future[float],
+    steps: int,
+) -> list[StepRecord]:
+    """One controller from hover to the end; it leaves the mission clock (``clock``, the one it
+    was built with) as soon as it is done, so a lost vehicle never holds the others' lockstep
+    time."""
+    async with clock:
         start_s = await controller.hover_until(start)
         return await controller.run(start_s, steps)
 
 
-def _controllers(scenario, vehicles, buses, emulator, on_step):
+def _controllers(
+    scenario: Scenario,
+    vehicles: Sequence[ControllerLink],
+    buses: Sequence[ControllerBus],
+    clocks: Sequence[ControllerClock],
+    on_step: StepCallback,
+) -> list[VehicleController]:
     shape = shape_schedule(scenario)
     return [
         build_controller(
@@ -268,15 +311,17 @@ def _controllers(scenario, vehicles, buses, emulator, on_step):
             config,
             link=vehicle,
             bus=bus,
-            clock=EmulatorClock(emulator.clock, f"vehicle-{config.id}"),
+            clock=clock,
             on_step=on_step,
             shape=shape,
         )
-        for config, vehicle, bus in zip(scenario.vehicles, vehicles, buses, strict=True)
+        for config, vehicle, bus, clock in zip(
+            scenario.vehicles, vehicles, buses, clocks, strict=True
+        )
     ]
 
 
-def _schedule_events(scenario, emulator, world, start_s):
+def _schedule_events(scenario: Scenario, emulator: Emulator, world: World, start_s: float) -> None:
     index_of = {vehicle.id: index for index, vehicle in enumerate(scenario.vehicles)}
     step_s = scenario.timing.step_s
     for event in scenario.events:
@@ -288,7 +333,7 @@ def _schedule_events(scenario, emulator, world, start_s):
             emulator.drop_link(index, "all", at_s=at_s, duration_s=event.duration_s)
         elif event.kind == "sensor_lost" and event.sensor == "flow":
             emulator.fail_sensor(index, "flow", at_s=at_s, duration_s=event.duration_s)
-        elif event.kind == "sensor_lost":
+        elif event.kind == "sensor_lost" and event.sensor is not None:  # validation gives one
             world.fail_sensor(index, event.sensor, at_s=at_s, duration_s=event.duration_s)
         else:
             raise RunnerError(f"event {event.kind} cannot be flown (simulate it instead)")
