@@ -274,13 +274,14 @@ async def _paced(clock: Clock, speed: float = PACED_SPEED) -> AsyncIterator[None
             participant.acted(released)
             await asyncio.sleep(PACE_PERIOD_S)
 
-    async with clock.participant("pace") as participant:
-        task = asyncio.create_task(pace(participant), name="lockstep-pace")
+    # The group owns the pacer: should it fail (a ClockError: dropped after a stall), the block
+    # is cancelled and the error raised, not lost with the task while time runs unpaced.
+    async with clock.participant("pace") as participant, asyncio.TaskGroup() as group:
+        task = group.create_task(pace(participant), name="lockstep-pace")
         try:
             yield
         finally:
             task.cancel()
-            await asyncio.wait({task})
 
 
 async def _fly_one(
