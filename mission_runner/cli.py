@@ -13,20 +13,34 @@ Exit codes: 0 success (and every ``expect:`` bound met), 1 an expectation failed
 refused, was lost or the mission was aborted; the message says which and why), 130 interrupted.
 """
 
+from __future__ import annotations
+
 import argparse
 import logging
 import sys
 import time
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from .config import load_scenario
 from .errors import MissionRunnerError
 from .runner.errors import RunnerError
 
+if TYPE_CHECKING:
+    from tqdm import tqdm
+
+    from .bus import VehicleStatus
+    from .config import Scenario
+    from .runner.mission import Progress
+
+#: A subcommand: parsed arguments in, exit code out.
+Handler = Callable[[argparse.Namespace], int]
+
 EXIT_OK, EXIT_EXPECTATION_FAILED, EXIT_BAD_INPUT, EXIT_RUNTIME_FAILURE = 0, 1, 2, 3
 
 
-def main(argv=None):
+def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     arguments = parser.parse_args(argv)
     logging.basicConfig(
@@ -49,7 +63,7 @@ def main(argv=None):
         return 130
 
 
-def _emulator_errors():
+def _emulator_errors() -> tuple[type[Exception], ...]:
     """The bundled emulator's error base (a separate package: absent errors match nothing)."""
     try:
         from sitl.errors import SitlError  # noqa: PLC0415
@@ -58,15 +72,15 @@ def _emulator_errors():
     return (SitlError,)
 
 
-def _unwrapped(handler, arguments):
+def _unwrapped(handler: Handler, arguments: argparse.Namespace) -> int:
     """Run ``handler``; an exception group (a task group's failure) is re-raised as its first
     error of ours, so the user reads one line, not a tree of tracebacks."""
     try:
         return handler(arguments)
     except BaseExceptionGroup as group:
-        leaves = []
+        leaves: list[BaseException] = []
 
-        def collect(error):
+        def collect(error: BaseException) -> None:
             if isinstance(error, BaseExceptionGroup):
                 for inner in error.exceptions:
                     collect(inner)
@@ -80,7 +94,7 @@ def _unwrapped(handler, arguments):
         raise
 
 
-def _parser():
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mission-runner",
         description="Multi-drone moving-target enclosing: simulate or fly a scenario.",
@@ -199,14 +213,14 @@ def _parser():
     return parser
 
 
-def _port(text):
+def _port(text: str) -> int:
     value = _positive_int(text)
     if value > 65535:
         raise argparse.ArgumentTypeError(f"not a UDP port: {value}")
     return value
 
 
-def _positive_int(text):
+def _positive_int(text: str) -> int:
     try:
         value = int(text)
     except ValueError:
@@ -216,7 +230,7 @@ def _positive_int(text):
     return value
 
 
-def _simulate(arguments):
+def _simulate(arguments: argparse.Namespace) -> int:
     from .outputs import write_results  # noqa: PLC0415 - keep `--help` fast
     from .sim.simulator import simulate  # noqa: PLC0415
 
@@ -241,7 +255,7 @@ def _simulate(arguments):
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
 
 
-def _run(arguments):
+def _run(arguments: argparse.Namespace) -> int:
     import asyncio  # noqa: PLC0415
 
     from .config import validate_scenario  # noqa: PLC0415
@@ -280,7 +294,7 @@ def _run(arguments):
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
 
 
-def _vehicle(arguments):
+def _vehicle(arguments: argparse.Namespace) -> int:
     import asyncio  # noqa: PLC0415
 
     from .outputs import write_vehicle_run  # noqa: PLC0415
@@ -303,7 +317,7 @@ def _vehicle(arguments):
     return EXIT_OK if run.state == "done" else EXIT_RUNTIME_FAILURE
 
 
-def _ground(arguments):
+def _ground(arguments: argparse.Namespace) -> int:
     import asyncio  # noqa: PLC0415
 
     from .outputs import write_results  # noqa: PLC0415
@@ -311,7 +325,7 @@ def _ground(arguments):
 
     scenario = load_scenario(arguments.config)
 
-    def show(status):
+    def show(status: VehicleStatus) -> None:
         if status.state not in ("following", "holding") or status.step % 40 == 0:
             detail = f": {status.detail}" if status.detail else ""
             print(
@@ -344,12 +358,12 @@ def _ground(arguments):
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
 
 
-def _mission_dir(scenario):
+def _mission_dir(scenario: Scenario) -> Path:
     """Where a mission of vehicle processes writes by default: one folder for all of them."""
     return Path("out") / f"{scenario.name}-mission"
 
 
-def _ranges(arguments):
+def _ranges(arguments: argparse.Namespace) -> int:
     import asyncio  # noqa: PLC0415
 
     from .runner.ranges import run_range_provider  # noqa: PLC0415
@@ -384,11 +398,11 @@ def _ranges(arguments):
 class _FlightView:
     """Live view of a flight: a line per second of mission time (or a bar on a terminal)."""
 
-    def __init__(self, scenario):
+    def __init__(self, scenario: Scenario) -> None:
         self._every = max(1, round(1.0 / scenario.timing.step_s))
         self._bar = _Progress(scenario.timing.steps, False, scenario.name)
 
-    def __call__(self, progress):
+    def __call__(self, progress: Progress) -> None:
         self._bar.update_to(progress.step + 1, progress.steps)
         if progress.step % self._every and progress.step != progress.steps - 1:
             return
@@ -397,46 +411,43 @@ class _FlightView:
             f"k={progress.step:4d}  {states}  tracking {progress.tracking_error_m:7.3f} m  "
             f"estimates {progress.localization_error_m:7.4f} m"
         )
-        if self._bar.active:
-            self._bar.write(line)
-        else:
-            print(line, flush=True)
+        self._bar.write(line)
 
-    def close(self):
+    def close(self) -> None:
         self._bar.close()
 
 
 class _Progress:
     """A tqdm bar on stderr when it is a terminal; nothing otherwise."""
 
-    def __init__(self, total, quiet, label):
-        self._bar = None
+    def __init__(self, total: int, quiet: bool, label: str) -> None:
+        self._bar: tqdm[Any] | None = None
         if not quiet and sys.stderr.isatty():
             from tqdm import tqdm  # noqa: PLC0415
 
             self._bar = tqdm(total=total, desc=label, unit="step", leave=False)
 
-    @property
-    def active(self):
-        return self._bar is not None
-
-    def update_to(self, done, total):
+    def update_to(self, done: int, total: int) -> None:
         if self._bar is not None:
             self._bar.update(done - self._bar.n)
 
-    def write(self, line):
-        self._bar.write(line)
+    def write(self, line: str) -> None:
+        """``line`` above the bar, or on stdout when there is no bar."""
+        if self._bar is not None:
+            self._bar.write(line)
+        else:
+            print(line, flush=True)
 
-    def close(self):
+    def close(self) -> None:
         if self._bar is not None:
             self._bar.close()
 
 
-def _progress(total, quiet, label):
+def _progress(total: int, quiet: bool, label: str) -> _Progress:
     return _Progress(total, quiet, label)
 
 
-def _summary_text(document, out_dir):
+def _summary_text(document: Mapping[str, Any], out_dir: Path) -> str:
     metrics = document["metrics"]
     lines = [
         f"scenario {document['scenario']}: {document['steps']} steps of {document['step_s']} s"
@@ -467,7 +478,7 @@ def _summary_text(document, out_dir):
     return "\n".join(lines)
 
 
-def _format(value):
+def _format(value: object) -> str:
     if value is None:
         return "-"
     if isinstance(value, float):
