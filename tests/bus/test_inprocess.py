@@ -230,6 +230,18 @@ class TestLinkModel:
             steps = [StepMessage.from_payload(sub.poll()[1]).step for _ in range(len(sub))]
         assert steps == list(range(50))
 
+    @pytest.mark.asyncio
+    async def test_a_failing_clock_stops_the_bus_and_surfaces_at_exit(self) -> None:
+        class BrokenClock(ManualClock):
+            async def sleep(self, seconds: float) -> None:
+                raise OSError("clock source gone")
+
+        link = LinkModel(latency_s=0.1)
+        with pytest.RaisesGroup(pytest.RaisesExc(OSError, match="clock source gone")):
+            async with InProcessBus(link=link, clock=BrokenClock()) as bus, bus.subscribe("a"):
+                await bus.publish("a", b"late", timeout=0.1)
+                await asyncio.sleep(1.0)  # the delivery loop's failure cancels this
+
     @staticmethod
     async def run_lossy_exchange(seed: int) -> list[tuple[int, int, int]]:
         """Four vehicles broadcast 40 steps over a lossy, jittery link.
