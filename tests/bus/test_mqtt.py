@@ -274,6 +274,25 @@ async def test_no_broker_fails_after_the_connect_timeout(tmp_path: Path) -> None
     assert bus.failed_attempts >= 2  # kept retrying with backoff until the deadline
 
 
+@pytest.mark.asyncio
+async def test_a_failing_connection_task_surfaces_from_start_up(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    bus = MqttBus("127.0.0.1", free_loopback_port(), client_id="x", connect_timeout_s=5.0)
+
+    def broken_client() -> None:
+        raise RuntimeError("client construction failed")
+
+    monkeypatch.setattr(bus, "_new_client", broken_client)
+    started = time.monotonic()
+    with pytest.RaisesGroup(pytest.RaisesExc(RuntimeError, match="construction failed")):
+        async with bus:
+            pytest.fail("entered a bus whose connection task died")
+    assert time.monotonic() - started < 1.0  # not left waiting for the connect timeout
+    with pytest.raises(BusConnectionError, match="closed"):
+        await bus.publish(TOPICS.step(1), b"", timeout=0.1)
+
+
 class SilentServer:
     """A TCP server on a free loopback port that accepts connections and never answers.
 
