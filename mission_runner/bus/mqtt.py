@@ -12,9 +12,11 @@ Entering the bus waits for the first connection (``connect_timeout_s``) and rais
 ``BusConnectionError`` if there is none; refused credentials fail at once, since retrying
 cannot fix them. Later outages are ridden out in the background.
 
-A controller watches ``connected``/``wait_connected`` and ``last_message_s`` (or feeds a
-``SilenceWatchdog``) to notice silence and hold. A ``LastWill`` on the vehicle's status
-topic tells the others when a vehicle drops off without saying goodbye.
+``connected``, ``wait_connected``/``wait_disconnected`` and ``last_message_s`` (when the
+broker last delivered anything) tell a caller about outages and silence; the mission's
+controllers need none of them, as they hold whenever no neighbour message has arrived for
+their silence timeout, whatever the cause. A ``LastWill`` on the vehicle's status topic
+tells the others when a vehicle drops off without saying goodbye.
 
 Broker setup: set ``set_tcp_nodelay true`` in mosquitto.conf. Without it mosquitto lets
 Nagle's algorithm hold small messages to subscribers for up to a delayed-ACK period (40 ms
