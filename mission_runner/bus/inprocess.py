@@ -138,11 +138,6 @@ class InProcessBus(Bus):
             )
 
     @property
-    def subscriptions(self) -> tuple[Subscription, ...]:
-        """Live subscriptions, oldest first."""
-        return tuple(self._subscriptions)
-
-    @property
     def in_flight(self) -> int:
         """Deliveries delayed by the link model and not yet handed to their subscription."""
         return len(self._pending)

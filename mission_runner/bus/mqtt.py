@@ -344,11 +344,6 @@ class MqttBus(Bus):
             f"loss of the connection to {self.endpoint}",
         )
 
-    @property
-    def subscriptions(self) -> tuple[Subscription, ...]:
-        """Live subscriptions, oldest first."""
-        return tuple(self._subscriptions)
-
     # Connection task --------------------------------------------------------------------
     def _new_client(self) -> aiomqtt.Client:
         will = None
