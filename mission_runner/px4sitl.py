@@ -85,8 +85,7 @@ import tempfile
 import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from pathlib import Path
-from types import TracebackType
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from .config import Scenario, load_scenario
 from .runner.errors import RunnerError, RunnerTimeoutError
@@ -562,13 +561,8 @@ class Px4SitlInstances:
             self._stack = stack.pop_all()
         return self
 
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self._stack.__aexit__(exc_type, exc, tb)
+    async def __aexit__(self, *exc_info: Any) -> None:
+        await self._stack.__aexit__(*exc_info)
 
     async def wait_for_exit(self) -> Px4Instance:
         """Return the first instance whose process ends (they are meant to run until stopped),

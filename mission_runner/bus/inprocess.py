@@ -20,7 +20,6 @@ import math
 import random
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Self
 
 from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
@@ -121,14 +120,6 @@ class InProcessBus(Bus):
             self._stack = stack.pop_all()
         self._open = True
         return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self._stack.__aexit__(exc_type, exc, tb)
 
     def _check_open(self, action: str) -> None:
         if not self._open:

@@ -41,7 +41,6 @@ import ssl
 import uuid
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Self
 
 import aiomqtt
@@ -272,14 +271,6 @@ class MqttBus(Bus):
             # itself, not wrapped in an exception group.
             raise failure
         return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self._stack.__aexit__(exc_type, exc, tb)
 
     async def _first_connection(self) -> BusConnectionError | None:
         """Why the first connection failed, or None once connected."""
