@@ -72,7 +72,6 @@ import argparse
 import asyncio
 import contextlib
 import dataclasses
-import inspect
 import logging
 import math
 import os
@@ -86,11 +85,14 @@ import tempfile
 import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any, TypeVar
 
 from .config import Scenario, load_scenario
 from .runner.errors import RunnerError, RunnerTimeoutError
 
 logger = logging.getLogger(__name__)
+
+_T = TypeVar("_T")
 
 #: SIH quadrotor airframe, no external simulator.
 SYS_AUTOSTART = "10040"
@@ -507,6 +509,8 @@ class Px4SitlInstances:
         self._running: list[_Running] = []
         self._remove_run_dir = False
         self._entered = False
+        # What entered instances own (their processes, a temporary run directory), unwound on exit.
+        self._stack = contextlib.AsyncExitStack()
         self.run_dir: Path | None = None
         last = first_instance + len(scenario.vehicles) - 1
         if last > LAST_OWN_API_INSTANCE:
@@ -536,8 +540,12 @@ class Px4SitlInstances:
         if self._entered:
             raise Px4SitlError("Px4SitlInstances starts its instances once: make a new one")
         self._entered = True
-        try:
+        async with contextlib.AsyncExitStack() as stack:
             self.run_dir = self._make_run_dir()
+            stack.push_async_callback(self._remove_temporary_run_dir)
+            # Stops every instance started from here on, also when a later one fails to start
+            # or to get ready, or the start is cancelled.
+            stack.push_async_callback(self._stop_all)
             lat_deg, lon_deg, alt_m = self._home
             planned = plan_instances(
                 self.scenario,
@@ -550,36 +558,28 @@ class Px4SitlInstances:
             for instance in planned:
                 await self._start(instance)
             await self._wait_ready()
-        except BaseException:
-            await self._stop_all()
-            await self._remove_temporary_run_dir()
-            raise
+            self._stack = stack.pop_all()
         return self
 
-    async def __aexit__(self, *exc_info: object) -> None:
-        try:
-            await self._stop_all()
-        finally:
-            await self._remove_temporary_run_dir()
+    async def __aexit__(self, *exc_info: Any) -> None:
+        await self._stack.__aexit__(*exc_info)
 
     async def wait_for_exit(self) -> Px4Instance:
         """Return the first instance whose process ends (they are meant to run until stopped),
         with ``pid`` of the process that ended."""
         if not self._running:
             raise Px4SitlError("no PX4 SITL instance is running")
-        waits = {
-            asyncio.create_task(
-                running.process.wait(), name=f"px4sitl-wait-{running.instance.instance}"
-            ): running
-            for running in self._running
-        }
-        try:
-            done, _ = await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            for task in waits:
-                task.cancel()
-            await asyncio.gather(*waits, return_exceptions=True)
-        return waits[next(iter(done))].instance
+        return await _first_of(
+            {
+                f"px4sitl-wait-{running.instance.instance}": self._exit_of(running)
+                for running in self._running
+            }
+        )
+
+    @staticmethod
+    async def _exit_of(running: _Running) -> Px4Instance:
+        await running.process.wait()
+        return running.instance
 
     def describe_exit(self, instance: Px4Instance) -> str:
         """How an instance ended, with the end of its console."""
@@ -745,28 +745,35 @@ class Px4SitlInstances:
 # --- Command ----------------------------------------------------------------------------------
 
 
-def _as_task(awaitable: Awaitable[object], name: str) -> asyncio.Future[object]:
-    if inspect.iscoroutine(awaitable):
-        return asyncio.create_task(awaitable, name=name)
-    return asyncio.ensure_future(awaitable)
+async def _first_of(contenders: Mapping[str, Awaitable[_T]]) -> _T:
+    """The result of whichever of ``contenders`` (task name -> awaitable) completes first.
 
+    The others are cancelled and have ended when this returns. An error of any contender ends
+    the race and is raised as itself (several at once, as an exception group).
+    """
+    first: asyncio.Future[_T] = asyncio.get_running_loop().create_future()
 
-async def _start_unless(sitl: Px4SitlInstances, stop: asyncio.Future[object]) -> bool:
-    """Enter ``sitl`` unless ``stop`` completes first (Ctrl-C during the boot): then cancel the
-    start, which stops what it started, and return False."""
-    starting = asyncio.create_task(sitl.__aenter__(), name="px4sitl-start")
+    async def contend(awaitable: Awaitable[_T]) -> None:
+        result = await awaitable
+        if not first.done():
+            first.set_result(result)
+
+    failure: BaseException | None = None
     try:
-        await asyncio.wait({starting, stop}, return_when=asyncio.FIRST_COMPLETED)
-    except BaseException:
-        starting.cancel()
-        await asyncio.gather(starting, return_exceptions=True)
-        raise
-    if not starting.done():
-        starting.cancel()
-        await asyncio.gather(starting, return_exceptions=True)
-        return False
-    starting.result()
-    return True
+        async with asyncio.TaskGroup() as group:
+            tasks = [group.create_task(contend(a), name=name) for name, a in contenders.items()]
+            try:
+                await first
+            finally:
+                for task in tasks:
+                    task.cancel()
+    except BaseExceptionGroup as errors:
+        if len(errors.exceptions) > 1:
+            raise
+        failure = errors.exceptions[0]
+    if failure is not None:
+        raise failure  # outside the handler, so that it does not read as a second error
+    return first.result()
 
 
 async def run_px4_sitl_command(
@@ -784,8 +791,9 @@ async def run_px4_sitl_command(
     instances running until ``until`` completes (e.g. a signal event's ``wait()``, which also
     cuts a start-up short); then stop them and return them as they ran (empty if stopped
     before ready). Raises :class:`Px4SitlError` if an instance exits on its own."""
-    stop = _as_task(until, name="px4sitl-until")
-    try:
+    ran: list[Px4Instance] = []
+
+    async def serve() -> None:
         sitl = Px4SitlInstances(
             scenario,
             px4_dir,
@@ -794,30 +802,23 @@ async def run_px4_sitl_command(
             work_dir=work_dir,
             ready_timeout_s=ready_timeout_s,
         )
-        if not await _start_unless(sitl, stop):
-            report("stopped before PX4 SITL was ready")
-            return []
-        try:
-            instances = sitl.instances
+        async with sitl:
+            ran.extend(sitl.instances)
             report(
-                f"PX4 SITL for scenario {scenario.name}: {len(instances)} instance(s), "
-                f"speed factor {speed_factor:g}, in {sitl.run_dir}\n{instances_table(instances)}"
+                f"PX4 SITL for scenario {scenario.name}: {len(ran)} instance(s), "
+                f"speed factor {speed_factor:g}, in {sitl.run_dir}\n{instances_table(ran)}"
             )
-            watching = asyncio.create_task(sitl.wait_for_exit(), name="px4sitl-watch")
-            try:
-                await asyncio.wait({stop, watching}, return_when=asyncio.FIRST_COMPLETED)
-            finally:
-                watching.cancel()
-                await asyncio.gather(watching, return_exceptions=True)
-            if not stop.done():
-                raise Px4SitlError(sitl.describe_exit(watching.result()))
-            report("stopping PX4 SITL")
-        finally:
-            await sitl.__aexit__(None, None, None)
-    finally:
-        stop.cancel()
-        await asyncio.gather(stop, return_exceptions=True)
-    return instances
+            # Described before leaving: a temporary run directory goes with the instances.
+            raise Px4SitlError(sitl.describe_exit(await sitl.wait_for_exit()))
+
+    async def stop() -> None:
+        await until
+        report("stopping PX4 SITL" if ran else "stopped before PX4 SITL was ready")
+
+    # Whichever ends first cancels the other: a stop cancels the start or the watch (leaving
+    # the instances stops them); an instance that exits ends the run with its error.
+    await _first_of({"px4sitl-run": serve(), "px4sitl-until": stop()})
+    return ran
 
 
 def _positive_float(text: str) -> float:

@@ -267,7 +267,7 @@ class Emulator:
         self._steps = 0
         self._dt_s = 1.0 / self.config.physics.rate_hz
         self._autopilot_every = max(1, round(self.config.physics.rate_hz / _AUTOPILOT_RATE_HZ))
-        self._task_group: asyncio.TaskGroup | None = None
+        self._stack = contextlib.AsyncExitStack()  # what a started emulator owns
         self._run_task: asyncio.Task[None] | None = None
         self._progress = asyncio.Event()
         self._epoch_start_us = 0
@@ -282,20 +282,19 @@ class Emulator:
             raise EmulatorStateError("this Emulator has already been started; create a new one")
         self._entered = True
         self._build_world()
-        try:
+        async with contextlib.AsyncExitStack() as stack:
+            stack.push_async_callback(self._close_io)
             self._open_tlogs()
             await self._bind_all()
-        except BaseException:
-            await self._close_io()
-            raise
-        self.clock.set_step(self._dt_s)
-        self._warn_about_client_timers()
-        self.clock.start()
-        self._wall_start_s = time.monotonic()
-        self._epoch_start_us = int(time.time() * 1e6)
-        self._task_group = asyncio.TaskGroup()
-        await self._task_group.__aenter__()
-        self._run_task = self._task_group.create_task(self._run(), name="sitl-physics")
+            self.clock.set_step(self._dt_s)
+            self._warn_about_client_timers()
+            self.clock.start()
+            self._wall_start_s = time.monotonic()
+            self._epoch_start_us = int(time.time() * 1e6)
+            task_group = await stack.enter_async_context(asyncio.TaskGroup())
+            self._run_task = task_group.create_task(self._run(), name="sitl-physics")
+            stack.callback(self._run_task.cancel)  # the physics loop runs until cancelled
+            self._stack = stack.pop_all()
         logger.info(
             "SITL ready: %d vehicle(s), clock %s x%g; MAVSDK URLs %s",
             self.config.vehicles,
@@ -312,14 +311,9 @@ class Emulator:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        task_group = self._task_group
         try:
-            if self._run_task is not None:
-                self._run_task.cancel()
-            if task_group is not None:
-                await task_group.__aexit__(exc_type, exc, tb)
+            await self._stack.__aexit__(exc_type, exc, tb)
         finally:
-            await self._close_io()
             logger.info("SITL stopped at %.2f s simulated", self.time_s)
 
     async def _close_io(self) -> None:

@@ -3,15 +3,15 @@
 Each vehicle controller publishes its per-step message and subscribes to its neighbours'
 through a ``Bus``; sensor drivers publish ranges and target observations; a ground station
 publishes mission commands. ``open_bus(settings)`` builds the bus the scenario asks for.
-A controller's step loop (tests/bus/test_usage.py runs this pattern)::
+A step loop on the bus (tests/bus/test_usage.py runs this pattern)::
 
     topics = settings.bus.topics(mission_id)
-    watchdog = SilenceWatchdog(timeout_s=3 * T_s, now=clock.now)
     async with (
         open_bus(settings.bus, client_id=f"vehicle-{i}",
                  will=lost_vehicle_will(topics, i, time_s=clock.now())) as bus,
         bus.subscribe(topics.all_steps()) as neighbours,
     ):
+        last_heard_s = clock.now()
         for k in itertools.count():
             own = StepMessage(i, k, clock.now(), theta_i, odometry_north_m, odometry_east_m)
             with contextlib.suppress(BusConnectionError):  # a lost message costs freshness only
@@ -20,18 +20,20 @@ A controller's step loop (tests/bus/test_usage.py runs this pattern)::
             step_k = {}
             for _, message in neighbours.drain_messages(StepMessage):
                 if message.vehicle_id != i:
-                    watchdog.feed(message.vehicle_id)
+                    last_heard_s = clock.now()
                     if message.step == k:
                         step_k[message.vehicle_id] = message
-            if watchdog.is_silent():
-                ...  # nobody fresh: hold position, do not follow the algorithm
-            live_neighbours = watchdog.fresh_sources()  # n for the oscillators
+            if clock.now() - last_heard_s > silence_timeout_s:
+                ...  # nobody heard for a while: hold position, do not follow the algorithm
             ...  # use step_k; a neighbour missing from it is late or lost this step
 
+The mission's controller (``mission_runner.runner.controller``) follows the same rules; it
+feeds a step inbox from ``Subscription.messages`` and waits for each step's messages until
+the step's deadline, instead of sleeping to the deadline and draining.
+
 Modules: ``topics`` (layout and MQTT matching), ``messages`` (payloads), ``base`` (the
-interface and subscriptions), ``inprocess`` and ``mqtt`` (implementations), ``staleness``
-(silence watchdog), ``clock`` (real and manual clocks), ``settings`` (typed config),
-``errors`` (exception tree).
+interface and subscriptions), ``inprocess`` and ``mqtt`` (implementations), ``clock`` (real
+and manual clocks), ``settings`` (typed config), ``errors`` (exception tree).
 """
 
 from __future__ import annotations
@@ -61,7 +63,6 @@ from mission_runner.bus.messages import (
 )
 from mission_runner.bus.mqtt import Backoff, LastWill, MqttBus, lost_vehicle_will
 from mission_runner.bus.settings import BusSettings, LinkSettings, MqttSettings, TlsSettings
-from mission_runner.bus.staleness import SilenceWatchdog
 from mission_runner.bus.topics import (
     ParsedTopic,
     TopicKind,
@@ -96,7 +97,6 @@ __all__ = [
     "MqttSettings",
     "ParsedTopic",
     "RangeMessage",
-    "SilenceWatchdog",
     "StepMessage",
     "Subscription",
     "TargetObservation",

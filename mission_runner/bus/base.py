@@ -23,6 +23,7 @@ from __future__ import annotations
 import abc
 import asyncio
 import collections
+import contextlib
 import logging
 from collections.abc import AsyncIterator
 from contextlib import AbstractAsyncContextManager
@@ -222,6 +223,8 @@ class Bus(abc.ABC):
     _subscriptions: list[Subscription]
     _open: bool
     _closed: bool
+    _stack: contextlib.AsyncExitStack
+    """What entering set up (task group, tasks to cancel, subscriptions to close), in order."""
 
     def _close_subscriptions(self) -> None:
         """Mark the bus closed and end every live subscription (their iterations stop)."""
@@ -232,15 +235,16 @@ class Bus(abc.ABC):
         self._subscriptions.clear()
 
     @abc.abstractmethod
-    async def __aenter__(self) -> Self: ...
+    async def __aenter__(self) -> Self:
+        """Start the bus; what it owns goes on ``_stack``, unwound if start-up fails."""
 
-    @abc.abstractmethod
     async def __aexit__(
         self,
         exc_type: type[BaseException] | None,
         exc: BaseException | None,
         tb: TracebackType | None,
-    ) -> None: ...
+    ) -> None:
+        await self._stack.__aexit__(exc_type, exc, tb)
 
     @abc.abstractmethod
     async def publish(

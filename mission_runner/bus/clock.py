@@ -1,8 +1,8 @@
 """Clocks the bus waits on: the real monotonic clock, and a manual one for tests.
 
-The in-process bus's link model, the MQTT bus's reconnect backoff and the silence watchdog
-never read time or sleep directly; they take a ``Clock`` so that a test can drive them
-deterministically with ``ManualClock`` (time moves only when the test says so).
+The in-process bus's link model and the MQTT bus's reconnect backoff never read time or sleep
+directly; they take a ``Clock`` so that a test can drive them deterministically with
+``ManualClock`` (time moves only when the test says so).
 """
 
 from __future__ import annotations

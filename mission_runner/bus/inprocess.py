@@ -20,7 +20,6 @@ import math
 import random
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Self
 
 from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
@@ -92,8 +91,9 @@ class InProcessBus(Bus):
         self._retained: dict[str, bytes] = {}
         self._open = False
         self._closed = False
+        # What the bus owns while entered (the delivery task's group), unwound on exit.
+        self._stack = contextlib.AsyncExitStack()
         self._task_group: asyncio.TaskGroup | None = None
-        self._delivery: asyncio.Task[None] | None = None
         # Delayed deliveries: (due time, publish sequence, subscription, topic, payload).
         self._pending: list[tuple[float, int, Subscription, str, bytes]] = []
         self._sequence = itertools.count()
@@ -106,30 +106,20 @@ class InProcessBus(Bus):
     async def __aenter__(self) -> Self:
         if self._open or self._closed:
             raise RuntimeError("an InProcessBus can be entered only once")
-        if self.link is not None and self.link.delays:
-            self._task_group = asyncio.TaskGroup()
-            await self._task_group.__aenter__()
-            self._delivery = self._task_group.create_task(
-                self._deliver_late(), name="in-process bus delivery"
-            )
+        async with contextlib.AsyncExitStack() as stack:
+            stack.callback(self._pending.clear)
+            if self.link is not None and self.link.delays:
+                self._task_group = await stack.enter_async_context(asyncio.TaskGroup())
+                delivery = self._task_group.create_task(
+                    self._deliver_late(), name="in-process bus delivery"
+                )
+                # The delivery loop only ends by cancellation; messages still in flight are
+                # lost, as they would be in a network that goes down.
+                stack.callback(delivery.cancel)
+            stack.callback(self._close_subscriptions)
+            self._stack = stack.pop_all()
         self._open = True
         return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self._close_subscriptions()
-        if self._task_group is not None:
-            # The delivery loop only ends by cancellation; messages still in flight are lost,
-            # as they would be in a network that goes down.
-            if self._delivery is not None:
-                self._delivery.cancel()
-            await self._task_group.__aexit__(exc_type, exc, tb)
-            self._task_group = None
-        self._pending.clear()
 
     def _check_open(self, action: str) -> None:
         if not self._open:
@@ -137,11 +127,6 @@ class InProcessBus(Bus):
             raise BusConnectionError(
                 ENDPOINT, f"cannot {action}: the bus is {state}", hint="use it inside `async with`"
             )
-
-    @property
-    def subscriptions(self) -> tuple[Subscription, ...]:
-        """Live subscriptions, oldest first."""
-        return tuple(self._subscriptions)
 
     @property
     def in_flight(self) -> int:
@@ -201,15 +186,20 @@ class InProcessBus(Bus):
                 continue
             self._sleeping_until = self._pending[0][0]
             assert self._task_group is not None
-            self._sleeper = self._task_group.create_task(
+            sleeper = self._task_group.create_task(
                 self.clock.sleep(self._sleeping_until - now_s), name="in-process bus link delay"
             )
+            self._sleeper = sleeper
             try:
-                # asyncio.wait returns when the sleeper ends, cancelled or not, but raises if
-                # this loop itself is cancelled.
-                await asyncio.wait({self._sleeper})
+                await sleeper
+            except asyncio.CancelledError:
+                # _deliver cancels the sleeper to wake this loop for an earlier message; a
+                # cancellation of this loop itself (pending on its task) goes on.
+                current = asyncio.current_task()
+                if current is None or current.cancelling():
+                    raise
             finally:
-                self._sleeper.cancel()
+                sleeper.cancel()
                 self._sleeper = None
                 self._sleeping_until = math.inf
 

@@ -12,9 +12,11 @@ Entering the bus waits for the first connection (``connect_timeout_s``) and rais
 ``BusConnectionError`` if there is none; refused credentials fail at once, since retrying
 cannot fix them. Later outages are ridden out in the background.
 
-A controller watches ``connected``/``wait_connected`` and ``last_message_s`` (or feeds a
-``SilenceWatchdog``) to notice silence and hold. A ``LastWill`` on the vehicle's status
-topic tells the others when a vehicle drops off without saying goodbye.
+``connected``, ``wait_connected``/``wait_disconnected`` and ``last_message_s`` (when the
+broker last delivered anything) tell a caller about outages and silence; the mission's
+controllers need none of them, as they hold whenever no neighbour message has arrived for
+their silence timeout, whatever the cause. A ``LastWill`` on the vehicle's status topic
+tells the others when a vehicle drops off without saying goodbye.
 
 Broker setup: set ``set_tcp_nodelay true`` in mosquitto.conf. Without it mosquitto lets
 Nagle's algorithm hold small messages to subscribers for up to a delayed-ACK period (40 ms
@@ -39,7 +41,6 @@ import ssl
 import uuid
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Self
 
 import aiomqtt
@@ -228,8 +229,8 @@ class MqttBus(Bus):
         self._patterns: collections.Counter[str] = collections.Counter()
         self._open = False
         self._closed = False
-        self._task_group: asyncio.TaskGroup | None = None
-        self._runner: asyncio.Task[None] | None = None
+        # What the bus owns while entered (the connection task's group), unwound on exit.
+        self._stack = contextlib.AsyncExitStack()
         self._connected_since_s: float | None = None
 
     def __repr__(self) -> str:
@@ -252,60 +253,52 @@ class MqttBus(Bus):
                     hint="check bus.mqtt.tls: ca_file, cert_file and key_file must be "
                     "readable PEM files",
                 ) from exc
-        self._task_group = asyncio.TaskGroup()
-        await self._task_group.__aenter__()
-        self._open = True
-        try:
-            self._runner = self._task_group.create_task(
+        async with contextlib.AsyncExitStack() as stack:
+            task_group = await stack.enter_async_context(asyncio.TaskGroup())
+            runner = task_group.create_task(
                 self._keep_connected(), name=f"mqtt bus {self.client_id} -> {self.endpoint}"
             )
-            try:
-                await self._wait_until(
-                    lambda: self._connected or self._fatal is not None,
-                    self.connect_timeout_s,
-                    f"first connection to the MQTT broker at {self.endpoint}",
-                )
-            except BusTimeoutError:
-                raise BusConnectionError(
-                    self.endpoint,
-                    f"no connection within {self.connect_timeout_s:g} s "
-                    f"(last error: {self.last_error or 'none'})",
-                    hint="check that the broker runs and that bus.mqtt.host and "
-                    "bus.mqtt.port point at it",
-                ) from None
-            if self._fatal is not None:
-                raise BusConnectionError(
-                    self._fatal.endpoint, self._fatal.reason, hint=self._fatal.hint
-                )
-        except BaseException:
-            await self._shut_down(None, None, None)
-            raise
+            # Cancelling the runner disconnects gracefully (so the broker does not publish
+            # the last will): see _session.
+            stack.callback(runner.cancel)
+            stack.push_async_callback(self._close)
+            self._open = True
+            failure = await self._first_connection()
+            if failure is None:
+                self._stack = stack.pop_all()
+        if failure is not None:
+            # Raised once the task group is closed, so that the caller gets this error
+            # itself, not wrapped in an exception group.
+            raise failure
         return self
 
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self._shut_down(exc_type, exc, tb)
+    async def _first_connection(self) -> BusConnectionError | None:
+        """Why the first connection failed, or None once connected."""
+        try:
+            await self._wait_until(
+                lambda: self._connected or self._fatal is not None,
+                self.connect_timeout_s,
+                f"first connection to the MQTT broker at {self.endpoint}",
+            )
+        except BusTimeoutError:
+            return BusConnectionError(
+                self.endpoint,
+                f"no connection within {self.connect_timeout_s:g} s "
+                f"(last error: {self.last_error or 'none'})",
+                hint="check that the broker runs and that bus.mqtt.host and "
+                "bus.mqtt.port point at it",
+            )
+        if self._fatal is not None:
+            return BusConnectionError(
+                self._fatal.endpoint, self._fatal.reason, hint=self._fatal.hint
+            )
+        return None
 
-    async def _shut_down(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    async def _close(self) -> None:
+        """End every subscription and wake whoever waits on the connection state."""
         self._close_subscriptions()
         self._patterns.clear()
         await self._notify()
-        if self._runner is not None:
-            # Cancelling the runner disconnects gracefully (so the broker does not publish
-            # the last will): see _session.
-            self._runner.cancel()
-        if self._task_group is not None:
-            task_group, self._task_group = self._task_group, None
-            await task_group.__aexit__(exc_type, exc, tb)
 
     # State ------------------------------------------------------------------------------
     @property
@@ -341,11 +334,6 @@ class MqttBus(Bus):
             timeout,
             f"loss of the connection to {self.endpoint}",
         )
-
-    @property
-    def subscriptions(self) -> tuple[Subscription, ...]:
-        """Live subscriptions, oldest first."""
-        return tuple(self._subscriptions)
 
     # Connection task --------------------------------------------------------------------
     def _new_client(self) -> aiomqtt.Client:
@@ -420,6 +408,8 @@ class MqttBus(Bus):
 
     async def _session(self, client: aiomqtt.Client) -> None:
         """One connection: connect, subscribe, dispatch until the connection ends."""
+        # A task of its own only so that it can be shielded; this session awaits it on every
+        # path, and its failure (a refused or timed-out connection) is this session's.
         entering = asyncio.get_running_loop().create_task(
             client.__aenter__(), name=f"mqtt connect {self.client_id} -> {self.endpoint}"
         )
@@ -429,10 +419,13 @@ class MqttBus(Bus):
             # Closing while connecting: let the attempt end (it is bounded by the client's
             # timeout) so that its socket can be closed rather than leaked.
             await asyncio.wait({entering})
-            if not entering.cancelled() and entering.exception() is None:
-                await self._leave(client)
-            else:
+            error = None if entering.cancelled() else entering.exception()
+            if entering.cancelled() or error is not None:
+                if error is not None:
+                    logger.debug("connecting to %s while closing failed: %r", self.endpoint, error)
                 _abandon(client)
+            else:
+                await self._leave(client)
             raise
         except BaseException:
             _abandon(client)

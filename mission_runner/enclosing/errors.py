@@ -1,8 +1,8 @@
 """Errors of the enclosing algorithm.
 
-The algorithm package imports numpy only, so its errors derive from the builtin ``ValueError``;
-callers that catch :class:`mission_runner.errors.MissionRunnerError` also catch
-:class:`EnclosingError` through ``mission_runner.errors``' re-export.
+The algorithm package imports numpy only, so its errors derive from the builtin ``ValueError``
+and not from :class:`mission_runner.errors.MissionRunnerError`: a handler of the latter does not
+catch them; catch :class:`EnclosingError` (or ``ValueError``).
 """
 
 

@@ -165,7 +165,6 @@ async def test_exited_subscription_gets_nothing_more() -> None:
         await bus.publish("a", b"1", timeout=0.1)
         assert sub.closed
         assert len(sub) == 0
-        assert bus.subscriptions == ()
 
 
 @pytest.mark.asyncio
@@ -229,6 +228,18 @@ class TestLinkModel:
             await clock.advance(1.0)
             steps = [StepMessage.from_payload(sub.poll()[1]).step for _ in range(len(sub))]
         assert steps == list(range(50))
+
+    @pytest.mark.asyncio
+    async def test_a_failing_clock_stops_the_bus_and_surfaces_at_exit(self) -> None:
+        class BrokenClock(ManualClock):
+            async def sleep(self, seconds: float) -> None:
+                raise OSError("clock source gone")
+
+        link = LinkModel(latency_s=0.1)
+        with pytest.RaisesGroup(pytest.RaisesExc(OSError, match="clock source gone")):
+            async with InProcessBus(link=link, clock=BrokenClock()) as bus, bus.subscribe("a"):
+                await bus.publish("a", b"late", timeout=0.1)
+                await asyncio.sleep(1.0)  # the delivery loop's failure cancels this
 
     @staticmethod
     async def run_lossy_exchange(seed: int) -> list[tuple[int, int, int]]:

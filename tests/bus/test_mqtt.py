@@ -22,7 +22,6 @@ from mission_runner.bus import (
     MqttBus,
     MqttSettings,
     RangeMessage,
-    SilenceWatchdog,
     StepMessage,
     TargetObservation,
     TlsSettings,
@@ -126,10 +125,9 @@ async def test_retained_status_reaches_a_late_subscriber(pair: tuple[MqttBus, Mq
 
 
 @pytest.mark.asyncio
-async def test_broker_restart_reconnects_resubscribes_and_watchdog_sees_the_gap(
+async def test_broker_restart_reconnects_resubscribes_and_the_gap_shows(
     mosquitto: MosquittoBroker,
 ) -> None:
-    watchdog = SilenceWatchdog(0.3)
     async with (
         make_bus(mosquitto, "sender") as sender,
         make_bus(mosquitto, "receiver") as receiver,
@@ -139,12 +137,12 @@ async def test_broker_restart_reconnects_resubscribes_and_watchdog_sees_the_gap(
         async def exchange(k: int) -> None:
             await sender.publish_message(TOPICS.step(1), step(1, k), timeout=2.0)
             _, message = await steps.receive_message(StepMessage, timeout=5.0)
-            watchdog.feed(message.vehicle_id)
             assert message.step == k
 
         for k in range(5):
             await exchange(k)
-        assert not watchdog.is_silent()
+        heard_s = receiver.last_message_s
+        assert heard_s is not None
 
         await mosquitto.akill()
         await sender.wait_disconnected(timeout=5.0)
@@ -158,11 +156,11 @@ async def test_broker_restart_reconnects_resubscribes_and_watchdog_sees_the_gap(
         assert 0.2 <= time.monotonic() - started < 2.0
         assert "publish again later" in str(raised.value)
 
-        # Nothing arrives during the outage, and the watchdog says so.
+        # Nothing arrives during the outage, and the time of the last message says so.
         with pytest.raises(BusTimeoutError):
             await steps.receive(timeout=0.4)
-        assert watchdog.is_silent()
-        assert watchdog.silent_sources() == [1]
+        assert receiver.last_message_s == heard_s
+        assert receiver.clock.now() - heard_s >= 0.4
 
         await mosquitto.astart()  # same port, fresh broker: no sessions, no subscriptions
         await sender.wait_connected(timeout=10.0)
@@ -171,7 +169,7 @@ async def test_broker_restart_reconnects_resubscribes_and_watchdog_sees_the_gap(
         assert receiver.failed_attempts >= 1  # it retried while the broker was down
         for k in range(6, 11):
             await exchange(k)
-        assert not watchdog.is_silent()
+        assert receiver.last_message_s > heard_s
         assert steps.dropped == 0
 
 
@@ -272,6 +270,25 @@ async def test_no_broker_fails_after_the_connect_timeout(tmp_path: Path) -> None
             pass
     assert 0.5 <= time.monotonic() - started < 3.0
     assert bus.failed_attempts >= 2  # kept retrying with backoff until the deadline
+
+
+@pytest.mark.asyncio
+async def test_a_failing_connection_task_surfaces_from_start_up(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    bus = MqttBus("127.0.0.1", free_loopback_port(), client_id="x", connect_timeout_s=5.0)
+
+    def broken_client() -> None:
+        raise RuntimeError("client construction failed")
+
+    monkeypatch.setattr(bus, "_new_client", broken_client)
+    started = time.monotonic()
+    with pytest.RaisesGroup(pytest.RaisesExc(RuntimeError, match="construction failed")):
+        async with bus:
+            pytest.fail("entered a bus whose connection task died")
+    assert time.monotonic() - started < 1.0  # not left waiting for the connect timeout
+    with pytest.raises(BusConnectionError, match="closed"):
+        await bus.publish(TOPICS.step(1), b"", timeout=0.1)
 
 
 class SilentServer:

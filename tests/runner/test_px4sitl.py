@@ -437,6 +437,32 @@ async def test_the_command_fails_when_an_instance_dies_while_running(tmp_path: P
 
 
 @pytest.mark.asyncio
+async def test_a_failing_stop_condition_surfaces_and_stops_the_instances(tmp_path: Path) -> None:
+    build = script_build(tmp_path / "px4", READY_THEN_SLEEP)
+
+    lines: list[str] = []
+
+    async def broken_stop() -> None:
+        while not lines:  # until the instances are ready and reported
+            await asyncio.sleep(0.05)
+        raise OSError("signal source gone")
+
+    with pytest.raises(OSError, match="signal source gone"):
+        await run_px4_sitl_command(
+            scenario(ids=(31, 32)),
+            build,
+            first_instance=30,
+            work_dir=tmp_path / "work",
+            until=broken_stop(),
+            report=lines.append,
+        )
+    assert "udpin://0.0.0.0:14549" in lines[0]
+    pids = [int(path.read_text()) for path in (tmp_path / "work").glob("*/instance-*/pid")]
+    assert len(pids) == 2
+    assert all(process_gone(pid) for pid in pids)
+
+
+@pytest.mark.asyncio
 async def test_an_instance_that_ignores_sigterm_is_killed(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

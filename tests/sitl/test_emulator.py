@@ -169,6 +169,22 @@ async def test_step_listener_sees_read_only_truth() -> None:
 
 
 @pytest.mark.asyncio
+async def test_a_failing_step_listener_stops_the_emulator_and_surfaces_at_exit() -> None:
+    cfg = config(1)
+
+    def broken(time_s: float, truth: object) -> None:
+        raise ZeroDivisionError("listener bug")
+
+    with pytest.RaisesGroup(pytest.RaisesExc(ZeroDivisionError, match="listener bug")):
+        async with Emulator(cfg) as emulator:
+            emulator.add_step_listener(broken)
+            await asyncio.sleep(5.0)  # the physics task's failure cancels this
+    # The sockets were closed on the way out: the same ports bind again.
+    async with Emulator(cfg):
+        pass
+
+
+@pytest.mark.asyncio
 async def test_wait_for_times_out_with_a_typed_error() -> None:
     async with Emulator(config(1)) as emulator:
         with pytest.raises(SitlTimeoutError, match="the impossible"):
