@@ -94,7 +94,7 @@ async def realtime_jitter(n: int, seconds: float) -> dict[str, float]:
 
         def record(time_s: float, _truth: object) -> None:
             # How late this step ran compared with when simulated time reached it.
-            lateness.append(clock.now_s - time_s)
+            lateness.append(clock.now_s() - time_s)
 
         remove = emulator.add_step_listener(record)
         cpu0 = time.process_time()
@@ -125,7 +125,7 @@ async def lockstep_speedup(n: int, seconds: float, participant: bool) -> float:
 
         async def trivial() -> None:
             async with clock.participant("trivial") as me:
-                t = clock.now_s
+                t = clock.now_s()
                 while True:
                     t += 0.05
                     me.acted(t)

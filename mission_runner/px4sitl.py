@@ -89,6 +89,7 @@ from typing import Any, TypeVar
 
 from .config import Scenario, load_scenario
 from .runner.errors import RunnerError, RunnerTimeoutError
+from .tasks import first_completed
 
 logger = logging.getLogger(__name__)
 
@@ -569,12 +570,13 @@ class Px4SitlInstances:
         with ``pid`` of the process that ended."""
         if not self._running:
             raise Px4SitlError("no PX4 SITL instance is running")
-        return await _first_of(
+        _, instance = await first_completed(
             {
                 f"px4sitl-wait-{running.instance.instance}": self._exit_of(running)
                 for running in self._running
             }
         )
+        return instance
 
     @staticmethod
     async def _exit_of(running: _Running) -> Px4Instance:
@@ -745,37 +747,6 @@ class Px4SitlInstances:
 # --- Command ----------------------------------------------------------------------------------
 
 
-async def _first_of(contenders: Mapping[str, Awaitable[_T]]) -> _T:
-    """The result of whichever of ``contenders`` (task name -> awaitable) completes first.
-
-    The others are cancelled and have ended when this returns. An error of any contender ends
-    the race and is raised as itself (several at once, as an exception group).
-    """
-    first: asyncio.Future[_T] = asyncio.get_running_loop().create_future()
-
-    async def contend(awaitable: Awaitable[_T]) -> None:
-        result = await awaitable
-        if not first.done():
-            first.set_result(result)
-
-    failure: BaseException | None = None
-    try:
-        async with asyncio.TaskGroup() as group:
-            tasks = [group.create_task(contend(a), name=name) for name, a in contenders.items()]
-            try:
-                await first
-            finally:
-                for task in tasks:
-                    task.cancel()
-    except BaseExceptionGroup as errors:
-        if len(errors.exceptions) > 1:
-            raise
-        failure = errors.exceptions[0]
-    if failure is not None:
-        raise failure  # outside the handler, so that it does not read as a second error
-    return first.result()
-
-
 async def run_px4_sitl_command(
     scenario: Scenario,
     px4_dir: str | os.PathLike[str],
@@ -817,7 +788,7 @@ async def run_px4_sitl_command(
 
     # Whichever ends first cancels the other: a stop cancels the start or the watch (leaving
     # the instances stops them); an instance that exits ends the run with its error.
-    await _first_of({"px4sitl-run": serve(), "px4sitl-until": stop()})
+    await first_completed({"px4sitl-run": serve(), "px4sitl-until": stop()})
     return ran
 
 

@@ -19,7 +19,7 @@ Modes
 A participant's loop looks like::
 
     async with clock.participant("controller") as me:
-        t = clock.now_s
+        t = clock.now_s()
         while True:
             ...read telemetry, send setpoints...
             t += 0.05
@@ -146,7 +146,6 @@ class Clock:
             return 0.0
         return self._wall_time() - self._wall_start_s
 
-    @property
     def now_s(self) -> float:
         """Current simulated time in seconds since start."""
         if self.mode == "realtime":
@@ -156,7 +155,7 @@ class Clock:
     def allowed_time_s(self) -> float:
         """How far the driver may advance simulated time right now."""
         if self.mode == "realtime":
-            return self.now_s
+            return self.now_s()
         allowed = min((p.released_until_s for p in self._participants.values()), default=math.inf)
         if self.lockstep_max_speed is not None:
             allowed = min(allowed, self._wall_elapsed_s() * self.lockstep_max_speed)
@@ -172,7 +171,7 @@ class Clock:
         """Add a participant; until it acts it holds time at ``released_until_s`` (default now)."""
         if name in self._participants:
             raise ClockError(f"participant {name!r} is already registered")
-        start = self.now_s if released_until_s is None else released_until_s
+        start = self.now_s() if released_until_s is None else released_until_s
         self._participants[name] = _Participant(start, self._wall_time())
         self._notify()
 
@@ -218,7 +217,7 @@ class Clock:
         """Wait until simulated time has reached ``time_s``."""
         if self.mode == "realtime":
             while True:
-                remaining = time_s - self.now_s
+                remaining = time_s - self.now_s()
                 if remaining <= 0:
                     return
                 await asyncio.sleep(remaining / self.speed)
@@ -231,7 +230,7 @@ class Clock:
 
     async def sleep(self, duration_s: float) -> None:
         """Wait ``duration_s`` simulated seconds."""
-        await self.sleep_until(self.now_s + duration_s)
+        await self.sleep_until(self.now_s() + duration_s)
 
     # ---------------------------------------------------------------- driver
     def advance_to(self, time_s: float) -> None:

@@ -26,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
+import functools
 import heapq
 import itertools
 import logging
@@ -521,7 +522,7 @@ class Emulator:
                 )
                 try:
                     await loop.create_datagram_endpoint(
-                        lambda link=link: link, local_addr=(ports.bind_host, local_port)
+                        functools.partial(_protocol, link), local_addr=(ports.bind_host, local_port)
                     )
                 except OSError as exc:
                     if exc.errno in (errno.EADDRINUSE, errno.EACCES):
@@ -534,7 +535,7 @@ class Emulator:
 
     def _deliver_to(self, ap: Px4Autopilot) -> Callable[..., None]:
         def deliver(msg: object, link: VehicleLink) -> None:
-            ap.handle_message(msg, link, self.time_s)  # type: ignore[arg-type]
+            ap.handle_message(msg, link, self.time_s)
 
         return deliver
 
@@ -867,3 +868,8 @@ class Emulator:
             action()
 
         heapq.heappush(self._schedule, (at_s, next(self._schedule_ids), what, logged))
+
+
+def _protocol(link: VehicleLink) -> VehicleLink:
+    """The datagram protocol factory's product: the link already built for this port."""
+    return link

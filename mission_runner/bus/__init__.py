@@ -8,22 +8,22 @@ A step loop on the bus (tests/bus/test_usage.py runs this pattern)::
     topics = settings.bus.topics(mission_id)
     async with (
         open_bus(settings.bus, client_id=f"vehicle-{i}",
-                 will=lost_vehicle_will(topics, i, time_s=clock.now())) as bus,
+                 will=lost_vehicle_will(topics, i, time_s=clock.now_s())) as bus,
         bus.subscribe(topics.all_steps()) as neighbours,
     ):
-        last_heard_s = clock.now()
+        last_heard_s = clock.now_s()
         for k in itertools.count():
-            own = StepMessage(i, k, clock.now(), theta_i, odometry_north_m, odometry_east_m)
+            own = StepMessage(i, k, clock.now_s(), theta_i, odometry_north_m, odometry_east_m)
             with contextlib.suppress(BusConnectionError):  # a lost message costs freshness only
                 await bus.publish_message(topics.step(i), own, timeout=T_s / 4)
             await clock.sleep(until_collection_deadline_s)
             step_k = {}
             for _, message in neighbours.drain_messages(StepMessage):
                 if message.vehicle_id != i:
-                    last_heard_s = clock.now()
+                    last_heard_s = clock.now_s()
                     if message.step == k:
                         step_k[message.vehicle_id] = message
-            if clock.now() - last_heard_s > silence_timeout_s:
+            if clock.now_s() - last_heard_s > silence_timeout_s:
                 ...  # nobody heard for a while: hold position, do not follow the algorithm
             ...  # use step_k; a neighbour missing from it is late or lost this step
 
@@ -41,7 +41,6 @@ from __future__ import annotations
 import random
 
 from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
-from mission_runner.bus.clock import Clock, ManualClock, MonotonicClock
 from mission_runner.bus.errors import (
     BusConnectionError,
     BusError,
@@ -71,6 +70,7 @@ from mission_runner.bus.topics import (
     validate_pattern,
     validate_topic,
 )
+from mission_runner.clock import Clock, ManualClock, MonotonicClock
 
 __all__ = [
     "DEFAULT_QUEUE_SIZE",

@@ -23,9 +23,9 @@ from dataclasses import dataclass
 from typing import Self
 
 from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
-from mission_runner.bus.clock import Clock, MonotonicClock
 from mission_runner.bus.errors import BusConnectionError
 from mission_runner.bus.topics import topic_matches, validate_pattern, validate_topic
+from mission_runner.clock import Clock, MonotonicClock
 
 logger = logging.getLogger(__name__)
 
@@ -163,7 +163,7 @@ class InProcessBus(Bus):
         if not link.delays:
             subscription.offer(topic, payload)
             return
-        due_s = self.clock.now() + link.latency_s + jitter_s
+        due_s = self.clock.now_s() + link.latency_s + jitter_s
         if not link.reorder:
             key = (subscription, topic)
             due_s = max(due_s, self._last_due.get(key, -math.inf))
@@ -176,7 +176,7 @@ class InProcessBus(Bus):
 
     async def _deliver_late(self) -> None:
         while True:
-            now_s = self.clock.now()
+            now_s = self.clock.now_s()
             while self._pending and self._pending[0][0] <= now_s:
                 _, _, subscription, topic, payload = heapq.heappop(self._pending)
                 subscription.offer(topic, payload)

@@ -47,11 +47,11 @@ import aiomqtt
 from aiomqtt.exceptions import MqttCodeError, MqttConnectError
 
 from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
-from mission_runner.bus.clock import Clock, MonotonicClock
 from mission_runner.bus.errors import BusConnectionError, BusTimeoutError
 from mission_runner.bus.messages import VehicleStatus
 from mission_runner.bus.settings import TlsSettings
 from mission_runner.bus.topics import Topics, topic_matches, validate_pattern, validate_topic
+from mission_runner.clock import Clock, MonotonicClock
 
 logger = logging.getLogger(__name__)
 
@@ -390,7 +390,7 @@ class MqttBus(Bus):
             self.failed_attempts += 1
             if (
                 self._connected_since_s is not None
-                and self.clock.now() - self._connected_since_s >= self._backoff.max_s
+                and self.clock.now_s() - self._connected_since_s >= self._backoff.max_s
             ):
                 # Only a connection that held for a while resets the backoff: a broker that
                 # accepts and drops at once (e.g. another client took over this client id)
@@ -461,7 +461,7 @@ class MqttBus(Bus):
                         pattern,
                     )
         self.connect_count += 1
-        self._connected_since_s = self.clock.now()
+        self._connected_since_s = self.clock.now_s()
         self._connected = True
         await self._notify()
         logger.info(
@@ -472,7 +472,7 @@ class MqttBus(Bus):
         )
         async for message in client.messages:
             self.received += 1
-            self.last_message_s = self.clock.now()
+            self.last_message_s = self.clock.now_s()
             topic = message.topic.value
             payload = message.payload
             if not isinstance(payload, bytes):

@@ -7,49 +7,62 @@
   processes on time-synchronised companion computers (NTP or GPS); each autopilot's boot clock is
   mapped onto it continuously (:class:`.timesync.ClockMapping`).
 
-Both offer ``now_s()``, ``sleep_until(t)``, ``release(t)``, ``rate`` and ``lockstep``.
+Both are the mission side's one :class:`mission_runner.clock.Clock` (``now_s()``,
+``sleep(seconds)``) plus what a controller needs (:class:`.ports.ControllerClock`):
+``sleep_until(t)``, ``release(t)``, ``rate`` and ``lockstep``.
 """
+
+from __future__ import annotations
 
 import asyncio
 import contextlib
+from typing import TYPE_CHECKING, Any, Self
 
 from .timesync import MissionTime
+
+if TYPE_CHECKING:
+    from sitl.clock import Clock as SimulatedClock
+    from sitl.clock import Participant
 
 
 class EmulatorClock:
     """A participant view of a :class:`sitl.clock.Clock`. Use as ``async with``."""
 
-    def __init__(self, clock, name):
+    def __init__(self, clock: SimulatedClock, name: str) -> None:
         self._clock = clock
         self.name = name
         self.lockstep = clock.mode == "lockstep"
-        self._participant = None
-        self._stack = None
-
-    async def __aenter__(self):
+        self._participant: Participant | None = None
         self._stack = contextlib.AsyncExitStack()
-        if self.lockstep:
-            self._participant = await self._stack.enter_async_context(
-                self._clock.participant(self.name)
-            )
+
+    async def __aenter__(self) -> Self:
+        async with contextlib.AsyncExitStack() as stack:
+            if self.lockstep:
+                self._participant = await stack.enter_async_context(
+                    self._clock.participant(self.name)
+                )
+            self._stack = stack.pop_all()
         return self
 
-    async def __aexit__(self, *exc_info):
+    async def __aexit__(self, *exc_info: Any) -> None:
         await self._stack.aclose()
         self._participant = None
 
-    def now_s(self):
-        return self._clock.now_s
+    def now_s(self) -> float:
+        return self._clock.now_s()
 
     @property
-    def rate(self):
+    def rate(self) -> float:
         """Mission seconds per wall second (the speed factor; lockstep has none)."""
         return self._clock.speed if not self.lockstep else 1.0
 
-    async def sleep_until(self, time_s):
+    async def sleep(self, seconds: float) -> None:
+        await self._clock.sleep_until(self._clock.now_s() + seconds)
+
+    async def sleep_until(self, time_s: float) -> None:
         await self._clock.sleep_until(time_s)
 
-    def release(self, time_s):
+    def release(self, time_s: float) -> None:
         """Let the world run up to ``time_s`` (lockstep); a no-op in real time."""
         if self._participant is not None:
             self._participant.acted(time_s)
@@ -61,27 +74,30 @@ class WallClock:
 
     lockstep = False
 
-    def __init__(self, time=None):
+    def __init__(self, time: MissionTime | None = None) -> None:
         self.time = time or MissionTime()
 
-    async def __aenter__(self):
+    async def __aenter__(self) -> Self:
         return self
 
-    async def __aexit__(self, *exc_info):
+    async def __aexit__(self, *exc_info: Any) -> None:
         return None
 
-    def now_s(self):
+    def now_s(self) -> float:
         return self.time.now_s()
 
     @property
-    def rate(self):
+    def rate(self) -> float:
         """Mission seconds per wall second."""
         return self.time.rate
 
-    async def sleep_until(self, time_s):
+    async def sleep(self, seconds: float) -> None:
+        await self.sleep_until(self.now_s() + seconds)
+
+    async def sleep_until(self, time_s: float) -> None:
         delay = (time_s - self.now_s()) / self.time.rate
         if delay > 0:
             await asyncio.sleep(delay)
 
-    def release(self, time_s):
+    def release(self, time_s: float) -> None:
         return None

@@ -39,6 +39,7 @@ from ..bus import (
 )
 from ..config import Scenario, VehicleConfig
 from ..enclosing import NeighbourReport, TargetReport, VehicleEnclosing
+from ..tasks import first_completed
 from ..wiring import (
     ShapeSchedule,
     algorithm_params,
@@ -202,23 +203,25 @@ class VehicleController:
                     self.bus.subscribe(self.topics.target(self.vehicle_id))
                 ),
             ]
-            async with asyncio.TaskGroup() as group:
-                pump = group.create_task(
-                    self._pump(subscriptions), name=f"vehicle-{self.vehicle_id}-inbox"
-                )
-                try:
-                    for k in range(steps):
-                        await self._step(k, start_s + k * self.settings.step_s)
-                        if self._missed_odometry >= self.settings.lost_after_missed_steps:
-                            # Dead vehicle or dead link: stop driving it; PX4's offboard-loss
-                            # failsafe holds or lands it, and the others re-balance without it.
-                            self.state = "lost"
-                            logger.warning("vehicle %s: lost at step %d", self.vehicle_id, k)
-                            await self._publish_status(k, start_s + k * self.settings.step_s)
-                            break
-                finally:
-                    pump.cancel()
+            # The inbox pump runs for ever; the step loop's end (or either's failure) ends both.
+            await first_completed(
+                {
+                    f"vehicle-{self.vehicle_id}-inbox": self._pump(subscriptions),
+                    f"vehicle-{self.vehicle_id}-steps": self._steps(start_s, steps),
+                }
+            )
         return self.records
+
+    async def _steps(self, start_s: float, steps: int) -> None:
+        for k in range(steps):
+            await self._step(k, start_s + k * self.settings.step_s)
+            if self._missed_odometry >= self.settings.lost_after_missed_steps:
+                # Dead vehicle or dead link: stop driving it; PX4's offboard-loss failsafe holds
+                # or lands it, and the others re-balance without it.
+                self.state = "lost"
+                logger.warning("vehicle %s: lost at step %d", self.vehicle_id, k)
+                await self._publish_status(k, start_s + k * self.settings.step_s)
+                return
 
     async def _pump(self, subscriptions: Sequence[MessageSource]) -> None:
         """Feed the inbox from the bus subscriptions (decode errors are dropped, not fatal)."""

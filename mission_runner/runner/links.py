@@ -12,6 +12,8 @@ drops, PX4's data-link-loss failsafe does. :meth:`MavsdkVehicle.finish` leaves o
 holds on a normal end.
 """
 
+from __future__ import annotations
+
 import asyncio
 import collections
 import contextlib
@@ -19,6 +21,8 @@ import json
 import logging
 import math
 import time
+from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable, Coroutine, Mapping
+from typing import Any, Self, TypeVar
 
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkError
 from mavsdk.asyncio.plugins.action import ActionAsync
@@ -29,7 +33,9 @@ from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
 from .errors import RunnerTimeoutError, VehicleCommandError, VehicleConnectionError
 from .odometry import OdometrySample, OdometryTrack
-from .timesync import ClockMapping, ClockMappingError
+from .timesync import ClockMapping, ClockMappingError, MissionTime
+
+_T = TypeVar("_T")
 
 logger = logging.getLogger(__name__)
 
@@ -42,7 +48,7 @@ _mavsdk_logging_routed = False
 _REASON_SEVERITIES = frozenset({"EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING"})
 
 
-def route_mavsdk_logs():
+def route_mavsdk_logs() -> None:
     """Send MAVSDK's own log lines to the ``mavsdk`` Python logger instead of stdout."""
     global _mavsdk_logging_routed  # noqa: PLW0603 - MAVSDK's log hook is process-wide
     if _mavsdk_logging_routed:
@@ -57,7 +63,7 @@ def route_mavsdk_logs():
         LogLevel.ERROR: logging.ERROR,
     }
 
-    def forward(level, message, _file, _line):
+    def forward(level: Any, message: str, _file: str, _line: int) -> bool:
         mavsdk_logger.log(levels.get(level, logging.INFO), "%s", message)
         return True
 
@@ -66,7 +72,9 @@ def route_mavsdk_logs():
 
 
 @contextlib.asynccontextmanager
-async def connected_vehicles(urls, system_ids, *, timeout_s=20.0):
+async def connected_vehicles(
+    urls: list[str], system_ids: list[int], *, timeout_s: float = 20.0
+) -> AsyncIterator[dict[int, Any]]:
     """One Mavsdk with a connection per URL, until every system id in ``system_ids`` is found.
 
     Yields ``{system_id: mavsdk System}``. URLs are MAVSDK's: ``udpin://0.0.0.0:14540``,
@@ -78,7 +86,7 @@ async def connected_vehicles(urls, system_ids, *, timeout_s=20.0):
         for url in urls:
             await mavsdk.add_any_connection(url)
         wanted = set(system_ids)
-        found = {}
+        found: dict[int, Any] = {}
         try:
             async with asyncio.timeout(timeout_s):
                 async for _ in _discovery_ticks(mavsdk):
@@ -96,7 +104,7 @@ async def connected_vehicles(urls, system_ids, *, timeout_s=20.0):
         yield {sysid: found[sysid] for sysid in wanted}
 
 
-async def _discovery_ticks(mavsdk):
+async def _discovery_ticks(mavsdk: Mavsdk) -> AsyncIterator[None]:
     """Yield at once, then whenever MAVSDK reports a new system (and at least every 0.2 s)."""
     yield
     stream = mavsdk.on_new_system()
@@ -113,15 +121,15 @@ class MappedTrack:
     ``boot_s_at(mission_s)`` maps the query time, so a better clock fit applies at once to every
     sample already received."""
 
-    def __init__(self, track, boot_s_at):
+    def __init__(self, track: OdometryTrack, boot_s_at: Callable[[float], float]) -> None:
         self._track = track
         self._boot_s_at = boot_s_at
 
     @property
-    def latest(self):
+    def latest(self) -> OdometrySample | None:
         return self._track.latest
 
-    def at(self, mission_s):
+    def at(self, mission_s: float) -> tuple[float, float, float] | None:
         """``(north_m, east_m, down_m)`` at mission time ``mission_s``, or None (no two samples
         bracket it, or the autopilot's clock is not known yet)."""
         try:
@@ -140,7 +148,7 @@ class MavsdkVehicle:
     SYSTEM_TIME onto a :class:`.timesync.MissionTime` instead, continuously.
     """
 
-    def __init__(self, system, system_id, *, command_timeout_s=10.0):
+    def __init__(self, system: Any, system_id: int, *, command_timeout_s: float = 10.0) -> None:
         self.system = system
         self.system_id = system_id
         self.action = ActionAsync(system)
@@ -149,22 +157,24 @@ class MavsdkVehicle:
         self.param = ParamAsync(system)
         self.raw = MavlinkDirectAsync(system)
         self.track = OdometryTrack()
-        self.boot_s_at = float
+        self.boot_s_at: Callable[[float], float] = float
         self.odometry = MappedTrack(self.track, self._boot_s)
-        self.clock_mapping = None
-        self.status_texts = collections.deque(maxlen=50)  # (monotonic s, severity, text)
+        self.clock_mapping: ClockMapping | None = None
+        self.status_texts: collections.deque[tuple[float, str, str]] = collections.deque(
+            maxlen=50
+        )  # (monotonic s, severity, text)
         self._status_text = asyncio.Event()
         self._timeout_s = command_timeout_s
         self._updated = asyncio.Event()
-        self._group = None
-        self._tasks = []
+        self._group: asyncio.TaskGroup | None = None
+        self._tasks: list[asyncio.Task[None]] = []
         self._stack = contextlib.AsyncExitStack()
         self.in_offboard = False
 
-    def _boot_s(self, mission_s):
+    def _boot_s(self, mission_s: float) -> float:
         return self.boot_s_at(mission_s)  # late-bound: follow_clock replaces boot_s_at
 
-    async def __aenter__(self):
+    async def __aenter__(self) -> Self:
         async with contextlib.AsyncExitStack() as stack:
             self._group = await stack.enter_async_context(asyncio.TaskGroup())
             stack.callback(self._cancel_streams)  # they run for ever: end them, then the group
@@ -174,7 +184,7 @@ class MavsdkVehicle:
             self._stack = stack.pop_all()
         return self
 
-    async def request_rate(self, request):
+    async def request_rate(self, request: Awaitable[object]) -> None:
         """A telemetry rate change, within the command timeout; a vehicle may refuse or ignore
         it (then its own rate is used), which is logged, not fatal."""
         try:
@@ -182,19 +192,21 @@ class MavsdkVehicle:
         except (MavsdkError, RunnerTimeoutError) as error:
             logger.info("vehicle %s: rate change not taken (%s)", self.system_id, error)
 
-    async def __aexit__(self, *exc_info):
+    async def __aexit__(self, *exc_info: Any) -> bool | None:
         return await self._stack.__aexit__(*exc_info)
 
-    def _cancel_streams(self):
+    def _cancel_streams(self) -> None:
         for task in self._tasks:
             task.cancel()
 
-    def _spawn(self, coroutine, what):
+    def _spawn(self, coroutine: Coroutine[Any, Any, None], what: str) -> None:
+        if self._group is None:
+            raise RuntimeError("MavsdkVehicle used outside its async with block")
         self._tasks.append(
             self._group.create_task(coroutine, name=f"vehicle-{self.system_id}-{what}")
         )
 
-    async def _stream_odometry(self):
+    async def _stream_odometry(self) -> None:
         stream = self.raw.subscribe_message("LOCAL_POSITION_NED")
         async with contextlib.aclosing(stream):
             async for message in stream:
@@ -207,7 +219,7 @@ class MavsdkVehicle:
                 if self.track.add(sample):
                     self._updated.set()
 
-    async def _collect_status_texts(self):
+    async def _collect_status_texts(self) -> None:
         stream = self.telemetry.subscribe_status_text()
         async with contextlib.aclosing(stream):
             async for status in stream:
@@ -215,12 +227,12 @@ class MavsdkVehicle:
                 logger.info("vehicle %s says: %s", self.system_id, status.text)
                 self._status_text.set()
 
-    async def reason_since(self, since_s, *, wait_s=1.0):
+    async def reason_since(self, since_s: float, *, wait_s: float = 1.0) -> str | None:
         """The autopilot's last warning-or-worse STATUSTEXT since monotonic ``since_s`` (PX4
         explains a refusal that way, usually just after its COMMAND_ACK), waiting up to
         ``wait_s`` for one; None if it said nothing."""
 
-        def latest():
+        def latest() -> str | None:
             for at_s, severity, text in reversed(self.status_texts):
                 if at_s >= since_s and severity in _REASON_SEVERITIES:
                     return text
@@ -233,7 +245,9 @@ class MavsdkVehicle:
                     await self._status_text.wait()
         return latest()
 
-    async def follow_clock(self, mission_time, *, timeout_s=10.0):
+    async def follow_clock(
+        self, mission_time: MissionTime, *, timeout_s: float = 10.0
+    ) -> ClockMapping:
         """Map this autopilot's boot clock onto ``mission_time`` from now on, refitted at every
         SYSTEM_TIME (requested at ``SYSTEM_TIME_RATE_HZ``). Returns the :class:`ClockMapping`
         once it has its first pair; raises :class:`RunnerTimeoutError` if none comes."""
@@ -241,7 +255,7 @@ class MavsdkVehicle:
         first = asyncio.Event()
         stream = self.raw.subscribe_message("SYSTEM_TIME")
 
-        async def feed():
+        async def feed() -> None:
             async with contextlib.aclosing(stream):
                 async for message in stream:
                     if message.system_id != self.system_id:
@@ -269,11 +283,11 @@ class MavsdkVehicle:
         self.boot_s_at = lambda mission_s: mapping.boot_s(mission_time.to_unix(mission_s))
         return mapping
 
-    async def request_interval(self, message_id, rate_hz):
+    async def request_interval(self, message_id: int, rate_hz: float) -> None:
         """MAV_CMD_SET_MESSAGE_INTERVAL for ``message_id`` at ``rate_hz`` on this link."""
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkMessage  # noqa: PLC0415
 
-        params = {f"param{i}": 0 for i in range(1, 8)}
+        params: dict[str, float] = {f"param{i}": 0 for i in range(1, 8)}
         params.update(param1=message_id, param2=1e6 / rate_hz)
         request = MavlinkMessage(
             message_name="COMMAND_LONG",
@@ -296,19 +310,25 @@ class MavsdkVehicle:
         except MavsdkError as error:
             raise VehicleCommandError(f"vehicle {self.system_id}: {error}") from error
 
-    async def odometry_updated(self):
+    async def odometry_updated(self) -> None:
         """Wait for the next odometry sample."""
         self._updated.clear()
         await self._updated.wait()
 
-    async def _within(self, awaitable, what):
+    async def _within(self, awaitable: Awaitable[_T], what: str) -> _T:
         try:
             async with asyncio.timeout(self._timeout_s):
                 return await awaitable
         except TimeoutError:
             raise RunnerTimeoutError(f"vehicle {self.system_id}: {what}", self._timeout_s) from None
 
-    async def _first(self, stream, predicate, what, timeout_s=None):
+    async def _first(
+        self,
+        stream: AsyncGenerator[_T, None],
+        predicate: Callable[[_T], object],
+        what: str,
+        timeout_s: float | None = None,
+    ) -> _T:
         timeout_s = timeout_s or self._timeout_s
         async with contextlib.aclosing(stream):
             try:
@@ -320,7 +340,7 @@ class MavsdkVehicle:
                 raise RunnerTimeoutError(f"vehicle {self.system_id}: {what}", timeout_s) from None
         raise VehicleConnectionError(f"vehicle {self.system_id}: telemetry ended ({what})")
 
-    async def take_off(self, altitude_m, *, timeout_s=60.0):
+    async def take_off(self, altitude_m: float, *, timeout_s: float = 60.0) -> None:
         """Wait for health, arm, take off towards ``altitude_m`` above home and return once the
         vehicle is clearly airborne (above ``min(altitude_m, TAKEOFF_CLEAR_M)``). The final
         altitude is reached in OFFBOARD (the controller's altitude hold): PX4 may apply its
@@ -340,11 +360,13 @@ class MavsdkVehicle:
             timeout_s,
         )
 
-    async def wait_altitude(self, altitude_m, *, tolerance_m=0.3, timeout_s=30.0):
+    async def wait_altitude(
+        self, altitude_m: float, *, tolerance_m: float = 0.3, timeout_s: float = 30.0
+    ) -> None:
         """Wait until the odometry's height is within ``tolerance_m`` of ``altitude_m`` (while a
         controller's altitude hold drives it there)."""
 
-        def reached():
+        def reached() -> bool:
             sample = self.track.latest
             return sample is not None and abs(-sample.down_m - altitude_m) <= tolerance_m
 
@@ -357,7 +379,7 @@ class MavsdkVehicle:
                 f"vehicle {self.system_id}: climb to {altitude_m:g} m", timeout_s
             ) from None
 
-    async def _commanded(self, awaitable, what):
+    async def _commanded(self, awaitable: Awaitable[_T], what: str) -> _T:
         """Run a MAVSDK command; a refusal becomes a VehicleCommandError naming the command, the
         result and the autopilot's reason."""
         asked_s = time.monotonic()
@@ -371,20 +393,20 @@ class MavsdkVehicle:
                 + (f": {reason}" if reason else "")
             ) from error
 
-    async def start_offboard(self):
+    async def start_offboard(self) -> None:
         """Enter OFFBOARD with a zero-velocity setpoint (PX4 needs one streaming first)."""
         await self.set_velocity_ned(0.0, 0.0, 0.0)
         await self._commanded(self.offboard.start(), "offboard start")
         self.in_offboard = True
 
-    async def apply_params(self, params):
+    async def apply_params(self, params: Mapping[str, float | int]) -> dict[str, float | int]:
         """Set autopilot parameters (``{name: value}``) and read each back. The parameter's type
         (INT32 or REAL32) is the autopilot's, so ``5`` sets a float parameter to 5.0. Returns
         ``{name: value read back}``; a parameter the autopilot refuses or does not have raises
         :class:`VehicleCommandError`, one it changes (rounds, clamps) is logged as a warning."""
         from mavsdk.asyncio.plugins.param import ParamError, ParamResult  # noqa: PLC0415
 
-        applied = {}
+        applied: dict[str, float | int] = {}
         for name, value in params.items():
             try:
                 await self._within(self.param.get_param_float(name), f"parameter {name}")
@@ -414,13 +436,15 @@ class MavsdkVehicle:
             applied[name] = back
         return applied
 
-    async def set_velocity_ned(self, north_m_s, east_m_s, down_m_s, yaw_deg=0.0):
+    async def set_velocity_ned(
+        self, north_m_s: float, east_m_s: float, down_m_s: float, yaw_deg: float = 0.0
+    ) -> None:
         setpoint = VelocityNedYaw(
             float(north_m_s), float(east_m_s), float(down_m_s), float(yaw_deg)
         )
         await self._within(self.offboard.set_velocity_ned(setpoint), "velocity setpoint")
 
-    async def finish(self, action="land", *, timeout_s=60.0):
+    async def finish(self, action: str = "land", *, timeout_s: float = 60.0) -> None:
         """Leave OFFBOARD and land (waiting for the disarm), return (RTL) or hold."""
         if self.in_offboard:
             with contextlib.suppress(MavsdkError, RunnerTimeoutError):

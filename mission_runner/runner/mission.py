@@ -268,9 +268,9 @@ async def _paced(clock: Clock, speed: float = PACED_SPEED) -> AsyncIterator[None
         return
 
     async def pace(participant: Participant) -> None:
-        released = clock.now_s
+        released = clock.now_s()
         while True:
-            released = max(released, clock.now_s + speed * PACE_PERIOD_S)
+            released = max(released, clock.now_s() + speed * PACE_PERIOD_S)
             participant.acted(released)
             await asyncio.sleep(PACE_PERIOD_S)
 

@@ -13,13 +13,15 @@ from contextlib import AbstractAsyncContextManager
 from typing import Protocol, TypeVar
 
 from ..bus import Message
+from ..clock import Clock
 from .odometry import OdometrySample
 
 M = TypeVar("M", bound=Message)
 
 
-class ControllerClock(Protocol):
-    """The mission clock every t_k = start + kT refers to."""
+class ControllerClock(Clock, Protocol):
+    """The mission clock every t_k = start + kT refers to: the mission side's one
+    :class:`mission_runner.clock.Clock` (``now_s()``, ``sleep()``) plus what a controller needs."""
 
     @property
     def lockstep(self) -> bool:
@@ -30,10 +32,6 @@ class ControllerClock(Protocol):
     @property
     def rate(self) -> float:
         """Mission seconds per wall second."""
-        ...
-
-    def now_s(self) -> float:
-        """Mission time now [s]."""
         ...
 
     async def sleep_until(self, time_s: float) -> None:

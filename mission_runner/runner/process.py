@@ -28,9 +28,9 @@ import logging
 import math
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -234,16 +234,16 @@ async def _fly(  # noqa: PLR0917
         start.set_result(command.time_s)
     # Whichever ends first: the controller's last step, or the ground station's land/stop (a
     # controller failure propagates and lands the vehicle, see run_vehicle).
-    ended_by, command = await first_completed(
-        {
-            f"vehicle-{run.vehicle_id}-fly": controller.run(run.start_s, steps),
-            f"vehicle-{run.vehicle_id}-watch": next_command(
-                control, {ControlCommand.LAND, ControlCommand.STOP}, mission_id=run.mission_id
-            ),
-        }
-    )
-    if ended_by.endswith("watch"):
-        await _abort(vehicle, report, run, scenario, command)
+    watch = f"vehicle-{run.vehicle_id}-watch"
+    contenders: dict[str, Awaitable[object]] = {
+        f"vehicle-{run.vehicle_id}-fly": controller.run(run.start_s, steps),
+        watch: next_command(
+            control, {ControlCommand.LAND, ControlCommand.STOP}, mission_id=run.mission_id
+        ),
+    }
+    ended_by, ended_with = await first_completed(contenders)
+    if ended_by == watch:
+        await _abort(vehicle, report, run, scenario, cast(MissionControl, ended_with))
         return
     last = controller.records[-1].step if controller.records else 0
     if controller.state == "lost":

@@ -213,7 +213,7 @@ class TestLinkModel:
                 while len(arrival_s) < 2:
                     await clock.advance(0.01)
                     while (item := sub.poll()) is not None:
-                        arrival_s[item[0]] = clock.now()
+                        arrival_s[item[0]] = clock.now_s()
                 overtakes += arrival_s["b"] < arrival_s["a"]
         assert overtakes > 0
 
@@ -294,7 +294,7 @@ class TestManualClock:
 
         async def sleeper(name: str, seconds: float) -> None:
             await clock.sleep(seconds)
-            woke.append((name, clock.now()))
+            woke.append((name, clock.now_s()))
 
         async with asyncio.TaskGroup() as group:
             group.create_task(sleeper("late", 0.3))
@@ -305,7 +305,7 @@ class TestManualClock:
             assert woke == [("early", 0.1)]
             await clock.advance(0.2)
         assert woke == [("early", 0.1), ("late", 0.3)]
-        assert clock.now() == pytest.approx(0.4)
+        assert clock.now_s() == pytest.approx(0.4)
 
     @pytest.mark.asyncio
     async def test_time_never_goes_back(self) -> None:

@@ -40,13 +40,13 @@ class Log:
 async def vehicle(
     bus: Bus, vehicle_id: int, clock: Clock, steps: int, log: Log, *, stop_at: int | None
 ) -> None:
-    started_s = clock.now()
+    started_s = clock.now_s()
     last_heard_s: dict[int, float] = {}
     async with bus.subscribe(TOPICS.all_steps()) as neighbours:
         for k in range(steps):
             if stop_at is not None and k >= stop_at:
                 return  # this vehicle is lost
-            own = StepMessage(vehicle_id, k, clock.now(), 0.0, 0.1 * k, 0.0)
+            own = StepMessage(vehicle_id, k, clock.now_s(), 0.0, 0.1 * k, 0.0)
             with contextlib.suppress(BusConnectionError):
                 await bus.publish_message(TOPICS.step(vehicle_id), own, timeout=T_S / 4)
             await clock.sleep(T_S / 2)  # collection deadline of step k
@@ -54,10 +54,10 @@ async def vehicle(
             for _, message in neighbours.drain_messages(StepMessage):
                 if message.vehicle_id == vehicle_id:
                     continue
-                last_heard_s[message.vehicle_id] = clock.now()
+                last_heard_s[message.vehicle_id] = clock.now_s()
                 if message.step == k:
                     step_k[message.vehicle_id] = message
-            now_s = clock.now()
+            now_s = clock.now_s()
             log.silent[k] = sorted(v for v, t_s in last_heard_s.items() if now_s - t_s > SILENCE_S)
             if now_s - max(last_heard_s.values(), default=started_s) > SILENCE_S:
                 log.held_steps.append(k)  # nobody fresh: hold position

@@ -21,10 +21,10 @@ class FakeWall:
 def test_realtime_scales_wall_time_by_speed() -> None:
     wall = FakeWall()
     clock = Clock("realtime", 5.0, wall_time=wall)
-    assert clock.now_s == 0.0  # not started
+    assert clock.now_s() == 0.0  # not started
     clock.start()
     wall.now += 2.0
-    assert clock.now_s == pytest.approx(10.0)
+    assert clock.now_s() == pytest.approx(10.0)
     assert clock.allowed_time_s() == pytest.approx(10.0)
     # Participants do not hold real time back.
     clock.register("controller")
@@ -43,7 +43,7 @@ def test_lockstep_allows_the_minimum_release() -> None:
     clock.acted("b", 0.5)
     assert clock.allowed_time_s() == 0.5
     clock.advance_to(0.5)
-    assert clock.now_s == 0.5
+    assert clock.now_s() == 0.5
     with pytest.raises(ClockError, match="beyond allowed"):
         clock.advance_to(0.6)
     clock.unregister("b")
@@ -81,7 +81,7 @@ async def test_sleepers_wake_when_the_driver_advances() -> None:
 
     async def sleeper(t: float) -> None:
         await clock.sleep_until(t)
-        woke.append(clock.now_s)
+        woke.append(clock.now_s())
 
     async with asyncio.TaskGroup() as tg:
         tg.create_task(sleeper(0.3))
@@ -133,7 +133,7 @@ async def test_realtime_sleep_uses_scaled_wall_time() -> None:
     clock = Clock("realtime", 50.0)
     clock.start()
     await asyncio.wait_for(clock.sleep(1.0), 1.0)  # 1 simulated s = 20 ms wall
-    assert clock.now_s >= 1.0
+    assert clock.now_s() >= 1.0
 
 
 @pytest.mark.asyncio

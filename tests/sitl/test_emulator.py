@@ -310,7 +310,7 @@ async def test_a_participant_off_the_step_grid_does_not_deadlock() -> None:
     clock = Clock("lockstep", participant_timeout_s=None)
     cfg = config(1, clock=ClockConfig(mode="lockstep"))
     async with Emulator(cfg, clock=clock) as emulator, clock.participant("p") as me:
-        t = clock.now_s
+        t = clock.now_s()
         for _ in range(40):  # 20 Hz releases against the 50 Hz physics step
             t += 0.05
             me.acted(t)

@@ -1,8 +1,10 @@
-"""Clocks the bus waits on: the real monotonic clock, and a manual one for tests.
+"""The one clock protocol of the mission side: ``now_s()`` and ``sleep(seconds)``.
 
-The in-process bus's link model and the MQTT bus's reconnect backoff never read time or sleep
-directly; they take a ``Clock`` so that a test can drive them deterministically with
-``ManualClock`` (time moves only when the test says so).
+Nothing reads time or sleeps directly; it takes a :class:`Clock`, so a test can drive it
+deterministically with :class:`ManualClock` (time moves only when the test says so). The bus's
+link model and reconnect backoff take a :class:`MonotonicClock`; the controllers take a mission
+clock (:mod:`.runner.clock`: the emulator's simulated time or synchronised UNIX time), which adds
+``sleep_until``, ``release``, ``rate`` and ``lockstep`` (:class:`.runner.ports.ControllerClock`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from typing import Protocol
 class Clock(Protocol):
     """Where the bus reads time (seconds, monotonic) and how it sleeps."""
 
-    def now(self) -> float:
+    def now_s(self) -> float:
         """Current time in seconds; only differences are meaningful."""
         ...
 
@@ -29,7 +31,7 @@ class Clock(Protocol):
 class MonotonicClock:
     """The real clock: ``time.monotonic`` and ``asyncio.sleep``."""
 
-    def now(self) -> float:
+    def now_s(self) -> float:
         return time.monotonic()
 
     async def sleep(self, seconds: float) -> None:
@@ -39,7 +41,7 @@ class MonotonicClock:
 class ManualClock:
     """A clock that stands still until ``advance`` moves it; sleepers wake in due order.
 
-    ``advance`` wakes each sleeper due within the step at its own due time (so ``now()``
+    ``advance`` wakes each sleeper due within the step at its own due time (so ``now_s()``
     seen by the woken task is its due time) and yields to the event loop after each wake
     so the woken task can run up to its next await.
     """
@@ -50,7 +52,7 @@ class ManualClock:
         self._sleepers: list[tuple[float, int, asyncio.Future[None]]] = []
         self._sequence = itertools.count()
 
-    def now(self) -> float:
+    def now_s(self) -> float:
         return self._now_s
 
     async def sleep(self, seconds: float) -> None:
