@@ -30,6 +30,7 @@ from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
 from mavsdk.asyncio.plugins.offboard import OffboardAsync, VelocityNedYaw
 from mavsdk.asyncio.plugins.param import ParamAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+from pymavlink.dialects.v20 import common as mavlink
 
 from .errors import RunnerTimeoutError, VehicleCommandError, VehicleConnectionError
 from .odometry import OdometrySample, OdometryTrack
@@ -43,7 +44,6 @@ ODOMETRY_RATE_HZ = 50.0
 SYSTEM_TIME_RATE_HZ = 10.0  # pairs to interpolate a jittery simulated clock between
 #: Height above which a vehicle taking off is airborne enough to be handed to OFFBOARD.
 TAKEOFF_CLEAR_M = 2.0
-MAVLINK_MSG_ID_SYSTEM_TIME = 2
 _mavsdk_logging_routed = False
 _REASON_SEVERITIES = frozenset({"EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING"})
 
@@ -269,7 +269,7 @@ class MavsdkVehicle:
         self._spawn(feed(), "clock")
         with contextlib.suppress(VehicleCommandError, RunnerTimeoutError):
             # Some autopilots stream it anyway; PX4 SITL sends it at 1 Hz by default.
-            await self.request_interval(MAVLINK_MSG_ID_SYSTEM_TIME, SYSTEM_TIME_RATE_HZ)
+            await self.request_interval(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, SYSTEM_TIME_RATE_HZ)
         try:
             async with asyncio.timeout(timeout_s):
                 await first.wait()
@@ -291,15 +291,15 @@ class MavsdkVehicle:
         params.update(param1=message_id, param2=1e6 / rate_hz)
         request = MavlinkMessage(
             message_name="COMMAND_LONG",
-            system_id=245,
-            component_id=190,
+            system_id=245,  # MAVSDK's own ids as a ground station
+            component_id=mavlink.MAV_COMP_ID_MISSIONPLANNER,
             target_system_id=self.system_id,
             target_component_id=1,
             fields_json=json.dumps(
                 {
                     "target_system": self.system_id,
                     "target_component": 1,
-                    "command": 511,  # MAV_CMD_SET_MESSAGE_INTERVAL
+                    "command": mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
                     "confirmation": 0,
                     **params,
                 }

@@ -69,7 +69,11 @@ async def fly_aid(mosquitto, *, source, truth=False):
             steps=8,
         )
         await bus.publish(topics.control(), b"", retain=True, timeout=5.0)
-        measured = [m for _, m in ranges.drain_messages(RangeMessage)]
+        # The aid returns once it has published; the broker may still be delivering the last.
+        measured = [
+            (await ranges.receive_message(RangeMessage, timeout=5.0))[1]
+            for _ in range(stats.ranges)
+        ]
         observed = [m for _, m in targets.drain_messages(TargetObservation)]
     return start_s, stats, measured, observed
 
