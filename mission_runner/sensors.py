@@ -38,33 +38,48 @@ def measure_ranges(
     to_m: ArrayLike | None = None,
     measured: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.float64]:
-    """Ranges from every point of ``from_m`` to every point of ``to_m``: Gaussian noise
-    (``range_noise_std_m``, reported as its absolute value), random dropouts
-    (``range_dropout_probability``) and a maximum range (``range_max_m``).
+    """Ranges from every point of ``from_m`` to every point of ``to_m``, through
+    :func:`range_readings`.
 
     from_m: ``(..., n, d)`` true positions [m] (NaN rows: not measured this time).
     to_m: ``(..., m, d)``; default ``from_m`` (then a point is never ranged to itself).
     measured: ``(..., n, m)`` bool, the pairs that are ranged at all (default: every pair).
-    sensors: a :class:`mission_runner.config.SensorConfig`.
-    Returns ``(..., n, m)`` ranges [m], NaN where nothing is measured. Noise and dropout are drawn
-    for every pair, measured or not, so that one pair's fate does not shift another's draws.
+    Returns ``(..., n, m)`` ranges [m], NaN where nothing is measured.
     """
     points = np.asarray(from_m, dtype=float)
     others = points if to_m is None else np.asarray(to_m, dtype=float)
     gaps = points[..., :, None, :] - others[..., None, :, :]
-    ranges = np.sqrt(np.sum(gaps * gaps, axis=-1))
-    kept = np.isfinite(ranges)
+    distances = np.sqrt(np.sum(gaps * gaps, axis=-1))
+    if others is points:
+        not_self = ~np.eye(distances.shape[-1], dtype=bool)
+        measured = not_self if measured is None else measured & not_self
+    return range_readings(distances, sensors, rng, measured=measured)
+
+
+def range_readings(
+    true_m: NDArray[np.float64],
+    sensors: SensorConfig,
+    rng: Rng,
+    *,
+    measured: NDArray[np.bool_] | None = None,
+) -> NDArray[np.float64]:
+    """What a UWB radio reads for true distances ``true_m`` (any shape, NaN: no line): Gaussian
+    noise (``range_noise_std_m``, reported as its absolute value), random dropouts
+    (``range_dropout_probability``) and a maximum range (``range_max_m``); NaN where nothing is
+    read, or where ``measured`` (same shape, bool) is False. Noise and dropout are drawn for
+    every entry, read or not, so that one pair's fate does not shift another's draws.
+    """
+    kept = np.isfinite(true_m)
     if measured is not None:
         kept &= measured
-    if others is points:
-        kept &= ~np.eye(ranges.shape[-1], dtype=bool)
+    readings = true_m
     if sensors.range_noise_std_m > 0:
-        ranges = ranges + rng.normal(scale=sensors.range_noise_std_m, size=ranges.shape)
+        readings = readings + rng.normal(scale=sensors.range_noise_std_m, size=true_m.shape)
     if sensors.range_dropout_probability > 0:
-        kept &= rng.uniform(size=ranges.shape) >= sensors.range_dropout_probability
+        kept &= rng.uniform(size=true_m.shape) >= sensors.range_dropout_probability
     if sensors.range_max_m is not None:
-        kept &= ranges <= sensors.range_max_m
-    return np.where(kept, np.abs(ranges), np.nan)
+        kept &= readings <= sensors.range_max_m
+    return np.where(kept, np.abs(readings), np.nan)
 
 
 def odometry_drift(sensors: SensorConfig, rng: Rng, shape: tuple[int, ...]) -> NDArray[np.float64]:

@@ -20,7 +20,7 @@ from ..config import Scenario
 from ..enclosing import SwarmEnclosing, splay_spacing_error
 from ..errors import SimulationError
 from ..scenario import shape_matrices, target_positions
-from ..sensors import measure_ranges, odometry_drift, odometry_error_step
+from ..sensors import odometry_drift, odometry_error_step, range_readings
 from ..wiring import algorithm_params, omega_of
 from .metrics import closest_pair, tracking_error
 
@@ -172,7 +172,7 @@ def simulate(
         out["separation_m"][:, k] = closest_pair(true_ranges[..., 1:], live)
         measured = not_self & target_column & live[:, :, None]
         measured &= np.concatenate([np.ones((runs, 1), dtype=bool), live], axis=1)[:, None, :]
-        ranges = measure_ranges(position, sensors, noise, to_m=ranged, measured=measured)
+        ranges = range_readings(true_ranges, sensors, noise, measured=measured)
 
         odometry = position - origin + drift * times[k] + odometry_error
         odometry = np.where(live[..., None], odometry, np.nan)
