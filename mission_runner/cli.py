@@ -283,6 +283,7 @@ def _run(arguments: argparse.Namespace) -> int:
         config_path=arguments.config,
         wall_time_s=outcome.wall_time_s,
         figures=not arguments.no_figures,
+        vehicles=outcome.vehicles,
     )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
@@ -352,7 +353,14 @@ def _ground(arguments: argparse.Namespace) -> int:
         )
         return EXIT_OK
     document = write_results(
-        result, mission_dir, config_path=arguments.config, figures=not arguments.no_figures
+        result,
+        mission_dir,
+        config_path=arguments.config,
+        figures=not arguments.no_figures,
+        vehicles={
+            i: {"state": status.state, "detail": status.detail}
+            for i, status in outcome.statuses.items()
+        },
     )
     print(_summary_text(document, mission_dir))
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
@@ -467,6 +475,16 @@ def _summary_text(document: Mapping[str, Any], out_dir: Path) -> str:
                 lines.append(f"    {name:<{width}}  {text}")
         lines.append(
             f"    runs passing expectations: {document['batch']['runs_passing_expectations']}"
+        )
+    ended = {i: v for i, v in document.get("vehicles", {}).items() if v["state"] != "done"}
+    if "vehicles" in document:
+        lines.append(
+            "vehicles: "
+            + (
+                "all done"
+                if not ended
+                else "; ".join(f"{i} {v['state']}: {v['detail'] or '-'}" for i, v in ended.items())
+            )
         )
     expectations = document["expectations"]
     if expectations["checked"]:

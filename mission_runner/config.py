@@ -273,14 +273,22 @@ class SensorConfig(Model):
     )
 
 
+#: Events only a flight can play (they need real links, sensors or autopilots); the numeric
+#: simulator refuses a scenario with any of them.
+FLIGHT_ONLY_EVENTS = frozenset({"link_lost", "sensor_lost", "taken_over"})
+
+
 class EventConfig(Model):
     """Something that happens to a vehicle at a step (or a time)."""
 
-    kind: Literal["vehicle_lost", "vehicle_joins", "link_lost", "sensor_lost"] = Field(
-        title="Kind",
-        description="vehicle_lost: dies for good; vehicle_joins: absent until then (simulate "
-        "only); link_lost: its MAVLink link drops (flying only); sensor_lost: a sensor stops "
-        "(flying only).",
+    kind: Literal["vehicle_lost", "vehicle_joins", "link_lost", "sensor_lost", "taken_over"] = (
+        Field(
+            title="Kind",
+            description="vehicle_lost: dies for good; vehicle_joins: absent until then "
+            "(simulate only); link_lost: its MAVLink link drops (flying only); sensor_lost: a "
+            "sensor stops (flying only); taken_over: a pilot switches it to `mode` by RC "
+            "(flying on the emulator only).",
+        )
     )
     vehicle: int = Field(title="Vehicle", description="Vehicle id.")
     at_step: Annotated[int, Field(ge=0)] | None = Field(None, title="Step", description="k.")
@@ -290,6 +298,9 @@ class EventConfig(Model):
     )
     sensor: Literal["uwb", "flow", "tracker"] | None = Field(
         None, title="Sensor", description="sensor_lost: which sensor stops."
+    )
+    mode: Literal["hold", "land", "return", "posctl"] = Field(
+        "hold", title="Mode", description="taken_over: the mode the pilot switches to."
     )
 
     def step(self, step_s: float) -> int:

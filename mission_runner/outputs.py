@@ -12,6 +12,7 @@ import json
 import os
 import platform
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -112,8 +113,10 @@ def summary(
     *,
     config_path: PathName | None = None,
     wall_time_s: float | None = None,
+    vehicles: Mapping[int, Mapping[str, str]] | None = None,
 ) -> dict[str, Any]:
-    """The summary dict: run 0's metrics, expectations, batch distribution, parameters, versions."""
+    """The summary dict: run 0's metrics, expectations, batch distribution, parameters, versions;
+    for a flight, how each vehicle ended (``vehicles``: ``{id: {"state", "detail"}}``)."""
     scenario = result.scenario
     metrics = run_metrics(result)
     first = {name: _plain(values[0]) for name, values in metrics.items()}
@@ -144,6 +147,8 @@ def summary(
             for run in range(result.runs)
         ]
         document["batch"]["runs_passing_expectations"] = int(sum(per_run))
+    if vehicles is not None:
+        document["vehicles"] = {str(i): dict(v) for i, v in sorted(vehicles.items())}
     if wall_time_s is not None:
         document["wall_time_s"] = round(wall_time_s, 4)
     return document
@@ -165,6 +170,7 @@ def write_results(
     config_path: PathName | None = None,
     wall_time_s: float | None = None,
     figures: bool = True,
+    vehicles: Mapping[int, Mapping[str, str]] | None = None,
 ) -> dict[str, Any]:
     """Write timeseries.csv, summary.json and (optionally) the figures into ``out_dir``.
 
@@ -172,7 +178,7 @@ def write_results(
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    document = summary(result, config_path=config_path, wall_time_s=wall_time_s)
+    document = summary(result, config_path=config_path, wall_time_s=wall_time_s, vehicles=vehicles)
     write_atomic(out_dir / "timeseries.csv", timeseries_csv(result))
     if result.runs > 1:
         write_atomic(out_dir / "batch.csv", batch_csv(result))

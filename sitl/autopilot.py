@@ -326,6 +326,14 @@ class Px4Autopilot:
         self._vehicle.motors_off()
         logger.info("vehicle %d killed at %.2f s", self.sysid, now_s)
 
+    def pilot_takeover(self, mode: FlightMode, now_s: float) -> None:
+        """A pilot flips the RC mode switch to ``mode``: PX4's commander switches at once,
+        whatever a ground station or offboard computer was doing."""
+        if not self._state.alive:
+            return
+        logger.info("vehicle %d: pilot takes over in %s at %.2f s", self.sysid, mode.name, now_s)
+        self._commander.set_mode(mode)
+
     def set_sensor(self, sensor: str, ok: bool, now_s: float) -> None:
         """Fail (``ok=False``) or restore the ``"flow"`` odometry or the ``"gps"`` receiver."""
         state = self._state

@@ -755,6 +755,25 @@ class Emulator:
 
         self._at(at_s, kill, f"kill vehicle {index}")
 
+    def take_over(self, index: int, mode: str = "hold", at_s: float | None = None) -> None:
+        """A pilot takes vehicle ``index`` over now or at ``at_s``: an RC mode switch to
+        ``mode`` (``hold``, ``land``, ``return`` or ``posctl``), which PX4 obeys at once."""
+        ap = self._autopilot(index)
+        modes = {
+            "hold": FlightMode.HOLD,
+            "land": FlightMode.LAND,
+            "return": FlightMode.RTL,
+            "posctl": FlightMode.POSCTL,
+        }
+        if mode not in modes:
+            raise ValueError(f"unknown takeover mode {mode!r}; use one of {sorted(modes)}")
+
+        def take() -> None:
+            ap.pilot_takeover(modes[mode], self.time_s)
+            self.events.append((self.time_s, index, f"taken over by a pilot ({mode})"))
+
+        self._at(at_s, take, f"take vehicle {index} over")
+
     def drop_link(
         self,
         index: int,

@@ -181,11 +181,12 @@ class VehicleController:
         while not (start.done() and t >= start.result()):
             self.clock.release(t + self.settings.release_s)
             await self.clock.sleep_until(t)
-            sample = self.link.odometry.latest
-            vertical = self._altitude_hold(
-                None if sample is None else (sample.north_m, sample.east_m, sample.down_m)
-            )
-            await self.link.set_velocity_ned(0.0, 0.0, vertical)
+            if self.link.control_lost is None:  # never stream to a vehicle someone else flies
+                sample = self.link.odometry.latest
+                vertical = self._altitude_hold(
+                    None if sample is None else (sample.north_m, sample.east_m, sample.down_m)
+                )
+                await self.link.set_velocity_ned(0.0, 0.0, vertical)
             t += step_s
         return start.result()
 
@@ -214,6 +215,19 @@ class VehicleController:
 
     async def _steps(self, start_s: float, steps: int) -> None:
         for k in range(steps):
+            if self.link.control_lost is not None:
+                # A pilot, another ground station or a failsafe has the vehicle: it is no longer
+                # driven (no setpoint, no step message: the others re-balance without it), and
+                # the runner does not take it back.
+                self.state = "taken_over"
+                logger.warning(
+                    "vehicle %s: taken over at step %d: %s",
+                    self.vehicle_id,
+                    k,
+                    self.link.control_lost,
+                )
+                await self._publish_status(k, start_s + k * self.settings.step_s)
+                return
             await self._step(k, start_s + k * self.settings.step_s)
             if self._missed_odometry >= self.settings.lost_after_missed_steps:
                 # Dead vehicle or dead link: stop driving it; PX4's offboard-loss failsafe holds
@@ -285,7 +299,9 @@ class VehicleController:
         used: tuple[int, ...]
         estimates: dict[int, NDArray[np.float64]]
         consensus: tuple[float, float]
-        if odometry is None or now - self._last_fresh_s > settings.silence_timeout_s:  # stale
+        # Hold on stale data, and while the vehicle is not seen armed in OFFBOARD.
+        stale_s = now - self._last_fresh_s
+        if odometry is None or stale_s > settings.silence_timeout_s or not self.link.in_control:
             velocity = (0.0, 0.0)
             self.state = "holding"
             # The vehicle holds: when it resumes, track afresh from where it is, and lead from
@@ -538,7 +554,7 @@ class VehicleController:
             self.state,
             k,
             self.state == "following",
-            "",
+            self.link.control_lost or "",
             mission_id=self.mission_id,
         )
         await self._publish(self.topics.status(self.vehicle_id), status)

@@ -170,6 +170,10 @@ class MavsdkVehicle:
         self._tasks: list[asyncio.Task[None]] = []
         self._stack = contextlib.AsyncExitStack()
         self.in_offboard = False
+        self.flight_mode: str | None = None  # as the autopilot reports it (HEARTBEAT)
+        self.armed: bool | None = None
+        self._seen_in_control = False
+        self._control_lost: str | None = None
 
     def _boot_s(self, mission_s: float) -> float:
         return self.boot_s_at(mission_s)  # late-bound: follow_clock replaces boot_s_at
@@ -180,6 +184,8 @@ class MavsdkVehicle:
             stack.callback(self._cancel_streams)  # they run for ever: end them, then the group
             self._spawn(self._stream_odometry(), "odometry")
             self._spawn(self._collect_status_texts(), "statustext")
+            self._spawn(self._watch_flight_mode(), "flight-mode")
+            self._spawn(self._watch_armed(), "armed")
             await self.request_rate(self.telemetry.set_rate_position_velocity_ned(ODOMETRY_RATE_HZ))
             self._stack = stack.pop_all()
         return self
@@ -226,6 +232,46 @@ class MavsdkVehicle:
                 self.status_texts.append((time.monotonic(), status.type.name, status.text))
                 logger.info("vehicle %s says: %s", self.system_id, status.text)
                 self._status_text.set()
+
+    async def _watch_flight_mode(self) -> None:
+        stream = self.telemetry.subscribe_flight_mode()
+        async with contextlib.aclosing(stream):
+            async for mode in stream:
+                self.flight_mode = mode.name
+                self._check_control()
+
+    async def _watch_armed(self) -> None:
+        stream = self.telemetry.subscribe_armed()
+        async with contextlib.aclosing(stream):
+            async for armed in stream:
+                self.armed = bool(armed)
+                self._check_control()
+
+    @property
+    def in_control(self) -> bool:
+        """Seen armed and in OFFBOARD since :meth:`start_offboard` (and not taken over)."""
+        return self._seen_in_control and self._control_lost is None and self._offboard_now()
+
+    @property
+    def control_lost(self) -> str | None:
+        """Why someone else took the vehicle out of OFFBOARD (or disarmed it) while the runner
+        drove it; None while nobody has. Final until the next :meth:`start_offboard`."""
+        return self._control_lost
+
+    def _offboard_now(self) -> bool:
+        return self.flight_mode == "OFFBOARD" and self.armed is True
+
+    def _check_control(self) -> None:
+        if not self.in_offboard or self._control_lost is not None:
+            return
+        if self._offboard_now():
+            self._seen_in_control = True
+        elif self._seen_in_control:
+            # Only after OFFBOARD was seen: a heartbeat sent before the switch is not a takeover.
+            self._control_lost = (
+                "disarmed" if self.armed is False else f"switched to {self.flight_mode}"
+            ) + " by someone other than the runner (pilot, another ground station or a failsafe)"
+            logger.warning("vehicle %s: %s", self.system_id, self._control_lost)
 
     async def reason_since(self, since_s: float, *, wait_s: float = 1.0) -> str | None:
         """The autopilot's last warning-or-worse STATUSTEXT since monotonic ``since_s`` (PX4
@@ -396,8 +442,10 @@ class MavsdkVehicle:
     async def start_offboard(self) -> None:
         """Enter OFFBOARD with a zero-velocity setpoint (PX4 needs one streaming first)."""
         await self.set_velocity_ned(0.0, 0.0, 0.0)
+        self._seen_in_control, self._control_lost = False, None
         await self._commanded(self.offboard.start(), "offboard start")
         self.in_offboard = True
+        self._check_control()
 
     async def apply_params(self, params: Mapping[str, float | int]) -> dict[str, float | int]:
         """Set autopilot parameters (``{name: value}``) and read each back. The parameter's type
@@ -447,9 +495,9 @@ class MavsdkVehicle:
     async def finish(self, action: str = "land", *, timeout_s: float = 60.0) -> None:
         """Leave OFFBOARD and land (waiting for the disarm), return (RTL) or hold."""
         if self.in_offboard:
+            self.in_offboard = False  # from here on a mode change is the runner's own
             with contextlib.suppress(MavsdkError, RunnerTimeoutError):
                 await self._within(self.offboard.stop(), "offboard stop")
-            self.in_offboard = False
         if action == "land":
             await self._commanded(self.action.land(), "land")
             await self._first(

@@ -118,6 +118,9 @@ class FlightOutcome:
     wall_time_s: float
     mission_wall_time_s: float
     emulator_stats: EmulatorStats
+    #: How each vehicle ended, as its controller saw it: ``{id: {"state", "detail"}}`` (state
+    #: ``done``, ``lost`` or ``taken_over``).
+    vehicles: dict[int, dict[str, str]]
 
 
 async def fly(
@@ -226,7 +229,7 @@ async def fly(
         mission_wall = time.perf_counter() - mission_started
         async with _paced(emulator.clock), asyncio.TaskGroup() as group:
             for vehicle, controller in zip(vehicles, controllers, strict=True):
-                if controller.state != "lost":
+                if controller.state not in ("lost", "taken_over"):  # leave those be
                     group.create_task(
                         vehicle.finish(flight.end_action), name=f"finish-{vehicle.system_id}"
                     )
@@ -239,8 +242,15 @@ async def fly(
             disarmed,
             final_phases={c.vehicle_id: c.law.phase_rad for c in controllers},
         )
+    ended = {
+        controller.vehicle_id: {
+            "state": controller.state if controller.state in ("lost", "taken_over") else "done",
+            "detail": vehicle.control_lost or "",
+        }
+        for controller, vehicle in zip(controllers, vehicles, strict=True)
+    }
     return FlightOutcome(
-        result, records, start_s, time.perf_counter() - started, mission_wall, stats
+        result, records, start_s, time.perf_counter() - started, mission_wall, stats, ended
     )
 
 
@@ -332,6 +342,8 @@ def _schedule_events(scenario: Scenario, emulator: Emulator, world: World, start
             emulator.kill_vehicle(index, at_s=at_s)
         elif event.kind == "link_lost":
             emulator.drop_link(index, "all", at_s=at_s, duration_s=event.duration_s)
+        elif event.kind == "taken_over":
+            emulator.take_over(index, event.mode, at_s=at_s)
         elif event.kind == "sensor_lost" and event.sensor == "flow":
             emulator.fail_sensor(index, "flow", at_s=at_s, duration_s=event.duration_s)
         elif event.kind == "sensor_lost" and event.sensor is not None:  # validation gives one

@@ -62,6 +62,19 @@ class ControllerLink(Protocol):
     @property
     def odometry(self) -> OdometrySource: ...
 
+    @property
+    def in_control(self) -> bool:
+        """Whether the vehicle is seen armed and in OFFBOARD since the runner put it there (the
+        autopilot said so; never assumed from the runner's own commands)."""
+        ...
+
+    @property
+    def control_lost(self) -> str | None:
+        """Why the vehicle left the runner's control by someone else's hand (a pilot, another
+        ground station, an autopilot failsafe): a mode change or a disarm while in OFFBOARD;
+        None while it has not. Final: the runner never takes a vehicle back."""
+        ...
+
     async def odometry_updated(self) -> None:
         """Return when the next odometry sample has arrived."""
         ...

@@ -12,9 +12,11 @@ The handshake, as an operator expects it:
    the mission clock (UNIX time, scaled to the autopilots' measured clock rate when they run
    simulated time at another speed, PX4 SITL's speed factor). If any vehicle failed, or not all
    are ready in time, it aborts the mission for everyone (``land``): nobody is left hovering.
-4. Vehicles fly the steps and land (``flight.end_action``). A vehicle whose controller gives up
-   reports ``lost`` - final, never followed by ``done`` - and is put in ``flight.on_lost`` by its
-   process (and by its autopilot's offboard-loss failsafe, set to the same, if the process dies).
+4. Vehicles fly the steps and land (``flight.end_action``). A vehicle someone else takes (a mode
+   change or disarm by a pilot, another ground station or a failsafe) reports ``taken_over`` and is
+   left to them. A vehicle whose controller gives up reports ``lost`` - final, never followed by
+   ``done`` - and is put in ``flight.on_lost`` by its process (and by its autopilot's
+   offboard-loss failsafe, set to the same, if the process dies).
 
 Statuses and commands carry the mission id, so retained messages of an earlier mission are never
 taken for this one's.
@@ -60,6 +62,10 @@ if TYPE_CHECKING:
     from ..sim.simulator import SimulationResult
 
 logger = logging.getLogger(__name__)
+
+#: A vehicle's states after which nothing changes: it gave up (lost), could not fly (failed), was
+#: stopped by the ground station (aborted), or is flown by someone else (taken over).
+FINAL_STATES = ("lost", "failed", "aborted", "taken_over")
 
 DEFAULT_API_PORT_BASE = 14540
 #: How long a vehicle in the air waits to be commanded when its mission ends abnormally.
@@ -186,9 +192,10 @@ async def run_vehicle(
             # configured safe state (PX4's offboard-loss failsafe covers a dead process).
             action = scenario.flight.on_lost
             logger.warning("vehicle %s: mission ended (%r): %s", vehicle_id, error, action)
-            with contextlib.suppress(RunnerError):
-                await asyncio.shield(vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S))
-            if run.state not in ("lost", "aborted", "failed"):
+            if vehicle.control_lost is None:  # a vehicle someone else flies is theirs
+                with contextlib.suppress(RunnerError):
+                    await asyncio.shield(vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S))
+            if run.state not in FINAL_STATES:
                 await report("lost", detail=f"mission ended: {error!r}")
             raise
         finally:
@@ -246,6 +253,10 @@ async def _fly(  # noqa: PLR0917
         await _abort(vehicle, report, run, scenario, cast(MissionControl, ended_with))
         return
     last = controller.records[-1].step if controller.records else 0
+    if controller.state == "taken_over":
+        # Someone else flies it now: report it and leave it be (never fight a pilot).
+        await report("taken_over", step=last, detail=vehicle.control_lost or "")
+        return
     if controller.state == "lost":
         await report("lost", step=last, detail="own odometry stopped: no longer driven")
         with contextlib.suppress(RunnerError):
@@ -414,7 +425,7 @@ async def run_ground(
                 "ground: mission %s starts at %.3f (clock rate %.4f)", mission_id, start_s, rate
             )
             await until(
-                lambda: ids <= states("done", "lost", "aborted"),
+                lambda: ids <= states("done", *FINAL_STATES),
                 (start_delay_s + duration_s) / rate + 120.0,
                 "every vehicle done",
             )
@@ -426,9 +437,9 @@ async def run_ground(
 
 
 def _final_already(last: VehicleStatus | None, status: VehicleStatus) -> bool:
-    """Whether ``last`` was final (lost, failed, aborted) so ``status`` changes nothing: a lost
+    """Whether ``last`` was final (:data:`FINAL_STATES`) so ``status`` changes nothing: a lost
     vehicle stays lost; only its reason may still arrive (the controller's own status first)."""
-    if last is None or last.state not in ("lost", "failed", "aborted"):
+    if last is None or last.state not in FINAL_STATES:
         return False
     return status.state != last.state or not status.detail or bool(last.detail)
 

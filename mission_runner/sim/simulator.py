@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..config import Scenario
+from ..config import FLIGHT_ONLY_EVENTS, Scenario
 from ..enclosing import SwarmEnclosing, splay_spacing_error
 from ..errors import SimulationError
 from ..scenario import shape_matrices, target_positions
@@ -123,7 +123,7 @@ def simulate(
     """Run ``scenario`` ``runs`` times (vectorised). ``on_step(k, total)`` reports progress."""
     if runs < 1:
         raise SimulationError(f"runs must be >= 1, got {runs}")
-    flying_only = sorted({e.kind for e in scenario.events} & {"link_lost", "sensor_lost"})
+    flying_only = sorted({e.kind for e in scenario.events} & FLIGHT_ONLY_EVENTS)
     if flying_only:
         raise SimulationError(
             f"events {flying_only} need real links and sensors: fly the scenario with "

@@ -116,6 +116,8 @@ class FakeLink:
         self.clock = clock
         self.setpoints = []
         self.stall_s = {}
+        self.in_control = True
+        self.control_lost = None
 
     async def odometry_updated(self):
         await asyncio.Event().wait()  # no telemetry ever arrives: the controller's timeout ends it
@@ -415,6 +417,63 @@ async def test_lost_own_odometry_holds_then_gives_the_vehicle_up():
     assert statuses[-1].state == "lost"
     assert statuses[-1].step == 5
     assert not statuses[-1].tracking_ok
+
+
+# --- who flies the vehicle ------------------------------------------------------------------------
+
+
+def taken_over_at(step, reason="switched to HOLD by someone other than the runner"):
+    """A setup that has someone else take the vehicle (the link says so) at t_step."""
+
+    def setup(flight):
+        feed = flight.clock.on_wake
+
+        async def on_wake(t):
+            if t >= t_(step) - 1e-9:
+                flight.link.in_control, flight.link.control_lost = False, reason
+            await feed(t)
+
+        flight.clock.on_wake = on_wake
+
+    return setup
+
+
+@pytest.mark.asyncio
+async def test_a_vehicle_taken_over_is_no_longer_driven_and_says_so():
+    async with rig() as flight:
+        taken_over_at(3)(flight)
+        records = await flight.fly(10)
+        published = flight.published_steps()
+        statuses = flight.statuses()
+
+    # Step 3's wait is where the takeover is seen: that step holds (zero horizontal command,
+    # never "following"), and from step 4 nothing is sent: no setpoint, no step message.
+    assert [r.state for r in records] == ["following"] * 3 + ["holding"]
+    assert flight.controller.state == "taken_over"
+    assert len(flight.link.setpoints) == 4
+    assert flight.link.setpoints[3][:2] == (0.0, 0.0)
+    assert [m.step for m in published] == [0, 1, 2, 3]
+    assert statuses[-1].state == "taken_over"
+    assert statuses[-1].step == 4
+    assert not statuses[-1].tracking_ok
+    assert "someone other than the runner" in statuses[-1].detail
+
+
+@pytest.mark.asyncio
+async def test_never_following_before_the_vehicle_is_seen_armed_in_offboard():
+    async with rig() as flight:
+        flight.link.in_control = False  # OFFBOARD asked for, not yet seen in a heartbeat
+        feed = flight.clock.on_wake
+
+        async def on_wake(t):
+            flight.link.in_control = t >= t_(3) - 1e-9  # the heartbeat comes at t_3
+            await feed(t)
+
+        flight.clock.on_wake = on_wake
+        records = await flight.fly(6)
+
+    assert [r.state for r in records] == ["holding"] * 3 + ["following"] * 3
+    assert all(setpoint[:2] == (0.0, 0.0) for setpoint in flight.link.setpoints[:3])
 
 
 # --- step alignment ------------------------------------------------------------------------------

@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mission_runner.config import load_scenario, validate_scenario
+from mission_runner.config import FLIGHT_ONLY_EVENTS, load_scenario, validate_scenario
 from mission_runner.sim.metrics import check_expectations, run_metrics
 from mission_runner.sim.simulator import simulate
 
@@ -120,11 +120,12 @@ def test_sheared_and_translated_shapes_are_followed():
 
 
 def simulable():
-    """Bundled scenarios the numeric model can run (link and sensor faults need a flight)."""
+    """Bundled scenarios the numeric model can run (link, sensor and takeover events need a
+    flight)."""
     names = []
     for path in sorted(CONFIGS.glob("*.yaml")):
         scenario = load_scenario(path)
-        if not {e.kind for e in scenario.events} & {"link_lost", "sensor_lost"}:
+        if not {e.kind for e in scenario.events} & FLIGHT_ONLY_EVENTS:
             names.append(path.stem)
     return names
 
