@@ -162,6 +162,9 @@ class VehicleController:
         self._reference: NDArray[np.float64] | None = None
         self._tracking_integral = np.zeros(2)
         self._last_positions: dict[int, tuple[float, float]] = {}  # for the separation guard
+        #: The operator's hold (ground station ``hold`` until ``resume``): hover in place, keep
+        #: the oscillator on the grid, publish nothing of the law.
+        self.operator_hold = False
         self._missed_odometry = 0
         self._known_target_velocity: tuple[int, tuple[float, float]] | None = None
         self.skipped_steps = 0
@@ -305,9 +308,10 @@ class VehicleController:
         consensus: tuple[float, float]
         # Hold on stale data, and while the vehicle is not seen armed in OFFBOARD.
         stale_s = now - self._last_fresh_s
-        if odometry is None or stale_s > settings.silence_timeout_s or not self.link.in_control:
+        holding = stale_s > settings.silence_timeout_s or not self.link.in_control
+        if odometry is None or holding or self.operator_hold:
             velocity = (0.0, 0.0)
-            self.state = "holding"
+            self.state = "held" if self.operator_hold and not holding else "holding"
             # The vehicle holds: when it resumes, track afresh from where it is, and lead from
             # nothing (a command change over the whole hold is not a rate to lead).
             self._reference = None
