@@ -24,6 +24,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from .bus.errors import BusConnectionError, BusTimeoutError
 from .config import load_scenario
 from .errors import MissionRunnerError
 from .runner.errors import RunnerError
@@ -50,7 +51,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         return _unwrapped(arguments.handler, arguments)
-    except RunnerError as error:
+    except (RunnerError, BusConnectionError, BusTimeoutError) as error:  # link, broker, vehicle
         print(f"error: {error}", file=sys.stderr)
         return EXIT_RUNTIME_FAILURE
     except _emulator_errors() as error:  # e.g. a port already taken: one line naming the setting
