@@ -101,3 +101,56 @@ def test_hold_resume_and_landing_one_vehicle_from_the_operator(tmp_path, mosquit
         assert re.search(rf"vehicle {number}: done, {STEPS} steps", output), output
     assert vehicles[3].returncode != 0  # its mission did not finish: it was landed
     assert re.search(r"vehicle 4: aborted, .*\n  mission aborted by the ground station", outputs[3])
+
+
+@pytest.mark.timeout(300)
+def test_stopping_the_ground_station_lands_every_vehicle(tmp_path, mosquitto):
+    scenario = str(scenario_file(tmp_path, mosquitto))
+    ports = free_port_config(4, gcs=False)
+    world = start(
+        "mission_runner.cli",
+        "emulate",
+        scenario,
+        "--no-gcs",
+        "--api-port-base",
+        str(ports.api_remote_base),
+        "--api-local-port-base",
+        str(ports.api_local_base),
+    )
+    processes, seen = [], []
+    try:
+        wait_for(world, "world on the mqtt bus", [])
+        ground = start("mission_runner.cli", "ground", scenario, "--no-figures")
+        vehicles = [
+            start(
+                "mission_runner.cli",
+                "vehicle",
+                scenario,
+                "--id",
+                str(i + 1),
+                "--url",
+                f"udpin://0.0.0.0:{ports.api_remote_base + i}",
+                "--out",
+                str(tmp_path / f"vehicle_{i + 1}"),
+            )
+            for i in range(4)
+        ]
+        processes = [ground, *vehicles]
+        wait_for(ground, r"vehicle 1: following", seen)
+        ground.send_signal(signal.SIGINT)
+        ground.communicate(timeout=30)
+        outputs = [vehicle.communicate(timeout=90)[0] for vehicle in vehicles]
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+        world.send_signal(signal.SIGINT)
+        world.communicate(timeout=30)
+
+    assert ground.returncode == 130
+    for number, output in enumerate(outputs, start=1):
+        assert re.search(
+            rf"vehicle {number}: aborted, .*\n  mission aborted by the ground station: "
+            "ground station stopped",
+            output,
+        ), output
