@@ -83,17 +83,22 @@ MAV_STATE_STANDBY = 3
 MAV_STATE_ACTIVE = 4
 MAV_STATE_CRITICAL = 5
 
-# MAV_PROTOCOL_CAPABILITY
+#: MAV_PROTOCOL_CAPABILITY bits of AUTOPILOT_VERSION: exactly the ones PX4 sets
+#: (Mavlink::send_autopilot_capabilities; PX4 SITL v1.15 answers 0xE8FF), each of which the
+#: emulator handles. PX4 handles SET_POSITION_TARGET_GLOBAL_INT without setting its bit, and so
+#: does the emulator: a client that decides by the bits decides as it would with PX4.
 CAPABILITIES = (
-    0x1  # MISSION_FLOAT
-    | 0x2  # PARAM_FLOAT
-    | 0x4  # MISSION_INT
-    | 0x8  # COMMAND_INT
-    | 0x40  # SET_ATTITUDE_TARGET
-    | 0x80  # SET_POSITION_TARGET_LOCAL_NED
-    | 0x100  # SET_POSITION_TARGET_GLOBAL_INT
-    | 0x1000  # PARAM_ENCODE_BYTEWISE
-    | 0x2000  # MAVLINK2
+    mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT  # MISSION_ITEM / MISSION_REQUEST
+    | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE  # INT32 params in the float's bytes
+    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+    | mavlink.MAV_PROTOCOL_CAPABILITY_FLIGHT_TERMINATION  # MAV_CMD_DO_FLIGHTTERMINATION
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE  # fence items upload/download (not enforced)
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY  # rally items upload/download
 )
 GRAVITY_M_S2 = 9.80665
 
@@ -377,6 +382,9 @@ class TelemetryBuilder:
             0,
             0,
             0x5349544C00000000 + ap.sysid,  # "SITL" + system id: unique per vehicle
+            # PX4 SITL adds the instance (system id - 1) to the first byte of its GUID, which
+            # is MAVSDK's info.hardware_uid.
+            [(ap.sysid - 1) & 0xFF] + [0] * 17,
         )
 
     def home_position(self, now_s: float) -> mavlink.MAVLink_message:

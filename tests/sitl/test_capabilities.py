@@ -1,0 +1,111 @@
+"""What a vehicle says it speaks: AUTOPILOT_VERSION's capability bits and identity, checked bit by
+bit against what PX4 SITL v1.15 answers, and as MAVSDK's info plugin reads them."""
+
+from __future__ import annotations
+
+import pytest
+from mavsdk.asyncio.plugins.info import InfoAsync
+from pymavlink.dialects.v20 import common as mavlink
+
+from sitl import Emulator, EmulatorConfig
+from sitl.config import ClockConfig
+from sitl.telemetry import CAPABILITIES
+from tests.sitl.helpers import Bench, free_port_config
+from tests.sitl.mavsdk_helpers import mavsdk_connected
+
+ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
+
+#: AUTOPILOT_VERSION.capabilities of PX4 SITL (SIH), read from a running instance: 0xE8FF.
+PX4_SITL_CAPABILITIES = {
+    "MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT",
+    "MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT",
+    "MAV_PROTOCOL_CAPABILITY_MISSION_INT",
+    "MAV_PROTOCOL_CAPABILITY_COMMAND_INT",
+    "MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE",
+    "MAV_PROTOCOL_CAPABILITY_FTP",
+    "MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET",
+    "MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED",
+    "MAV_PROTOCOL_CAPABILITY_FLIGHT_TERMINATION",
+    "MAV_PROTOCOL_CAPABILITY_MAVLINK2",
+    "MAV_PROTOCOL_CAPABILITY_MISSION_FENCE",
+    "MAV_PROTOCOL_CAPABILITY_MISSION_RALLY",
+}
+#: Of those, what the emulator does not serve yet.
+NOT_YET = {"MAV_PROTOCOL_CAPABILITY_FTP"}
+
+
+def bit_names(capabilities: int) -> set[str]:
+    entries = mavlink.enums["MAV_PROTOCOL_CAPABILITY"]
+    return {
+        entry.name
+        for value, entry in entries.items()
+        if value & (value - 1) == 0 and capabilities & value and not entry.name.endswith("END")
+    }
+
+
+def version_of(bench: Bench) -> mavlink.MAVLink_message:
+    assert bench.command(mavlink.MAV_CMD_REQUEST_MESSAGE, 148) == ACCEPTED
+    message = bench.link.sent[-1]
+    assert message.get_type() == "AUTOPILOT_VERSION"
+    return message
+
+
+def test_capability_bits_are_px4_sitls() -> None:
+    assert bit_names(CAPABILITIES) == PX4_SITL_CAPABILITIES - NOT_YET
+    assert version_of(Bench()).capabilities == CAPABILITIES
+
+
+def test_no_bit_claims_what_px4_does_not_claim() -> None:
+    names = bit_names(CAPABILITIES)
+    # 0x1000 was once set here for PARAM_ENCODE_BYTEWISE (0x10); it means compass calibration.
+    assert "MAV_PROTOCOL_CAPABILITY_COMPASS_CALIBRATION" not in names
+    assert "MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE" in names
+    # Handled (offboard) but, as on PX4, not advertised.
+    assert "MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT" not in names
+    assert "MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST" not in names
+    assert "MAV_PROTOCOL_CAPABILITY_TERRAIN" not in names
+
+
+def test_the_advertised_protocols_are_served() -> None:
+    bench = Bench()
+    bench.step()
+    # FLIGHT_TERMINATION: the command is accepted and the motors stop.
+    assert bench.command(mavlink.MAV_CMD_DO_FLIGHTTERMINATION, 1) == ACCEPTED
+    # MISSION_FENCE / MISSION_RALLY: an upload of either type is accepted.
+    for mission_type in (mavlink.MAV_MISSION_TYPE_FENCE, mavlink.MAV_MISSION_TYPE_RALLY):
+        bench.link.clear()
+        bench.deliver(mavlink.MAVLink_mission_count_message(1, 1, 0, mission_type))
+        acks = bench.link.of_type("MISSION_ACK")
+        assert [(a.type, a.mission_type) for a in acks] == [
+            (mavlink.MAV_MISSION_ACCEPTED, mission_type)
+        ]
+
+
+def test_each_vehicle_has_its_own_identity_like_px4_sitl_instances() -> None:
+    bench = Bench(3)
+    versions = [
+        bench.autopilots[i].telemetry.build(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, 0.0)
+        for i in range(3)
+    ]
+    assert [v.uid2[0] for v in versions] == [0, 1, 2]  # PX4 SITL: instance in the GUID
+    assert len({v.uid for v in versions}) == 3
+
+
+@pytest.mark.mavsdk
+@pytest.mark.asyncio
+async def test_mavsdk_info_reads_version_and_identity() -> None:
+    config = EmulatorConfig(
+        vehicles=2, ports=free_port_config(2, gcs=False), clock=ClockConfig(speed=2.0)
+    )
+    async with (
+        Emulator(config) as emulator,
+        mavsdk_connected([ep.mavsdk_url for ep in emulator.endpoints], 2) as (_, drones, _),
+    ):
+        infos = [InfoAsync(drone.system) for drone in drones]
+        versions = [await info.get_version() for info in infos]
+        identities = [await info.get_identification() for info in infos]
+    assert {(v.flight_sw_major, v.flight_sw_minor, v.flight_sw_patch) for v in versions} == {
+        (1, 15, 0)
+    }
+    assert identities[0].hardware_uid != identities[1].hardware_uid
+    assert {i.legacy_uid for i in identities} == {0x5349544C00000001, 0x5349544C00000002}
