@@ -7,8 +7,8 @@ protocol to the navigator's mission store (:mod:`sitl.mission`), commands to the
 :class:`sitl.commands.CommandDispatcher`. It answers the protocol-level requests itself:
 parameters (PARAM_REQUEST_LIST / READ / SET), PING, TIMESYNC, and the commands that ask for
 messages (REQUEST_MESSAGE, SET/GET_MESSAGE_INTERVAL, GET_HOME_POSITION,
-REQUEST_AUTOPILOT_CAPABILITIES). Replies go to the link a request came on; parameter changes to
-every link. Messages that do not make sense are ignored, as PX4 does.
+REQUEST_AUTOPILOT_CAPABILITIES, REQUEST_PROTOCOL_VERSION). Replies go to the link a request came
+on; parameter changes to every link. Messages that do not make sense are ignored, as PX4 does.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from sitl.commander import COMMANDER_COMMANDS, Commander
 from sitl.commands import Command, CommandDispatcher, CommandTable, bind
 from sitl.navigator import NAVIGATOR_COMMANDS, Navigator
 from sitl.offboard import Offboard
-from sitl.telemetry import BUILDABLE, TelemetryBuilder
+from sitl.telemetry import BUILDABLE, MSG_PROTOCOL_VERSION, TelemetryBuilder
 from sitl.vehicle_state import Link, VehicleContext
 
 logger = logging.getLogger(__name__)
@@ -200,6 +200,10 @@ class MavlinkReceiver:
         )
         return mavlink.MAV_RESULT_ACCEPTED
 
+    def _cmd_request_protocol_version(self, cmd: Command, link: Link) -> int:
+        self._commands.then(lambda: self._send_built(MSG_PROTOCOL_VERSION, link))
+        return mavlink.MAV_RESULT_ACCEPTED
+
     def _send_built(self, msg_id: int, link: Link) -> None:
         msg = self._telemetry.build(msg_id, self._vehicle.state.now_s)
         if msg is not None:
@@ -215,6 +219,7 @@ RECEIVER_COMMANDS: CommandTable[MavlinkReceiver] = {
     mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: (
         MavlinkReceiver._cmd_request_autopilot_capabilities
     ),
+    mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION: MavlinkReceiver._cmd_request_protocol_version,
 }
 
 

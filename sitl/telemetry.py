@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Literal
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from sitl.messages import MAVLINK_MSG_ID_PROTOCOL_VERSION, MAVLinkProtocolVersionMessage
 from sitl.modes import base_mode
 
 if TYPE_CHECKING:
@@ -36,6 +37,7 @@ MSG_ALTITUDE = 141
 MSG_BATTERY_STATUS = 147
 MSG_AUTOPILOT_VERSION = 148
 MSG_HOME_POSITION = 242
+MSG_PROTOCOL_VERSION = MAVLINK_MSG_ID_PROTOCOL_VERSION
 MSG_EXTENDED_SYS_STATE = 245
 
 #: Stream message id -> StreamRates field.
@@ -58,10 +60,16 @@ STREAM_RATE_FIELDS: dict[int, str] = {
 
 #: Messages that can be requested once (REQUEST_MESSAGE) or streamed (SET_MESSAGE_INTERVAL).
 BUILDABLE: frozenset[int] = frozenset(
-    [*STREAM_RATE_FIELDS, MSG_SYSTEM_TIME, MSG_GPS_GLOBAL_ORIGIN, MSG_AUTOPILOT_VERSION]
+    [
+        *STREAM_RATE_FIELDS,
+        MSG_SYSTEM_TIME,
+        MSG_GPS_GLOBAL_ORIGIN,
+        MSG_AUTOPILOT_VERSION,
+        MSG_PROTOCOL_VERSION,
+    ]
 )
-#: Of those, the ones PX4 will not stream periodically.
-NOT_STREAMABLE: frozenset[int] = frozenset([MSG_AUTOPILOT_VERSION])
+#: Of those, the ones only sent on request here.
+NOT_STREAMABLE: frozenset[int] = frozenset([MSG_AUTOPILOT_VERSION, MSG_PROTOCOL_VERSION])
 
 # SYS_STATUS sensor bits (MAV_SYS_STATUS_SENSOR)
 _GYRO = 0x1
@@ -195,6 +203,7 @@ class TelemetryBuilder:
             MSG_ALTITUDE: self.altitude,
             MSG_BATTERY_STATUS: self.battery_status,
             MSG_AUTOPILOT_VERSION: self.autopilot_version,
+            MSG_PROTOCOL_VERSION: self.protocol_version,
             MSG_HOME_POSITION: self.home_position,
             MSG_EXTENDED_SYS_STATE: self.extended_sys_state,
             MSG_HIL_STATE_QUATERNION: self.hil_state_quaternion,
@@ -386,6 +395,12 @@ class TelemetryBuilder:
             # is MAVSDK's info.hardware_uid.
             [(ap.sysid - 1) & 0xFF] + [0] * 17,
         )
+
+    def protocol_version(self, now_s: float) -> mavlink.MAVLink_message:
+        """As PX4's Mavlink::send_protocol_version on a MAVLink 2 link: speaks 2.0, accepts
+        1.0 to 2.3. PX4 puts its MAVLink library's git hash in library_version_hash; there is
+        no such library here, so both hashes are zero."""
+        return MAVLinkProtocolVersionMessage(200, 100, 203)
 
     def home_position(self, now_s: float) -> mavlink.MAVLink_message:
         ap = self.ap

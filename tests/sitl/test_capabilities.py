@@ -1,7 +1,10 @@
 """What a vehicle says it speaks: AUTOPILOT_VERSION's capability bits and identity, checked bit by
-bit against what PX4 SITL v1.15 answers, and as MAVSDK's info plugin reads them."""
+bit against what PX4 SITL v1.15 answers, and as MAVSDK's info plugin reads them; PROTOCOL_VERSION
+byte for byte as PX4 sends it."""
 
 from __future__ import annotations
+
+import asyncio
 
 import pytest
 from mavsdk.asyncio.plugins.info import InfoAsync
@@ -9,8 +12,13 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import Emulator, EmulatorConfig
 from sitl.config import ClockConfig
+from sitl.messages import (
+    MAVLINK_MSG_ID_PROTOCOL_VERSION,
+    MAVLinkProtocolVersionMessage,
+    decode_protocol_version,
+)
 from sitl.telemetry import CAPABILITIES
-from tests.sitl.helpers import Bench, free_port_config
+from tests.sitl.helpers import Bench, RawClient, free_port_config
 from tests.sitl.mavsdk_helpers import mavsdk_connected
 
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
@@ -109,3 +117,65 @@ async def test_mavsdk_info_reads_version_and_identity() -> None:
     }
     assert identities[0].hardware_uid != identities[1].hardware_uid
     assert {i.legacy_uid for i in identities} == {0x5349544C00000001, 0x5349544C00000002}
+
+
+# ---------------------------------------------------------------- PROTOCOL_VERSION
+#: PROTOCOL_VERSION as PX4 SITL (system 8, sequence 0x70) sent it: version 200, min 100, max 203,
+#: library_version_hash = the first 8 bytes of its MAVLink library's git hash.
+PX4_PROTOCOL_VERSION_PACKET = bytes.fromhex(
+    "fd1600007008012c0100c8006400cb0000000000000000006521d1aee97ea4515341"
+)
+
+
+def test_protocol_version_is_encoded_byte_for_byte_as_px4_does() -> None:
+    payload = PX4_PROTOCOL_VERSION_PACKET[10:-2]
+    px4 = decode_protocol_version(payload)
+    assert (px4.version, px4.min_version, px4.max_version) == (200, 100, 203)
+    encoder = mavlink.MAVLink(None, srcSystem=8, srcComponent=1)
+    encoder.seq = 0x70
+    again = MAVLinkProtocolVersionMessage(200, 100, 203, [0] * 8, px4.library_version_hash)
+    assert again.pack(encoder) == PX4_PROTOCOL_VERSION_PACKET  # CRC extra included
+
+
+@pytest.mark.parametrize(
+    "request_",
+    [
+        (mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION, 1),
+        (mavlink.MAV_CMD_REQUEST_MESSAGE, MAVLINK_MSG_ID_PROTOCOL_VERSION),
+    ],
+)
+def test_protocol_version_answers_both_requests_after_the_ack(request_: tuple[int, int]) -> None:
+    bench = Bench()
+    assert bench.command(*request_) == ACCEPTED
+    kinds = [m.get_type() for m in bench.link.sent]
+    assert kinds[-2:] == ["COMMAND_ACK", "PROTOCOL_VERSION"]
+    answer = bench.link.sent[-1]
+    assert (answer.version, answer.min_version, answer.max_version) == (200, 100, 203)
+
+
+def test_protocol_version_request_may_be_broadcast_like_on_px4() -> None:
+    bench = Bench()
+    assert bench.command(mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION, 1, target=0) == ACCEPTED
+    assert bench.command(mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION, 1, target_component=42) == (
+        ACCEPTED
+    )
+    assert bench.command(mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION, 1, target=9) is None
+
+
+@pytest.mark.asyncio
+async def test_protocol_version_over_udp_passes_pymavlinks_crc_check(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # pymavlink's common dialect lacks the message: teach this process's decoder the definition
+    # so that it checks the CRC and the layout of what arrives.
+    monkeypatch.setitem(
+        mavlink.mavlink_map, MAVLINK_MSG_ID_PROTOCOL_VERSION, MAVLinkProtocolVersionMessage
+    )
+    config = EmulatorConfig(vehicles=1, ports=free_port_config(1, gcs=False))
+    async with Emulator(config), RawClient(config.ports.api_remote_port(0)) as client:
+        await client.expect(lambda m: m.get_type() == "HEARTBEAT", 3, "a heartbeat")
+        with client.matching(lambda m: m.get_type() == "PROTOCOL_VERSION") as answer:
+            assert await client.command(1, mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION, 1) == ACCEPTED
+            message = await asyncio.wait_for(answer, 3)
+    assert (message.version, message.min_version, message.max_version) == (200, 100, 203)
+    assert client.counts.get("PROTOCOL_VERSION") == 1
