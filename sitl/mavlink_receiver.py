@@ -181,8 +181,11 @@ class MavlinkReceiver:
         msg_id, interval_us = cmd.params[0], cmd.params[1]
         if not (math.isfinite(msg_id) and 0 <= msg_id < _MAX_MESSAGE_ID):
             return mavlink.MAV_RESULT_DENIED
+        if int(msg_id) == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            return mavlink.MAV_RESULT_FAILED  # PX4 keeps its heartbeat at 1 Hz
         ok = link.streams.set_interval(int(msg_id), interval_us, self._vehicle.state.now_s)
-        return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
+        # PX4 answers FAILED for a message it has no stream of (e.g. RAW_IMU).
+        return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_FAILED
 
     def _cmd_request_message(self, cmd: Command, link: Link) -> int:
         msg_id = cmd.params[0]
