@@ -35,6 +35,7 @@ from collections.abc import Callable
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from sitl import imu
 from sitl import physics as ph
 from sitl.commander import Commander
 from sitl.geo import MapProjection
@@ -103,6 +104,8 @@ class Px4Autopilot:
         self.compid = self._vehicle.compid
         self.params.set_silently("MAV_SYS_ID", self.sysid)
         self.telemetry = TelemetryBuilder(self)
+        home_latitude_deg, _ = projection.to_global(*self._state.home_ned_m[:2])
+        self._earth_field_ned_gauss = imu.earth_field_ned_gauss(home_latitude_deg)
         self.battery_remaining_pct = 100.0
         self._last_update_s = 0.0
         self._cache_step = -1
@@ -282,6 +285,20 @@ class Px4Autopilot:
         wind = phys.wind
         wind_ned = [0.0, 0.0, 0.0] if wind is None else [float(v) for v in wind.velocity_ned_m_s[i]]
         return p, q, r, accel, wind_ned
+
+    def inertial_frd(self) -> tuple[imu.Vector3, imu.Vector3, imu.Vector3]:
+        """What the vehicle's IMU and magnetometer read: specific force (m/s^2), body rates
+        (rad/s) and the earth's field (gauss), all in the body frame FRD (see :mod:`sitl.imu`)."""
+        i = self.index
+        s = self._vehicle.snapshot
+        roll, pitch, yaw = s.roll_rad[i], s.pitch_rad[i], s.yaw_rad[i]
+        an, ae, ad = s.acceleration_ned_m_s2[i]
+        force = imu.specific_force_frd((an, ae, ad), roll, pitch, yaw)
+        rates = imu.body_rates_frd(
+            roll, pitch, s.roll_rate_rad_s[i], s.pitch_rate_rad_s[i], s.yaw_rate_rad_s[i]
+        )
+        field = imu.ned_to_frd(self._earth_field_ned_gauss, roll, pitch, yaw)
+        return force, rates, field
 
     def height_above_ground_m(self) -> float:
         return self._vehicle.height_above_ground_m()

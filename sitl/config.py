@@ -320,6 +320,25 @@ class StreamRates(_Model):
         description="Rate, Hz, of the ground-truth state (PX4 streams it only on SIH's own "
         "link, see truth_stream).",
     )
+    highres_imu_hz: float = Field(
+        10.0,
+        ge=0,
+        le=100,
+        title="HIGHRES_IMU",
+        description="Rate, Hz, of the IMU, magnetometer and barometer readings in SI units. "
+        "PX4 streams 50 Hz on the onboard/API link and none on the GCS link; 10 Hz here, like "
+        "the other API streams below PX4's rates, because 50 Hz puts a datagram into every "
+        "physics step of every vehicle (see sitl/README.md for the cost). 50 restores PX4's "
+        "rate; MAVSDK's set_rate_imu() changes it at run time.",
+    )
+    scaled_imu_hz: float = Field(
+        0.0,
+        ge=0,
+        le=100,
+        title="SCALED_IMU",
+        description="Rate, Hz, of the IMU readings in integer units (PX4 streams it on USB "
+        "links only; SET_MESSAGE_INTERVAL turns it on).",
+    )
 
 
 def _gcs_rates() -> StreamRates:
@@ -332,6 +351,7 @@ def _gcs_rates() -> StreamRates:
         home_position_hz=0.5,
         battery_status_hz=0.5,
         altitude_hz=1.0,
+        highres_imu_hz=0.0,
     )
 
 

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Literal
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from sitl import imu
 from sitl.messages import MAVLINK_MSG_ID_PROTOCOL_VERSION, MAVLinkProtocolVersionMessage
 from sitl.modes import base_mode
 
@@ -25,6 +26,7 @@ MSG_HEARTBEAT = 0
 MSG_SYS_STATUS = 1
 MSG_SYSTEM_TIME = 2
 MSG_GPS_RAW_INT = 24
+MSG_SCALED_IMU = 26
 MSG_ATTITUDE = 30
 MSG_ATTITUDE_QUATERNION = 31
 MSG_LOCAL_POSITION_NED = 32
@@ -32,6 +34,7 @@ MSG_GLOBAL_POSITION_INT = 33
 MSG_MISSION_CURRENT = 42
 MSG_GPS_GLOBAL_ORIGIN = 49
 MSG_VFR_HUD = 74
+MSG_HIGHRES_IMU = 105
 MSG_HIL_STATE_QUATERNION = 115
 MSG_ALTITUDE = 141
 MSG_BATTERY_STATUS = 147
@@ -56,6 +59,8 @@ STREAM_RATE_FIELDS: dict[int, str] = {
     MSG_ALTITUDE: "altitude_hz",
     MSG_MISSION_CURRENT: "mission_current_hz",
     MSG_HIL_STATE_QUATERNION: "hil_state_quaternion_hz",
+    MSG_HIGHRES_IMU: "highres_imu_hz",
+    MSG_SCALED_IMU: "scaled_imu_hz",
 }
 
 #: Messages that can be requested once (REQUEST_MESSAGE) or streamed (SET_MESSAGE_INTERVAL).
@@ -108,7 +113,12 @@ CAPABILITIES = (
     | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE  # fence items upload/download (not enforced)
     | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY  # rally items upload/download
 )
-GRAVITY_M_S2 = 9.80665
+GRAVITY_M_S2 = imu.GRAVITY_M_S2
+#: HIGHRES_IMU.fields_updated: accelerometer, gyroscope, magnetometer and barometer (absolute
+#: pressure, pressure altitude, temperature) - every field but the differential pressure.
+_HIGHRES_IMU_FIELDS = 0x1BFF
+#: PX4 SIH's ambient temperature, degC.
+_AIR_TEMPERATURE_DEGC = 15.0
 
 #: PX4 v1.15.0 release: major << 24 | minor << 16 | patch << 8 | FIRMWARE_VERSION_TYPE_OFFICIAL.
 FLIGHT_SW_VERSION = (1 << 24) | (15 << 16) | (0 << 8) | 255
@@ -207,6 +217,8 @@ class TelemetryBuilder:
             MSG_HOME_POSITION: self.home_position,
             MSG_EXTENDED_SYS_STATE: self.extended_sys_state,
             MSG_HIL_STATE_QUATERNION: self.hil_state_quaternion,
+            MSG_HIGHRES_IMU: self.highres_imu,
+            MSG_SCALED_IMU: self.scaled_imu,
         }
 
     def build(self, msg_id: int, now_s: float) -> mavlink.MAVLink_message | None:
@@ -422,6 +434,49 @@ class TelemetryBuilder:
 
     def extended_sys_state(self, now_s: float) -> mavlink.MAVLink_message:
         return mavlink.MAVLink_extended_sys_state_message(0, self.ap.landed_state)
+
+    def highres_imu(self, now_s: float) -> mavlink.MAVLink_message:
+        """IMU, magnetometer and barometer in SI units, body frame FRD, as PX4's HIGHRES_IMU
+        stream fills it (the air temperature of PX4 SIH, no differential pressure)."""
+        ap = self.ap
+        (fx, fy, fz), (p, q, r), (mx, my, mz) = ap.inertial_frd()
+        _, _, alt_m = ap.true_global_position()
+        return mavlink.MAVLink_highres_imu_message(
+            ap.time_usec(now_s),
+            fx,
+            fy,
+            fz,
+            p,
+            q,
+            r,
+            mx,
+            my,
+            mz,
+            imu.static_pressure_hpa(alt_m),
+            0.0,
+            alt_m,
+            _AIR_TEMPERATURE_DEGC,
+            _HIGHRES_IMU_FIELDS,
+        )
+
+    def scaled_imu(self, now_s: float) -> mavlink.MAVLink_message:
+        """The first IMU in MAVLink's integer units: mG, mrad/s, mgauss, cdegC (FRD)."""
+        ap = self.ap
+        (fx, fy, fz), (p, q, r), (mx, my, mz) = ap.inertial_frd()
+        to_mg = 1000.0 / GRAVITY_M_S2
+        return mavlink.MAVLink_scaled_imu_message(
+            ap.time_boot_ms(now_s),
+            _clamp_i16(fx * to_mg),
+            _clamp_i16(fy * to_mg),
+            _clamp_i16(fz * to_mg),
+            _clamp_i16(p * 1000.0),
+            _clamp_i16(q * 1000.0),
+            _clamp_i16(r * 1000.0),
+            _clamp_i16(mx * 1000.0),
+            _clamp_i16(my * 1000.0),
+            _clamp_i16(mz * 1000.0),
+            round(_AIR_TEMPERATURE_DEGC * 100),
+        )
 
     def hil_state_quaternion(self, now_s: float) -> mavlink.MAVLink_message:
         """The true state, as PX4's HIL_STATE_QUATERNION stream sends SIH's ground truth.
