@@ -23,6 +23,7 @@ from sitl.commander import COMMANDER_COMMANDS, Commander
 from sitl.commands import Command, CommandDispatcher, CommandTable, bind
 from sitl.navigator import NAVIGATOR_COMMANDS, Navigator
 from sitl.offboard import Offboard
+from sitl.params import PARAM_NAMES
 from sitl.telemetry import BUILDABLE, MSG_PROTOCOL_VERSION, TelemetryBuilder
 from sitl.vehicle_state import Link, VehicleContext
 
@@ -128,7 +129,7 @@ class MavlinkReceiver:
         if msg.param_index >= 0:
             if msg.param_index >= len(names):
                 return
-            name = list(names)[msg.param_index]
+            name = PARAM_NAMES[msg.param_index]
         else:
             name = _param_name(msg.param_id)
             if name not in names:
