@@ -38,6 +38,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from sitl import imu
 from sitl import physics as ph
 from sitl.commander import Commander
+from sitl.ftp import FileSystem, static_directory
 from sitl.geo import MapProjection
 from sitl.land_detector import LandDetector
 from sitl.mavlink_receiver import MavlinkReceiver
@@ -46,7 +47,7 @@ from sitl.modes import FlightMode
 from sitl.navigator import Navigator
 from sitl.odometry import Odometry
 from sitl.offboard import Offboard
-from sitl.params import ParamStore
+from sitl.params import ParamStore, pack_param_pck
 from sitl.telemetry import TelemetryBuilder
 from sitl.vehicle_state import Link, Snapshot, VehicleContext, VehicleState
 
@@ -64,6 +65,8 @@ class Px4Autopilot:
     that corresponds to simulated time 0 (for SYSTEM_TIME) unless ``unix_time_us`` gives the
     UNIX time for a simulated time. ``boot_offset_s`` is how long the autopilot had been running
     at simulated time 0: every timestamp it sends is on that boot clock.
+    ``ftp_ardupilot_extensions`` adds what ArduPilot's FTP server does beyond PX4's
+    (:class:`sitl.config.FtpConfig`).
     """
 
     def __init__(
@@ -81,6 +84,7 @@ class Px4Autopilot:
         unix_epoch_start_us: int = 0,
         unix_time_us: Callable[[float], int] | None = None,
         boot_offset_s: float = 0.0,
+        ftp_ardupilot_extensions: bool = False,
     ) -> None:
         self.index = index
         self.ground_amsl_m = ground_amsl_m
@@ -131,6 +135,8 @@ class Px4Autopilot:
             offboard=self._offboard,
             telemetry=self.telemetry,
             boot_time_s=self.boot_time_s,
+            files=self._file_system(ftp_ardupilot_extensions),
+            ftp_echo_session=ftp_ardupilot_extensions,
         )
         self._navigator.apply_limits()
         self._commander.command_physics()
@@ -404,6 +410,19 @@ class Px4Autopilot:
         self.mission.update(now_s)
 
     # ================================================================ wiring
+    def _file_system(self, ardupilot_extensions: bool) -> FileSystem:
+        """What MAVLink FTP serves: PX4's log directory and, with ArduPilot's extensions, the
+        parameters in ArduPilot's packed file."""
+        files = FileSystem(static_directory({"log": static_directory({})}))
+        if ardupilot_extensions:
+            params = self.params
+
+            def param_pck(query: str) -> bytes:
+                return pack_param_pck(params, with_defaults="withdefaults=1" in query)
+
+            files.special["@PARAM/param.pck"] = param_pck
+        return files
+
     def _set_mode(self, mode: FlightMode, failsafe: bool = False) -> None:
         """The navigator's way to the commander's mode switch."""
         self._commander.set_mode(mode, failsafe)

@@ -370,6 +370,21 @@ class TelemetryConfig(_Model):
     )
 
 
+class FtpConfig(_Model):
+    """What the vehicles' MAVLink FTP servers do beyond PX4's."""
+
+    ardupilot_extensions: bool = Field(
+        False,
+        title="ArduPilot's FTP extensions",
+        description="Also serve the parameters as ArduPilot's packed file @PARAM/param.pck and "
+        "keep the session number the client chose, as ArduPilot does. MAVProxy 1.8 needs "
+        "both to download parameters over FTP: it numbers its sessions at random, while PX4 "
+        "answers every open with session 0 and has no param.pck (it answers FILE_NOT_FOUND, "
+        "as the emulator does by default, and MAVProxy falls back to PARAM_REQUEST_LIST). "
+        "MAVProxy then takes every parameter for a float, as with ArduPilot.",
+    )
+
+
 class ClockConfig(_Model):
     """How simulated time relates to wall time."""
 
@@ -663,6 +678,11 @@ class EmulatorConfig(_Model):
         default_factory=TruthStreamConfig,
         title="Ground-truth stream",
         description="SIH's HIL_STATE_QUATERNION link (off by default).",
+    )
+    ftp: FtpConfig = Field(
+        default_factory=FtpConfig,
+        title="MAVLink FTP",
+        description="What the FTP servers do beyond PX4's.",
     )
     params: dict[str, float] = Field(
         default_factory=dict,

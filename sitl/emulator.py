@@ -400,6 +400,7 @@ class Emulator:
                 unix_epoch_start_us=int(time.time() * 1e6),
                 unix_time_us=unix_time_us,
                 boot_offset_s=float(self._boot_offsets_s[i]),
+                ftp_ardupilot_extensions=config.ftp.ardupilot_extensions,
             )
             for i in range(n)
         ]

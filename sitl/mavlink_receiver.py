@@ -5,7 +5,8 @@ takes every decoded message a link delivers and routes it by type: heartbeats an
 the commander (:mod:`sitl.commander`), setpoints to offboard (:mod:`sitl.offboard`), mission
 protocol to the navigator's mission store (:mod:`sitl.mission`), commands to the
 :class:`sitl.commands.CommandDispatcher`. It answers the protocol-level requests itself:
-parameters (PARAM_REQUEST_LIST / READ / SET), PING, TIMESYNC, and the commands that ask for
+parameters (PARAM_REQUEST_LIST / READ / SET), PING, TIMESYNC, MAVLink FTP (:mod:`sitl.ftp`, one
+server per link), and the commands that ask for
 messages (REQUEST_MESSAGE, SET/GET_MESSAGE_INTERVAL, GET_HOME_POSITION,
 REQUEST_AUTOPILOT_CAPABILITIES, REQUEST_PROTOCOL_VERSION). Replies go to the link a request came
 on; parameter changes to every link. Messages that do not make sense are ignored, as PX4 does.
@@ -21,6 +22,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.commander import COMMANDER_COMMANDS, Commander
 from sitl.commands import Command, CommandDispatcher, CommandTable, bind
+from sitl.ftp import FileSystem, FtpServer
 from sitl.navigator import NAVIGATOR_COMMANDS, Navigator
 from sitl.offboard import Offboard
 from sitl.params import PARAM_NAMES
@@ -62,8 +64,13 @@ class MavlinkReceiver:
         offboard: Offboard,
         telemetry: TelemetryBuilder,
         boot_time_s: Callable[[float], float],
+        files: FileSystem | None = None,
+        ftp_echo_session: bool = False,
     ) -> None:
         self._vehicle = vehicle
+        self._files = files if files is not None else FileSystem()
+        self._ftp: dict[Link, FtpServer] = {}
+        self._ftp_echo_session = ftp_echo_session
         self._telemetry = telemetry
         self._boot_time_s = boot_time_s
         self._commands = CommandDispatcher(
@@ -88,6 +95,7 @@ class MavlinkReceiver:
             "PARAM_SET": self._on_param_set,
             "PING": self._on_ping,
             "TIMESYNC": self._on_timesync,
+            "FILE_TRANSFER_PROTOCOL": self._on_file_transfer,
         }
         for kind in _MISSION_MESSAGES:
             self._handlers[kind] = self._on_mission_message
@@ -101,6 +109,21 @@ class MavlinkReceiver:
     # ------------------------------------------------------------------ misc
     def _on_mission_message(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         self._mission.handle(msg, link, self._vehicle.state.now_s)
+
+    def _on_file_transfer(self, msg: mavlink.MAVLink_message, link: Link) -> None:
+        # One server, with its own session, per link: PX4 runs one per MAVLink instance.
+        server = self._ftp.get(link)
+        if server is None:
+            vehicle = self._vehicle
+            server = FtpServer(
+                self._files,
+                sysid=vehicle.sysid,
+                compid=vehicle.compid,
+                now_s=lambda: vehicle.state.now_s,
+                echo_session=self._ftp_echo_session,
+            )
+            self._ftp[link] = server
+        server.handle(msg, link)
 
     def _on_ping(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         if msg.target_system == 0 and msg.target_component == 0:

@@ -672,3 +672,51 @@ class ParamStore:
                 return float(param_value)
             return float(wire_float_to_int32(param_value))
         return float(param_value)
+
+
+#: ArduPilot's packed parameter file (``@PARAM/param.pck`` over MAVLink FTP): magic, with
+#: defaults, and the type codes of its entries.
+PARAM_PCK_MAGIC = 0x671B
+PARAM_PCK_MAGIC_WITH_DEFAULTS = 0x671C
+_PCK_INT32 = 3
+_PCK_FLOAT = 4
+_PCK_HAS_DEFAULT = 0x10
+
+
+def pack_param_pck(store: ParamStore, *, with_defaults: bool = False) -> bytes:
+    """The parameters in ArduPilot's ``param.pck`` layout, which MAVProxy and QGroundControl
+    download over FTP from ArduPilot (PX4 has no such file).
+
+    Header ``<HHH``: magic, count, total count. Then per parameter in name order: a type byte
+    (3 int32, 4 float; 0x10 set when a default follows), a byte with the length of the name
+    part minus 1 (high nibble) and the length of the prefix shared with the previous name (low
+    nibble), that name part, the value, and the default if it differs from the value.
+    """
+    out = bytearray(
+        struct.pack(
+            "<HHH",
+            PARAM_PCK_MAGIC_WITH_DEFAULTS if with_defaults else PARAM_PCK_MAGIC,
+            len(store),
+            len(store),
+        )
+    )
+    previous = b""
+    for name in store:
+        spec = PARAM_TABLE[name]
+        raw = name.encode()
+        common = 0
+        limit = min(len(raw) - 1, len(previous), 15)
+        while common < limit and raw[common] == previous[common]:
+            common += 1
+        suffix = raw[common:]
+        value, default = store[name], spec.default
+        kind, code = ("<i", _PCK_INT32) if spec.type == "INT32" else ("<f", _PCK_FLOAT)
+        differs = with_defaults and value != default
+        out.append(code | (_PCK_HAS_DEFAULT if differs else 0))
+        out.append(((len(suffix) - 1) << 4) | common)
+        out += suffix
+        out += struct.pack(kind, int(value) if spec.type == "INT32" else value)
+        if differs:
+            out += struct.pack(kind, int(default) if spec.type == "INT32" else default)
+        previous = raw
+    return bytes(out)

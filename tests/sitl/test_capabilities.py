@@ -38,8 +38,6 @@ PX4_SITL_CAPABILITIES = {
     "MAV_PROTOCOL_CAPABILITY_MISSION_FENCE",
     "MAV_PROTOCOL_CAPABILITY_MISSION_RALLY",
 }
-#: Of those, what the emulator does not serve yet.
-NOT_YET = {"MAV_PROTOCOL_CAPABILITY_FTP"}
 
 
 def bit_names(capabilities: int) -> set[str]:
@@ -59,7 +57,8 @@ def version_of(bench: Bench) -> mavlink.MAVLink_message:
 
 
 def test_capability_bits_are_px4_sitls() -> None:
-    assert bit_names(CAPABILITIES) == PX4_SITL_CAPABILITIES - NOT_YET
+    assert bit_names(CAPABILITIES) == PX4_SITL_CAPABILITIES
+    assert CAPABILITIES == 0xE8FF
     assert version_of(Bench()).capabilities == CAPABILITIES
 
 
