@@ -38,6 +38,8 @@ from pymavlink.dialects.v20 import common as mavlink
 from sitl import imu
 from sitl import physics as ph
 from sitl.commander import Commander
+from sitl.config import FlightLogConfig
+from sitl.flight_log import FlightLogger, FlightLogStore
 from sitl.ftp import FileSystem, static_directory
 from sitl.geo import MapProjection
 from sitl.land_detector import LandDetector
@@ -66,7 +68,8 @@ class Px4Autopilot:
     UNIX time for a simulated time. ``boot_offset_s`` is how long the autopilot had been running
     at simulated time 0: every timestamp it sends is on that boot clock.
     ``ftp_ardupilot_extensions`` adds what ArduPilot's FTP server does beyond PX4's
-    (:class:`sitl.config.FtpConfig`).
+    (:class:`sitl.config.FtpConfig`); ``flight_logs`` says how to record the flight logs (None:
+    not at all).
     """
 
     def __init__(
@@ -85,6 +88,7 @@ class Px4Autopilot:
         unix_time_us: Callable[[float], int] | None = None,
         boot_offset_s: float = 0.0,
         ftp_ardupilot_extensions: bool = False,
+        flight_logs: FlightLogConfig | None = None,
     ) -> None:
         self.index = index
         self.ground_amsl_m = ground_amsl_m
@@ -128,6 +132,20 @@ class Px4Autopilot:
             preflight_ready_after_s=preflight_ready_after_s,
             on_home_changed=self._announce_home,
         )
+        self.flight_logs = FlightLogStore(flight_logs.max_logs if flight_logs else 1)
+        self._flight_logger = (
+            FlightLogger(
+                self,
+                self.params,
+                self.flight_logs,
+                rate_hz=flight_logs.rate_hz,
+                max_log_bytes=flight_logs.max_log_bytes,
+            )
+            if flight_logs is not None and flight_logs.enabled
+            else None
+        )
+        self._statustext_observer: Callable[[float, int, str], None] | None = None
+        self._vehicle.on_statustext = self._on_statustext
         self._receiver = MavlinkReceiver(
             vehicle,
             commander=self._commander,
@@ -137,6 +155,7 @@ class Px4Autopilot:
             boot_time_s=self.boot_time_s,
             files=self._file_system(ftp_ardupilot_extensions),
             ftp_echo_session=ftp_ardupilot_extensions,
+            flight_logs=self.flight_logs,
         )
         self._navigator.apply_limits()
         self._commander.command_physics()
@@ -205,11 +224,11 @@ class Px4Autopilot:
     @property
     def on_statustext(self) -> Callable[[float, int, str], None] | None:
         """Called with (time_s, severity, text) for every STATUSTEXT."""
-        return self._vehicle.on_statustext
+        return self._statustext_observer
 
     @on_statustext.setter
     def on_statustext(self, observer: Callable[[float, int, str], None] | None) -> None:
-        self._vehicle.on_statustext = observer
+        self._statustext_observer = observer
 
     def ready(self, now_s: float) -> bool:
         """Preflight checks pass: estimator converged, a position source works, alive."""
@@ -408,12 +427,21 @@ class Px4Autopilot:
             self._navigator.update(now_s)
             self._commander.update(now_s)
         self.mission.update(now_s)
+        if self._flight_logger is not None:
+            self._flight_logger.update(now_s)
+        self._receiver.pump()
 
     # ================================================================ wiring
+    def _on_statustext(self, now_s: float, severity: int, text: str) -> None:
+        if self._flight_logger is not None:
+            self._flight_logger.text(now_s, severity, text)
+        if self._statustext_observer is not None:
+            self._statustext_observer(now_s, severity, text)
+
     def _file_system(self, ardupilot_extensions: bool) -> FileSystem:
-        """What MAVLink FTP serves: PX4's log directory and, with ArduPilot's extensions, the
-        parameters in ArduPilot's packed file."""
-        files = FileSystem(static_directory({"log": static_directory({})}))
+        """What MAVLink FTP serves: PX4's log directory with the flight logs and, with
+        ArduPilot's extensions, the parameters in ArduPilot's packed file."""
+        files = FileSystem(static_directory({"log": self.flight_logs.directory()}))
         if ardupilot_extensions:
             params = self.params
 

@@ -370,6 +370,38 @@ class TelemetryConfig(_Model):
     )
 
 
+class FlightLogConfig(_Model):
+    """The flight logs every vehicle records (ULog, in memory) and serves over the MAVLink log
+    protocol and FTP; when they start and stop is PX4's SDLOG_MODE parameter."""
+
+    enabled: bool = Field(
+        True,
+        title="Record flight logs",
+        description="Record a ULog per flight (PX4's logger does; SDLOG_MODE chooses when).",
+    )
+    rate_hz: float = Field(
+        10.0,
+        gt=0.0,
+        le=100.0,
+        title="Sample rate",
+        description="Samples per simulated second of each logged topic (PX4 logs most "
+        "topics faster; 10 Hz keeps a flight at ~2 kB/s).",
+    )
+    max_logs: int = Field(
+        20,
+        ge=1,
+        le=10_000,
+        title="Logs kept",
+        description="Logs each vehicle keeps; the oldest goes when a new one starts.",
+    )
+    max_log_bytes: int = Field(
+        16 * 1024 * 1024,
+        ge=4096,
+        title="Log size limit",
+        description="A log stops growing at this size, bytes.",
+    )
+
+
 class FtpConfig(_Model):
     """What the vehicles' MAVLink FTP servers do beyond PX4's."""
 
@@ -678,6 +710,11 @@ class EmulatorConfig(_Model):
         default_factory=TruthStreamConfig,
         title="Ground-truth stream",
         description="SIH's HIL_STATE_QUATERNION link (off by default).",
+    )
+    flight_logs: FlightLogConfig = Field(
+        default_factory=FlightLogConfig,
+        title="Flight logs",
+        description="ULog flight logs for the MAVLink log protocol and FTP.",
     )
     ftp: FtpConfig = Field(
         default_factory=FtpConfig,

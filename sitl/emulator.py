@@ -401,6 +401,7 @@ class Emulator:
                 unix_time_us=unix_time_us,
                 boot_offset_s=float(self._boot_offsets_s[i]),
                 ftp_ardupilot_extensions=config.ftp.ardupilot_extensions,
+                flight_logs=config.flight_logs,
             )
             for i in range(n)
         ]

@@ -5,8 +5,9 @@ takes every decoded message a link delivers and routes it by type: heartbeats an
 the commander (:mod:`sitl.commander`), setpoints to offboard (:mod:`sitl.offboard`), mission
 protocol to the navigator's mission store (:mod:`sitl.mission`), commands to the
 :class:`sitl.commands.CommandDispatcher`. It answers the protocol-level requests itself:
-parameters (PARAM_REQUEST_LIST / READ / SET), PING, TIMESYNC, MAVLink FTP (:mod:`sitl.ftp`, one
-server per link), and the commands that ask for
+parameters (PARAM_REQUEST_LIST / READ / SET), PING, TIMESYNC, MAVLink FTP (:mod:`sitl.ftp`) and
+the log protocol (:mod:`sitl.log_handler`), one server of each per link as on PX4, and the
+commands that ask for
 messages (REQUEST_MESSAGE, SET/GET_MESSAGE_INTERVAL, GET_HOME_POSITION,
 REQUEST_AUTOPILOT_CAPABILITIES, REQUEST_PROTOCOL_VERSION). Replies go to the link a request came
 on; parameter changes to every link. Messages that do not make sense are ignored, as PX4 does.
@@ -22,7 +23,9 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.commander import COMMANDER_COMMANDS, Commander
 from sitl.commands import Command, CommandDispatcher, CommandTable, bind
+from sitl.flight_log import FlightLogStore
 from sitl.ftp import FileSystem, FtpServer
+from sitl.log_handler import LogHandler
 from sitl.navigator import NAVIGATOR_COMMANDS, Navigator
 from sitl.offboard import Offboard
 from sitl.params import PARAM_NAMES
@@ -66,11 +69,14 @@ class MavlinkReceiver:
         boot_time_s: Callable[[float], float],
         files: FileSystem | None = None,
         ftp_echo_session: bool = False,
+        flight_logs: FlightLogStore | None = None,
     ) -> None:
         self._vehicle = vehicle
         self._files = files if files is not None else FileSystem()
         self._ftp: dict[Link, FtpServer] = {}
         self._ftp_echo_session = ftp_echo_session
+        self._flight_logs = flight_logs if flight_logs is not None else FlightLogStore()
+        self._log_handlers: dict[Link, LogHandler] = {}
         self._telemetry = telemetry
         self._boot_time_s = boot_time_s
         self._commands = CommandDispatcher(
@@ -96,6 +102,10 @@ class MavlinkReceiver:
             "PING": self._on_ping,
             "TIMESYNC": self._on_timesync,
             "FILE_TRANSFER_PROTOCOL": self._on_file_transfer,
+            "LOG_REQUEST_LIST": self._on_log_message,
+            "LOG_REQUEST_DATA": self._on_log_message,
+            "LOG_REQUEST_END": self._on_log_message,
+            "LOG_ERASE": self._on_log_message,
         }
         for kind in _MISSION_MESSAGES:
             self._handlers[kind] = self._on_mission_message
@@ -124,6 +134,19 @@ class MavlinkReceiver:
             )
             self._ftp[link] = server
         server.handle(msg, link)
+
+    def _on_log_message(self, msg: mavlink.MAVLink_message, link: Link) -> None:
+        handler = self._log_handlers.get(link)
+        if handler is None:
+            handler = LogHandler(self._flight_logs, sysid=self._vehicle.sysid)
+            self._log_handlers[link] = handler
+        handler.handle(msg, link)
+
+    def pump(self) -> None:
+        """Go on with transfers that take more than one reply (log downloads)."""
+        for handler in self._log_handlers.values():
+            if handler.sending:
+                handler.pump()
 
     def _on_ping(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         if msg.target_system == 0 and msg.target_component == 0:
