@@ -30,9 +30,12 @@ pytestmark = [
 ]
 
 
-async def mavproxy_until_parameters(port: int, cwd: Path) -> tuple[list[str], float]:
-    """Run MAVProxy on udpin ``port`` until it has the parameters; its output and the seconds
-    from detecting the vehicle to having them."""
+async def mavproxy_until_parameters(
+    port: int, cwd: Path, last_line: str = "Received"
+) -> tuple[list[str], float]:
+    """Run MAVProxy on udpin ``port`` until it prints a line starting with ``last_line`` (by
+    default: it has the parameters); its output and the seconds from detecting the vehicle to
+    having the parameters."""
     mavproxy = shutil.which("mavproxy.py")
     assert mavproxy is not None
     process = await asyncio.create_subprocess_exec(
@@ -47,9 +50,10 @@ async def mavproxy_until_parameters(port: int, cwd: Path) -> tuple[list[str], fl
     assert process.stdout is not None
     seen: list[str] = []
     detected_at: float | None = None
+    received_at: float | None = None
     try:
         async with asyncio.timeout(60):
-            while not any(line.startswith("Received") for line in seen):
+            while not any(line.startswith(last_line) for line in seen):
                 raw = await process.stdout.readline()
                 if not raw:
                     break
@@ -57,11 +61,13 @@ async def mavproxy_until_parameters(port: int, cwd: Path) -> tuple[list[str], fl
                 seen.append(line)
                 if line.startswith("Detected vehicle"):
                     detected_at = time.monotonic()
+                if line.startswith("Received") and received_at is None:
+                    received_at = time.monotonic()
     finally:
         process.kill()
         await process.wait()
-    assert detected_at is not None, "\n".join(seen)
-    return seen, time.monotonic() - detected_at
+    assert detected_at is not None and received_at is not None, "\n".join(seen)
+    return seen, received_at - detected_at
 
 
 async def test_mavproxy_detects_the_vehicle_and_falls_back_at_once_as_with_px4(
@@ -89,7 +95,10 @@ async def test_mavproxy_downloads_the_parameters_over_ftp_with_ardupilots_extens
         params={"NAV_DLL_ACT": 2, "MIS_TAKEOFF_ALT": 4.5},
     )
     async with Emulator(config):
-        seen, took_s = await mavproxy_until_parameters(ports.gcs_remote_port, tmp_path)
+        # It says so once it has written mav.parm.
+        seen, took_s = await mavproxy_until_parameters(
+            ports.gcs_remote_port, tmp_path, last_line=f"Saved {len(PARAM_NAMES)} parameters"
+        )
     text = "\n".join(seen)
     assert f"Received {len(PARAM_NAMES)} parameters (ftp)" in seen, text
     assert took_s < 8.0, text
