@@ -11,7 +11,6 @@ from mavsdk.asyncio.plugins.info import InfoAsync
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import Emulator, EmulatorConfig
-from sitl.config import ClockConfig
 from sitl.messages import (
     MAVLINK_MSG_ID_PROTOCOL_VERSION,
     MAVLinkProtocolVersionMessage,
@@ -19,7 +18,7 @@ from sitl.messages import (
 )
 from sitl.telemetry import CAPABILITIES
 from tests.sitl.helpers import Bench, RawClient, free_port_config
-from tests.sitl.mavsdk_helpers import mavsdk_connected
+from tests.sitl.mavsdk_helpers import api_config, emulated_drones
 
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
 
@@ -101,13 +100,7 @@ def test_each_vehicle_has_its_own_identity_like_px4_sitl_instances() -> None:
 @pytest.mark.mavsdk
 @pytest.mark.asyncio
 async def test_mavsdk_info_reads_version_and_identity() -> None:
-    config = EmulatorConfig(
-        vehicles=2, ports=free_port_config(2, gcs=False), clock=ClockConfig(speed=2.0)
-    )
-    async with (
-        Emulator(config) as emulator,
-        mavsdk_connected([ep.mavsdk_url for ep in emulator.endpoints], 2) as (_, drones, _),
-    ):
+    async with emulated_drones(api_config(2)) as (_, drones):
         infos = [InfoAsync(drone.system) for drone in drones]
         versions = [await info.get_version() for info in infos]
         identities = [await info.get_identification() for info in infos]

@@ -24,7 +24,7 @@ from sitl.modes import FlightMode
 from sitl.params import PARAM_NAMES
 from sitl.ulog import Topic, ULogWriter
 from tests.sitl.helpers import Bench, FakeLink, RawClient, free_port_config, roundtrip
-from tests.sitl.mavsdk_helpers import landed_and_disarmed, mavsdk_connected, take_off
+from tests.sitl.mavsdk_helpers import api_config, emulated_drones, landed_and_disarmed, take_off
 
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
 Message = mavlink.MAVLink_message
@@ -264,13 +264,7 @@ async def test_pymavlink_lists_downloads_and_erases_over_udp() -> None:
 @pytest.mark.mavsdk
 @pytest.mark.asyncio
 async def test_mavsdk_log_files_and_ftp_get_the_flight_log(tmp_path: Path) -> None:
-    config = EmulatorConfig(
-        vehicles=1, ports=free_port_config(1, gcs=False), clock=ClockConfig(speed=4.0)
-    )
-    async with (
-        Emulator(config) as emulator,
-        mavsdk_connected([emulator.endpoints[0].mavsdk_url], 1) as (_, drones, _),
-    ):
+    async with emulated_drones(api_config(speed=4.0)) as (emulator, drones):
         drone = drones[0]
         await take_off(drone)
         await drone.action.land()

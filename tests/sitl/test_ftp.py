@@ -11,8 +11,6 @@ from MAVProxy.modules.lib.param_ftp import ftp_param_decode
 from mavsdk.asyncio.plugins import ftp as mavsdk_ftp
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl import Emulator, EmulatorConfig
-from sitl.config import ClockConfig
 from sitl.ftp import (
     BURST_BYTES,
     MAX_DATA_BYTES,
@@ -26,8 +24,8 @@ from sitl.ftp import (
     static_directory,
 )
 from sitl.params import ParamStore, int32_to_wire_float, pack_param_pck
-from tests.sitl.helpers import Bench, FakeLink, free_port_config, roundtrip
-from tests.sitl.mavsdk_helpers import mavsdk_connected
+from tests.sitl.helpers import Bench, FakeLink, roundtrip
+from tests.sitl.mavsdk_helpers import api_config, emulated_drones
 
 BIG = bytes(range(256)) * 400  # 102 400 bytes: three bursts
 SMALL = b"hello, vehicle\n"
@@ -258,16 +256,8 @@ def test_param_pck_only_with_ardupilots_extensions_and_mavproxy_decodes_it() -> 
 @pytest.mark.mavsdk
 @pytest.mark.asyncio
 async def test_mavsdk_lists_downloads_and_compares_like_with_px4(tmp_path: Path) -> None:
-    config = EmulatorConfig(
-        vehicles=1,
-        ports=free_port_config(1, gcs=False),
-        clock=ClockConfig(speed=2.0),
-        ftp={"ardupilot_extensions": True},
-    )
-    async with (
-        Emulator(config) as emulator,
-        mavsdk_connected([emulator.endpoints[0].mavsdk_url], 1) as (_, drones, _),
-    ):
+    config = api_config(ftp={"ardupilot_extensions": True})
+    async with emulated_drones(config) as (emulator, drones):
         ftp = mavsdk_ftp.FtpAsync(drones[0].system)
         listing = await ftp.list_directory("/")
         assert [(e.name, e.entry_type.name) for e in listing.entries] == [("log", "DIRECTORY")]

@@ -17,11 +17,11 @@ from hypothesis import strategies as st
 from mavsdk.asyncio.plugins.telemetry import Imu, TelemetryError
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl import Emulator, EmulatorConfig, imu
-from sitl.config import ClockConfig, StreamRates, TelemetryConfig
+from sitl import imu
+from sitl.config import StreamRates, TelemetryConfig
 from sitl.emulator import Truth
-from tests.sitl.helpers import Bench, FakeLink, free_port_config
-from tests.sitl.mavsdk_helpers import first, healthy, mavsdk_connected
+from tests.sitl.helpers import Bench, FakeLink
+from tests.sitl.mavsdk_helpers import api_config, emulated_drones, first, healthy
 
 G = imu.GRAVITY_M_S2
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
@@ -214,17 +214,8 @@ class TruthRecorder:
 @pytest.mark.mavsdk
 @pytest.mark.asyncio
 async def test_mavsdk_imu_matches_the_true_acceleration_through_a_take_off() -> None:
-    config = EmulatorConfig(
-        vehicles=1,
-        ports=free_port_config(1, gcs=False),
-        clock=ClockConfig(speed=2.0),
-        params={"MIS_TAKEOFF_ALT": 3.0},
-    )
     recorder = TruthRecorder()
-    async with (
-        Emulator(config) as emulator,
-        mavsdk_connected([emulator.endpoints[0].mavsdk_url], 1) as (_, drones, _),
-    ):
+    async with emulated_drones(api_config(params={"MIS_TAKEOFF_ALT": 3.0})) as (emulator, drones):
         emulator.add_step_listener(recorder)
         drone = drones[0]
         await drone.telemetry.set_rate_imu(25.0)

@@ -13,7 +13,6 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import Emulator, EmulatorConfig
-from sitl.config import ClockConfig
 from sitl.params import (
     FLT_MAX,
     INT32_MAX,
@@ -25,7 +24,7 @@ from sitl.params import (
     wire_float_to_int32,
 )
 from tests.sitl.helpers import Bench, RawClient, free_port_config
-from tests.sitl.mavsdk_helpers import mavsdk_connected
+from tests.sitl.mavsdk_helpers import api_config, emulated_drones
 
 #: PX4's parameter metadata, as its build generates it (name, type, default, min, max, values).
 PX4_METADATA = Path(
@@ -137,13 +136,7 @@ async def test_a_ground_station_lists_every_parameter_once_in_order() -> None:
 @pytest.mark.mavsdk
 @pytest.mark.asyncio
 async def test_mavsdk_gets_every_parameter_with_its_type_and_sets_one() -> None:
-    config = EmulatorConfig(
-        vehicles=1, ports=free_port_config(1, gcs=False), clock=ClockConfig(speed=2.0)
-    )
-    async with (
-        Emulator(config) as emulator,
-        mavsdk_connected([emulator.endpoints[0].mavsdk_url], 1) as (_, drones, _),
-    ):
+    async with emulated_drones(api_config()) as (emulator, drones):
         drone = drones[0]
         everything = await drone.param.get_all_params()
         ints = {p.name: p.value for p in everything.int_params}
