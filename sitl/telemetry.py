@@ -441,7 +441,7 @@ class TelemetryBuilder:
         stream fills it (the air temperature of PX4 SIH, no differential pressure)."""
         ap = self.ap
         (fx, fy, fz), (p, q, r), (mx, my, mz) = ap.inertial_frd()
-        _, _, alt_m = ap.true_global_position()
+        alt_m = ap.ground_amsl_m - ap.position_ned()[2]  # the barometer's true altitude
         return mavlink.MAVLink_highres_imu_message(
             ap.time_usec(now_s),
             fx,

@@ -35,6 +35,7 @@ _TYPES: dict[str, str] = {
 }
 _FIELD = re.compile(r"^(\w+)(?:\[(\d+)\])?$")
 _HEADER = struct.Struct("<HB")
+_DATA = ord("D")
 
 
 @dataclass(frozen=True, slots=True)
@@ -45,6 +46,7 @@ class Topic:
     name: str
     fields: tuple[tuple[str, str], ...]
     packer: struct.Struct = field(init=False, repr=False, compare=False)
+    data_message: struct.Struct = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.fields[:1] != (("uint64_t", "timestamp"),):
@@ -56,6 +58,8 @@ class Topic:
                 raise ValueError(f"{self.name}: unknown ULog type {kind!r}")
             codes += (match.group(2) or "") + _TYPES[match.group(1)]
         object.__setattr__(self, "packer", struct.Struct(codes))
+        # A whole data message: header (size, 'D'), message id, then the fields.
+        object.__setattr__(self, "data_message", struct.Struct("<HBH" + codes[1:]))
 
     @property
     def format(self) -> str:
@@ -70,8 +74,8 @@ class ULogWriter:
         self.data = bytearray(MAGIC + struct.pack("<BQ", VERSION, start_timestamp_us))
         # Flag bits ('B') must come first: no compatibility flags, no appended data.
         self._message(b"B", bytes(16) + struct.pack("<3Q", 0, 0, 0))
-        self._ids: dict[str, int] = {}
         self._topics: dict[str, Topic] = {}
+        self._subscribed: dict[str, tuple[struct.Struct, int, int]] = {}
 
     def _message(self, kind: bytes, payload: bytes) -> None:
         self.data += _HEADER.pack(len(payload), kind[0])
@@ -107,13 +111,15 @@ class ULogWriter:
     def subscribe(self, topic_name: str, multi_id: int = 0) -> None:
         if topic_name not in self._topics:
             raise ValueError(f"no format for {topic_name!r}: call format() first")
-        msg_id = self._ids[topic_name] = len(self._ids)
+        msg_id = len(self._subscribed)
+        topic = self._topics[topic_name]
+        self._subscribed[topic_name] = (topic.data_message, topic.packer.size + 2, msg_id)
         self._message(b"A", struct.pack("<BH", multi_id, msg_id) + topic_name.encode())
 
     def write(self, topic_name: str, values: Sequence[float | int | bool]) -> None:
         """One sample of ``topic_name``: the field values in order, arrays flattened."""
-        packed = self._topics[topic_name].packer.pack(*values)
-        self._message(b"D", struct.pack("<H", self._ids[topic_name]) + packed)
+        message, size, msg_id = self._subscribed[topic_name]
+        self.data += message.pack(size, _DATA, msg_id, *values)
 
     def log(self, level: int, timestamp_us: int, text: str) -> None:
         """A logged string; ``level`` 0 (emergency) to 7 (debug), as MAV_SEVERITY."""
