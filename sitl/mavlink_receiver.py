@@ -23,6 +23,7 @@ from sitl.commander import COMMANDER_COMMANDS, Commander
 from sitl.commands import Command, CommandDispatcher, CommandTable, bind
 from sitl.navigator import NAVIGATOR_COMMANDS, Navigator
 from sitl.offboard import Offboard
+from sitl.shell import MavlinkShell, Pxh
 from sitl.telemetry import BUILDABLE, TelemetryBuilder
 from sitl.vehicle_state import Link, VehicleContext
 
@@ -90,6 +91,12 @@ class MavlinkReceiver:
         }
         for kind in _MISSION_MESSAGES:
             self._handlers[kind] = self._on_mission_message
+        # SERIAL_CONTROL: PX4's MAVLink shell (sitl.shell); a parameter changed there is
+        # announced like one set over MAVLink.
+        self.shell = MavlinkShell(
+            vehicle, Pxh(vehicle, lambda name: vehicle.broadcast(self._param_value(name)))
+        )
+        self._handlers["SERIAL_CONTROL"] = self.shell.on_serial_control
 
     def handle(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         """React to one decoded message received on ``link``."""
