@@ -440,12 +440,17 @@ async def test_mavproxy_signing_setup_then_its_commands_work_and_an_unsigned_cli
 
         async def wait_for_line(text: str, timeout_s: float = 20.0) -> None:
             assert process.stdout is not None
-            async with asyncio.timeout(timeout_s):
-                while not any(text in line for line in seen):
-                    line = await process.stdout.readline()
-                    if not line:
-                        raise AssertionError(f"MAVProxy ended before {text!r}: {seen}")
-                    seen.append(line.decode(errors="replace").strip())
+            try:
+                async with asyncio.timeout(timeout_s):
+                    while not any(text in line for line in seen):
+                        line = await process.stdout.readline()
+                        if not line:
+                            raise AssertionError(f"MAVProxy ended before {text!r}: {seen}")
+                        seen.append(line.decode(errors="replace").strip())
+            except TimeoutError:
+                raise AssertionError(
+                    f"MAVProxy did not print {text!r} within {timeout_s} s: {seen[-10:]}"
+                ) from None
 
         async def mavproxy(command: str) -> None:
             assert process.stdin is not None
@@ -454,6 +459,7 @@ async def test_mavproxy_signing_setup_then_its_commands_work_and_an_unsigned_cli
 
         try:
             await wait_for_line("Detected vehicle 1:1")
+            await mavproxy("set allow_unsigned 0")  # from now on MAVProxy drops unsigned packets
             await mavproxy("signing setup my-passphrase")
             await wait_for_line("Setup signing key")
             await emulator.wait_for(lambda: emulator.signing(0).active, timeout_s=5.0)
@@ -462,6 +468,7 @@ async def test_mavproxy_signing_setup_then_its_commands_work_and_an_unsigned_cli
             )
             await mavproxy("arm throttle")
             await emulator.wait_for(lambda: emulator.autopilot(0).armed, timeout_s=10.0)
+            await wait_for_line("ARMED")  # in heartbeats whose signature MAVProxy checked
 
             async with RawClient(ports.api_remote_base) as stranger:  # no key
                 await stranger.expect(lambda m: m.get_type() == "HEARTBEAT", 3.0, "heartbeat")
@@ -475,7 +482,11 @@ async def test_mavproxy_signing_setup_then_its_commands_work_and_an_unsigned_cli
 
             await mavproxy("disarm")
             await emulator.wait_for(lambda: not emulator.autopilot(0).armed, timeout_s=10.0)
+            await wait_for_line("DISARMED")
             assert emulator.signing(0).verdicts[Verdict.BAD_SIGNATURE] == 0
+
+            await mavproxy("signing remove my-passphrase")  # a signed blank key
+            await emulator.wait_for(lambda: not emulator.signing(0).active, timeout_s=5.0)
         finally:
             process.kill()
             await process.wait()
