@@ -14,6 +14,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
+from mavsdk.asyncio import System
 from mavsdk.asyncio.plugins.shell import Device, ShellAsync
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
@@ -348,7 +349,12 @@ class MavsdkShellReader:
 
 
 @contextlib.asynccontextmanager
-async def mavsdk_shell(system: object) -> AsyncIterator[MavsdkShellReader]:
+async def mavsdk_shell(system: System) -> AsyncIterator[MavsdkShellReader]:
+    # MAVSDK can list the autopilot (from any of its messages) before its first HEARTBEAT
+    # makes it "connected"; until then the shell plugin refuses to send (NO_SYSTEM).
+    async with asyncio.timeout(5.0):
+        while not await system.is_connected():
+            await asyncio.sleep(0.05)
     reader = MavsdkShellReader(ShellAsync(system))
     async with asyncio.TaskGroup() as group:
         collector = group.create_task(reader.collect(), name="mavsdk-shell-receive")
