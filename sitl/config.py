@@ -15,9 +15,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 
 from sitl.params import validate_overrides
+from sitl.signing import key_from_passphrase
 
 MAX_VEHICLES = 250
 """System ids are index + 1 and PX4's MAV_SYS_ID stops at 250 for vehicles."""
@@ -574,6 +575,65 @@ class TruthStreamConfig(_Model):
     )
 
 
+class SigningConfig(_Model):
+    """MAVLink 2 message signing (PX4 behaviour, see sitl/signing.py). Without a key a vehicle
+    accepts everything until a ground station provisions one with SETUP_SIGNING; with one it
+    signs what it sends and refuses unsigned packets except HEARTBEAT, RADIO_STATUS,
+    ADSB_VEHICLE and COLLISION.
+    """
+
+    passphrase: SecretStr | None = Field(
+        None,
+        title="Start-up passphrase",
+        description="Start every vehicle with signing on, the key being SHA-256 of this "
+        "passphrase (what MAVProxy's 'signing setup <passphrase>' sends). It replaces a key "
+        "stored in key_dir.",
+    )
+    key_hex: SecretStr | None = Field(
+        None,
+        title="Start-up key",
+        description="Start every vehicle with signing on with this key: 64 hex digits (32 "
+        "bytes). It replaces a key stored in key_dir. Give passphrase or key_hex, not both.",
+    )
+    key_dir: Path | None = Field(
+        None,
+        title="Key directory",
+        description="Keep each vehicle's key and timestamp across runs in "
+        "<key_dir>/vehicle_<sysid>/mavlink-signing-key.bin (PX4's 40-byte format, mode 0600); "
+        "a vehicle with a stored key starts with signing on. None: keys live in memory only.",
+    )
+
+    @field_validator("key_hex")
+    @classmethod
+    def _hex_key(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is None:
+            return None
+        text = value.get_secret_value()
+        try:
+            key = bytes.fromhex(text)
+        except ValueError:
+            raise ValueError("key_hex must be hexadecimal digits") from None
+        if len(key) != 32:
+            raise ValueError(f"key_hex must be 64 hex digits (32 bytes), got {len(text)}")
+        return value
+
+    @model_validator(mode="after")
+    def _one_key(self) -> SigningConfig:
+        if self.passphrase is not None and self.key_hex is not None:
+            raise ValueError("give signing.passphrase or signing.key_hex, not both")
+        if self.passphrase is not None and not self.passphrase.get_secret_value():
+            raise ValueError("signing.passphrase must not be empty")
+        return self
+
+    def initial_key(self) -> bytes | None:
+        """The key vehicles start with (None: the stored one, if any)."""
+        if self.key_hex is not None:
+            return bytes.fromhex(self.key_hex.get_secret_value())
+        if self.passphrase is not None:
+            return key_from_passphrase(self.passphrase.get_secret_value())
+        return None
+
+
 class KillFault(_Model):
     """The vehicle's autopilot dies: it stops sending and answering, motors stop."""
 
@@ -721,6 +781,11 @@ class EmulatorConfig(_Model):
         default_factory=FtpConfig,
         title="MAVLink FTP",
         description="What the FTP servers do beyond PX4's.",
+    )
+    signing: SigningConfig = Field(
+        default_factory=SigningConfig,
+        title="Message signing",
+        description="MAVLink 2 signing: start-up key and where keys are kept.",
     )
     params: dict[str, float] = Field(
         default_factory=dict,

@@ -29,6 +29,7 @@ from sitl.log_handler import LogHandler
 from sitl.navigator import NAVIGATOR_COMMANDS, Navigator
 from sitl.offboard import Offboard
 from sitl.params import PARAM_NAMES
+from sitl.shell import MavlinkShell, Pxh
 from sitl.telemetry import BUILDABLE, MSG_PROTOCOL_VERSION, TelemetryBuilder
 from sitl.vehicle_state import Link, VehicleContext
 
@@ -109,6 +110,12 @@ class MavlinkReceiver:
         }
         for kind in _MISSION_MESSAGES:
             self._handlers[kind] = self._on_mission_message
+        # SERIAL_CONTROL: PX4's MAVLink shell (sitl.shell); a parameter changed there is
+        # announced like one set over MAVLink.
+        self.shell = MavlinkShell(
+            vehicle, Pxh(vehicle, lambda name: vehicle.broadcast(self._param_value(name)))
+        )
+        self._handlers["SERIAL_CONTROL"] = self.shell.on_serial_control
 
     def handle(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         """React to one decoded message received on ``link``."""
