@@ -523,20 +523,46 @@ class Scenario(Model):
 # --- Loading --------------------------------------------------------------------------------------
 
 
+#: A scenario file is a few kilobytes; the cap makes ``/dev/zero`` or a wrong, huge file end at
+#: once instead of being read (and parsed) into memory.
+MAX_FILE_BYTES = 1 << 20
+#: The deepest a scenario nests is about six levels (``flight.emulator.physics.wind...``); beyond
+#: this the YAML composer would recurse out of the stack.
+MAX_DEPTH = 32
+#: Values after YAML aliases are expanded: a few aliases to aliases (the "billion laughs") would
+#: otherwise make validation walk billions of values.
+MAX_NODES = 1_000_000
+
+
 def load_scenario(path: PathName) -> Scenario:
     """Read and validate a scenario file. Raises :class:`ConfigError` listing every problem."""
     file = Path(path)
     try:
-        text = file.read_text(encoding="utf-8")
+        with file.open("rb") as handle:
+            raw = handle.read(MAX_FILE_BYTES + 1)
     except OSError as error:
-        raise ConfigError(str(file), [("", f"cannot read file: {error.strerror}")]) from None
+        reason = error.strerror or str(error)
+        raise ConfigError(str(file), [("", f"cannot read file: {reason}")]) from None
+    if len(raw) > MAX_FILE_BYTES:
+        raise ConfigError(str(file), [("", _too_large())])
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        line = raw[: error.start].count(b"\n") + 1
+        byte = raw[error.start]
+        problem = f"not UTF-8 text: byte 0x{byte:02x} on line {line} (save the file as UTF-8)"
+        raise ConfigError(str(file), [("", problem)]) from None
     return parse_scenario(text, source=str(file))
 
 
 def parse_scenario(text: str, source: str = "<string>") -> Scenario:
     """Validate scenario YAML text; see :func:`load_scenario`."""
+    if len(text) > MAX_FILE_BYTES:
+        raise ConfigError(source, [("", _too_large())])
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_BoundedLoader)  # a SafeLoader with limits
+    except _StructureError as error:
+        raise ConfigError(source, [(error.path, error.problem)]) from None
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
@@ -544,7 +570,98 @@ def parse_scenario(text: str, source: str = "<string>") -> Scenario:
         raise ConfigError(source, [("", f"{where}not valid YAML: {problem}")]) from None
     if not isinstance(data, dict):
         raise ConfigError(source, [("", "must be a mapping of keys to values")])
+    problems = list(_non_finite(data, ()))
+    if problems:  # before the model, which would report them again, less precisely
+        raise ConfigError(source, problems)
     return validate_scenario(data, source)
+
+
+def _too_large() -> str:
+    return f"larger than {MAX_FILE_BYTES >> 10} KiB: not a scenario file"
+
+
+class _StructureError(Exception):
+    """A YAML document the scenario loader refuses before building it (``path``: where)."""
+
+    def __init__(self, path: str, problem: str) -> None:
+        super().__init__(f"{path}: {problem}")
+        self.path = path
+        self.problem = problem
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with bounds: nesting depth, values after aliases expand, no alias
+    cycles, and no duplicate keys (PyYAML keeps the last one silently)."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._path: list[int | str] = []
+        self._depth = 0
+        self._nodes = 0
+        self._sizes: dict[int, int] = {}  # id(node) -> values in it, once composed
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
+        if self.check_event(yaml.AliasEvent):
+            anchored = self.anchors.get(self.peek_event().anchor)
+            if anchored is not None and id(anchored) not in self._sizes:
+                raise _StructureError(self._where(), "an alias refers to a value containing it")
+            node = super().compose_node(parent, index)
+            self._count(self._sizes.get(id(node), 1))
+            return node
+        # ``index``: an int in a sequence, the key's node for a mapping value, None for a key.
+        part = index if isinstance(index, int) else getattr(index, "value", None)
+        if part is not None:
+            self._path.append(part if isinstance(part, int) else str(part))
+        self._depth += 1
+        if self._depth > MAX_DEPTH:
+            raise _StructureError(self._where(), f"nested deeper than {MAX_DEPTH} levels")
+        before = self._nodes
+        try:
+            node = super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+            if part is not None:
+                self._path.pop()
+        self._count(1)
+        self._sizes[id(node)] = self._nodes - before
+        return node
+
+    def compose_mapping_node(self, anchor: Any) -> yaml.MappingNode:
+        node = super().compose_mapping_node(anchor)
+        seen: set[tuple[str, str]] = set()
+        for key, _ in node.value:
+            if isinstance(key, yaml.ScalarNode) and key.tag != "tag:yaml.org,2002:merge":
+                if (key.tag, key.value) in seen:
+                    line = key.start_mark.line + 1
+                    raise _StructureError(
+                        yaml_path([*self._path, key.value]),
+                        f"duplicate key (again on line {line}); give each key once",
+                    )
+                seen.add((key.tag, key.value))
+        return node
+
+    def _count(self, nodes: int) -> None:
+        self._nodes += nodes
+        if self._nodes > MAX_NODES:
+            raise _StructureError(self._where(), f"more than {MAX_NODES} values (with aliases)")
+
+    def _where(self) -> str:
+        """The YAML path being composed, shortened past a few levels (deep nesting)."""
+        shown = yaml_path(self._path[:4])
+        return shown + "..." if len(self._path) > 4 else shown
+
+
+def _non_finite(data: object, location: tuple[int | str, ...]) -> Iterable[Problem]:
+    """NaN or an infinity anywhere in the parsed YAML (``.nan``, ``.inf``, ``1e999``), also where
+    the model passes values on unchecked (``flight.emulator``)."""
+    if isinstance(data, float) and not math.isfinite(data):
+        yield yaml_path(location), f"must be a finite number (got {data})"
+    elif isinstance(data, dict):
+        for key, value in data.items():
+            yield from _non_finite(value, (*location, str(key)))
+    elif isinstance(data, list):
+        for index, value in enumerate(data):
+            yield from _non_finite(value, (*location, index))
 
 
 def validate_scenario(data: dict[str, Any], source: str = "<data>") -> Scenario:

@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from mission_runner.config import load_scenario, parse_scenario
+from mission_runner.config import MAX_FILE_BYTES, load_scenario, parse_scenario
 from mission_runner.errors import ConfigError
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -159,3 +159,62 @@ def test_every_bundled_scenario_is_valid():
     assert {"paper_tracking", "paper_narrow_passage", "crazyflie_experiment"} <= set(names)
     for name in names:
         assert load_scenario(CONFIGS / f"{name}.yaml").name == name
+
+
+# --- Inputs that once gave a traceback, a hang or a silent wrong result --------------------------
+
+
+def problems_in_file(tmp_path, content: bytes):
+    config = tmp_path / "scenario.yaml"
+    config.write_bytes(content)
+    with pytest.raises(ConfigError) as caught:
+        load_scenario(config)
+    assert str(caught.value).startswith(f"{config}: invalid scenario")
+    return caught.value.problems
+
+
+def test_a_file_that_is_not_utf8_is_refused_with_its_line(tmp_path):
+    [(where, message)] = problems_in_file(tmp_path, b"name: x\ndescription: caf\xe9\n")
+    assert where == "" and "not UTF-8 text: byte 0xe9 on line 2" in message
+
+
+def test_a_huge_file_is_refused_without_reading_it_all(tmp_path):
+    [(where, message)] = problems_in_file(tmp_path, b"#" * (MAX_FILE_BYTES + 1))
+    assert where == "" and "larger than 1024 KiB" in message
+
+
+@pytest.mark.skipif(not Path("/dev/zero").exists(), reason="no /dev/zero")
+def test_an_endless_file_ends_at_once():
+    with pytest.raises(ConfigError, match="larger than 1024 KiB"):
+        load_scenario("/dev/zero")
+
+
+def test_deep_nesting_is_refused_at_its_path():
+    [(where, message)] = problems_of_text("name: x\ndescription: " + "[" * 10_000 + "]" * 10_000)
+    assert where == "description[0][0][0]..." and "nested deeper than 32 levels" in message
+
+
+def test_a_duplicate_key_is_refused_instead_of_keeping_the_last():
+    text = yaml.safe_dump(base()).replace("beta: 7.0\n", "beta: 7.0\n  beta: 1.0\n")
+    [(where, message)] = problems_of_text(text)
+    assert where == "algorithm.beta" and "duplicate key" in message
+
+
+def test_aliases_that_expand_to_billions_of_values_are_refused():
+    text = "name: x\na: &a [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]\n"
+    for level in "bcdefg":
+        previous = chr(ord(level) - 1)
+        text += f"{level}: &{level} [{', '.join([f'*{previous}'] * 10)}]\n"
+    [(where, message)] = problems_of_text(text)
+    assert where == "f" and "more than 1000000 values" in message
+
+
+def test_an_alias_inside_its_own_value_is_refused():
+    [(where, message)] = problems_of_text("name: x\nloop: &a [1, *a]\n")
+    assert where == "loop" and "alias refers to a value containing it" in message
+
+
+def problems_of_text(text):
+    with pytest.raises(ConfigError) as caught:
+        parse_scenario(text, source="test.yaml")
+    return caught.value.problems
