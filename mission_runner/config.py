@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import itertools
 import math
+import sys
 from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, get_args
 
 import numpy as np
 import yaml
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from .bus.settings import BusSettings
@@ -33,6 +35,13 @@ Problem = tuple[str, str]
 Pair = Annotated[list[float], Field(min_length=2, max_length=2)]
 PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegativeFloat = Annotated[float, Field(ge=0)]
+
+#: Planar coordinates stay within this of the origin [m]: the frame is a local north-east plane,
+#: and far beyond it squared ranges lose the precision the estimator works with.
+MAX_COORDINATE_M = 1e6
+#: Nothing the runner flies is smaller (a Crazyflie is 92 mm across): vehicles closer than this at
+#: the start, or as neighbours on the enclosing circle, would touch.
+MIN_SPACING_M = 0.1
 
 
 class Model(BaseModel):
@@ -204,7 +213,11 @@ class AlgorithmConfig(Model):
     coupling_gain_last: float = Field(
         -1.0, lt=0, title="K_n", description="K_n (< 0, small in magnitude)."
     )
-    radius_m: PositiveFloat = Field(title="rho", description="Circle radius [m].")
+    radius_m: PositiveFloat = Field(
+        le=MAX_COORDINATE_M,
+        title="rho",
+        description="Circle radius [m]; neighbours on it must be at least 0.1 m apart.",
+    )
     initial_gain: PositiveFloat = Field(1.0, title="Gamma(0)", description="Gamma(0) = value * I.")
     shape: ShapeConfig = Field(ShapeConfig(), title="Shape", description="Affine shaping.")
 
@@ -310,7 +323,8 @@ class EventConfig(Model):
         if self.at_s is None:
             # Scenario validation reports this at the event's YAML path before anything asks.
             raise ValueError(f"event {self.kind} of vehicle {self.vehicle}: no at_step or at_s")
-        return math.ceil(self.at_s / step_s - 1e-9)
+        steps = self.at_s / step_s - 1e-9
+        return math.ceil(steps) if math.isfinite(steps) else sys.maxsize
 
 
 class BatchConfig(Model):
@@ -772,7 +786,8 @@ def _rule_problems(scenario: Scenario) -> list[Problem]:
     ]
     if ids and any(v.senses_target for v in scenario.vehicles) and not sensing_from_start:
         problems.append(("vehicles", "a vehicle sensing the target must be present from k = 0"))
-    problems += _shape_problems(scenario)
+    problems += _time_problems(scenario)
+    problems += _start_problems(scenario)
     problems += _emulator_problems(scenario)
     problems += _separation_problems(scenario)
     return problems
@@ -816,16 +831,150 @@ def _emulator_problems(scenario: Scenario) -> list[Problem]:
     return []
 
 
-def _shape_problems(scenario: Scenario) -> list[Problem]:
+def _time_problems(scenario: Scenario) -> list[Problem]:
+    """The target's path and the shape's signals over the run's times t_k (and one step beyond,
+    which the law's feed-forward reads): finite, inside the frame, scales > 0, and a circle on
+    which the vehicles fit."""
     from .scenario import signal_values  # noqa: PLC0415 - scenario imports this module
 
     step_s, steps = scenario.timing.step_s, scenario.timing.steps
-    times = np.arange(steps + 1) * step_s
+    times = np.arange(steps + 2, dtype=np.float64) * step_s
+    if not np.isfinite(times[-1]):
+        return [("timing.step_s", "timing.steps x timing.step_s must be a finite duration")]
     problems: list[Problem] = []
-    for name in ("scale_north", "scale_east"):
-        values = signal_values(getattr(scenario.algorithm.shape, name), times)
-        if not np.all(np.isfinite(values)) or np.min(values) <= 0:
+    values: dict[str, NDArray[np.float64]] = {}
+    for name in ShapeConfig.model_fields:
+        signal = getattr(scenario.algorithm.shape, name)
+        where = f"algorithm.shape.{name}"
+        with np.errstate(all="ignore"):
+            value = signal_values(signal, times)
+        unfinished = _not_finite(value, times)
+        if unfinished:
+            expression = isinstance(signal, ExpressionSignal)
+            problems.append((where + (".expression" if expression else ""), unfinished))
+        elif name.startswith("scale") and np.min(value) <= 0:
+            k = int(np.argmin(value))
             problems.append(
-                (f"algorithm.shape.{name}", "must stay finite and > 0 over the whole run")
+                (
+                    where,
+                    f"must stay finite and > 0 over the whole run ({value[k]:.3g} at "
+                    f"t = {times[k]:g} s)",
+                )
+            )
+        else:
+            values[name] = value
+    if len(values) == len(ShapeConfig.model_fields):
+        problems += _circle_problems(scenario, values, times)
+    return problems + _target_problems(scenario, times)
+
+
+def _not_finite(values: NDArray[np.float64], times: NDArray[np.float64]) -> str | None:
+    """What is wrong if ``values`` ``(K,)`` at ``times`` ``(K,)`` are not all finite."""
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return None
+    k = int(np.argmax(bad))
+    return f"is not finite at t = {times[k]:g} s (evaluates to {values[k]})"
+
+
+def _circle_problems(
+    scenario: Scenario, values: dict[str, NDArray[np.float64]], times: NDArray[np.float64]
+) -> list[Problem]:
+    """The shaped circle (A [rho cos, rho sin, 1] around the target) stays inside the frame, and
+    neighbours on it stay ``MIN_SPACING_M`` apart. ``values``: every shape signal ``(K,)``."""
+    radius_m, n = scenario.algorithm.radius_m, len(scenario.vehicles)
+    # The linear part [[S_x, H_a S_y], [H_b S_x, S_y]] (enclosing.affine_matrix) stretches a
+    # chord by between its smallest and largest singular values (closed form for 2 x 2).
+    a, d = values["scale_north"], values["scale_east"]
+    b, c = values["shear_a"] * d, values["shear_b"] * a
+    with np.errstate(all="ignore"):
+        first, second = np.hypot(a + d, c - b), np.hypot(a - d, b + c)
+        largest, smallest = (first + second) / 2, np.abs(first - second) / 2
+        reach_m = np.hypot(values["translate_north_m"], values["translate_east_m"])
+        reach_m = reach_m + radius_m * largest
+    problems: list[Problem] = []
+    if not np.all(reach_m <= MAX_COORDINATE_M):
+        k = int(np.argmax(~(reach_m <= MAX_COORDINATE_M)))
+        problems.append(
+            (
+                "algorithm.shape",
+                f"takes the circle {reach_m[k]:.3g} m from the target at t = {times[k]:g} s; "
+                f"it must stay within {MAX_COORDINATE_M:g} m",
+            )
+        )
+    if n < 2:
+        return problems
+    chord_m = 2 * radius_m * math.sin(math.pi / n)
+    k = int(np.argmin(smallest))
+    if chord_m < MIN_SPACING_M:
+        needed = MIN_SPACING_M / (2 * math.sin(math.pi / n))
+        problems.append(
+            (
+                "algorithm.radius_m",
+                f"too small for {n} vehicles: neighbours on the circle would be {chord_m:.3g} m "
+                f"apart, less than {MIN_SPACING_M:g} m (radius must be >= {needed:.3g} m)",
+            )
+        )
+    elif chord_m * smallest[k] < MIN_SPACING_M:
+        problems.append(
+            (
+                "algorithm.shape",
+                f"squeezes the circle so that neighbours may come {chord_m * smallest[k]:.3g} m "
+                f"close at t = {times[k]:g} s, less than {MIN_SPACING_M:g} m",
+            )
+        )
+    return problems
+
+
+def _target_problems(scenario: Scenario, times: NDArray[np.float64]) -> list[Problem]:
+    """The target's path is finite and inside the frame at every t_k."""
+    from .scenario import target_positions  # noqa: PLC0415 - scenario imports this module
+
+    path = scenario.target.path
+    with np.errstate(all="ignore"):
+        if isinstance(path, ExpressionPath):
+            axes = [
+                ("target.path.north", compile_expression(path.north)(times)),
+                ("target.path.east", compile_expression(path.east)(times)),
+            ]
+        else:
+            positions = target_positions(path, times)
+            axes = [("target.path", positions[:, 0]), ("target.path", positions[:, 1])]
+    problems: list[Problem] = []
+    for where, values in axes:
+        problem = _not_finite(values, times)
+        if problem is None and np.max(np.abs(values)) > MAX_COORDINATE_M:
+            k = int(np.argmax(np.abs(values) > MAX_COORDINATE_M))
+            problem = (
+                f"leaves the frame at t = {times[k]:g} s ({values[k]:.3g} m; coordinates must "
+                f"stay within {MAX_COORDINATE_M:g} m)"
+            )
+        if problem is not None and all(where != known for known, _ in problems):
+            problems.append((where, problem))
+    return problems
+
+
+def _start_problems(scenario: Scenario) -> list[Problem]:
+    """Vehicles start inside the frame and apart from each other."""
+    positions = np.array([vehicle.initial_position_m for vehicle in scenario.vehicles])
+    problems: list[Problem] = []
+    for index, position in enumerate(positions):
+        where = f"vehicles[{index}].initial_position_m"
+        if np.max(np.abs(position)) > MAX_COORDINATE_M:
+            problems.append((where, f"must be within {MAX_COORDINATE_M:g} m of the origin"))
+            continue
+        if index == 0:
+            continue
+        with np.errstate(all="ignore"):
+            gaps_m = np.hypot(*(positions[:index] - position).T)
+        other = int(np.argmin(gaps_m))
+        if gaps_m[other] < MIN_SPACING_M:
+            problems.append(
+                (
+                    where,
+                    f"{gaps_m[other]:.3g} m from vehicles[{other}] (id "
+                    f"{scenario.vehicles[other].id}): vehicles must start at least "
+                    f"{MIN_SPACING_M:g} m apart",
+                )
             )
     return problems
