@@ -9,15 +9,28 @@
     mission-runner emulate CONFIG [sitl options]         emulated vehicles + the scenario's world
     mission-runner control CONFIG hold|resume|land|return|stop [--vehicle N]   operator command
 
-Exit codes: 0 success (and every ``expect:`` bound met), 1 an expectation failed, 2 bad input
-(the message names the problem and, for configs, the YAML path), 3 a runtime failure (a vehicle
-refused, was lost or the mission was aborted; the message says which and why), 130 interrupted.
+Exit codes:
+
+- 0: success (and every ``expect:`` bound met);
+- 1: an ``expect:`` bound failed;
+- 2: bad input, before any work: the scenario (the message names the YAML path), an option
+  (``--speed 0``), ``--out`` (a file, not writable), a batch too large for memory;
+- 3: a runtime failure: a vehicle refused, was lost or the mission was aborted, a port is taken
+  (the message names the setting that moves it), results could not be written; also an
+  unexpected error (its traceback is printed, to be reported);
+- 130: interrupted (Ctrl-C); ``summary.json`` is written with ``status: interrupted``.
+
+``--out``: a run first removes the earlier run's own files from the folder (summary.json,
+timeseries.csv, batch.csv, the figures, tlogs/vehicle_*.tlog: ``outputs.RUN_FILES``), so results
+of two runs never mix; any other file there is left alone. ``summary.json`` always says how the run
+ended (``status``: running, passed, failed, interrupted or error).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -34,12 +47,15 @@ if TYPE_CHECKING:
 
     from .bus import VehicleStatus
     from .config import Scenario
+    from .runner.controller import StepRecord
     from .runner.mission import Progress
 
 #: A subcommand: parsed arguments in, exit code out.
 Handler = Callable[[argparse.Namespace], int]
 
 EXIT_OK, EXIT_EXPECTATION_FAILED, EXIT_BAD_INPUT, EXIT_RUNTIME_FAILURE = 0, 1, 2, 3
+#: 128 + SIGINT's number, as a shell reports a process Ctrl-C ended.
+EXIT_INTERRUPTED = 130
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -62,7 +78,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    except OSError as error:  # e.g. the disk filled up while writing results
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_RUNTIME_FAILURE
+    except Exception:  # a bug: its traceback, but not exit code 1, which means "failed"
+        logging.getLogger(__name__).exception("unexpected error; please report it")
+        return EXIT_RUNTIME_FAILURE
 
 
 def _emulator_errors() -> tuple[type[Exception], ...]:
@@ -127,7 +149,9 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--realtime", action="store_true", help="real-time clock instead of the scenario's"
     )
-    run.add_argument("--speed", type=float, default=None, help="real-time speed factor")
+    run.add_argument(
+        "--speed", type=_positive_float, default=None, help="real-time speed factor (> 0)"
+    )
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress view, no summary")
     run.set_defaults(handler=_run)
@@ -153,7 +177,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     ground.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
     ground.add_argument(
-        "--start-delay", type=float, default=2.0, help="seconds from ready to k = 0"
+        "--start-delay", type=_non_negative_float, default=2.0, help="seconds from ready to k = 0"
     )
     ground.add_argument(
         "--out",
@@ -243,26 +267,52 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _positive_float(text: str) -> float:
+    value = _float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    value = _float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
+def _float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+    return value
+
+
 def _simulate(arguments: argparse.Namespace) -> int:
-    from .outputs import write_results  # noqa: PLC0415 - keep `--help` fast
-    from .sim.simulator import simulate  # noqa: PLC0415
+    from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415 - fast `--help`
+    from .sim.simulator import check_memory, simulate  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
-    out_dir = arguments.out or Path("out") / scenario.name
+    check_memory(scenario, arguments.runs, str(arguments.config))
+    out_dir = prepare_out_dir(arguments.out or Path("out") / scenario.name, RUN_FILES)
     progress = _progress(scenario.timing.steps, arguments.quiet, f"{scenario.name}")
-    started = time.perf_counter()
-    try:
-        result = simulate(scenario, runs=arguments.runs, on_step=progress.update_to)
-    finally:
-        progress.close()
-    wall = time.perf_counter() - started
-    document = write_results(
-        result,
-        out_dir,
-        config_path=arguments.config,
-        wall_time_s=wall,
-        figures=not arguments.no_figures,
-    )
+    with RunSummary(out_dir, scenario, config_path=arguments.config, runs=arguments.runs) as record:
+
+        def on_step(done: int, total: int) -> None:
+            record.steps_done = done
+            progress.update_to(done, total)
+
+        started = time.perf_counter()
+        try:
+            result = simulate(scenario, runs=arguments.runs, on_step=on_step)
+        finally:
+            progress.close()
+        document = record.write_results(
+            result, wall_time_s=time.perf_counter() - started, figures=not arguments.no_figures
+        )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
@@ -272,32 +322,44 @@ def _run(arguments: argparse.Namespace) -> int:
     import asyncio  # noqa: PLC0415
 
     from .config import validate_scenario  # noqa: PLC0415
-    from .outputs import write_results  # noqa: PLC0415
+    from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from .runner.mission import fly  # noqa: PLC0415
+    from .sim.simulator import check_memory  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
     if arguments.realtime or arguments.speed is not None:
         data = scenario.model_dump(mode="json")
         data["flight"]["clock"] = "realtime"
-        data["flight"]["speed"] = arguments.speed or 1.0
+        data["flight"]["speed"] = 1.0 if arguments.speed is None else arguments.speed
         scenario = validate_scenario(data, str(arguments.config))
-    out_dir = arguments.out or Path("out") / f"{scenario.name}-run"
+    check_memory(scenario, 1, str(arguments.config))  # the flight's scored result
+    out_dir = prepare_out_dir(arguments.out or Path("out") / f"{scenario.name}-run", RUN_FILES)
     tlogs = out_dir / "tlogs"
-    tlogs.mkdir(parents=True, exist_ok=True)
+    tlogs.mkdir(exist_ok=True)
     view = None if arguments.quiet else _FlightView(scenario)
-    outcome = asyncio.run(
-        fly(scenario, emulator_overrides={"tlog_dir": str(tlogs)}, on_progress=view)
-    )
-    if view is not None:
-        view.close()
-    document = write_results(
-        outcome.result,
-        out_dir,
-        config_path=arguments.config,
-        wall_time_s=outcome.wall_time_s,
-        figures=not arguments.no_figures,
-        vehicles=outcome.vehicles,
-    )
+    with RunSummary(out_dir, scenario, config_path=arguments.config) as record:
+
+        def on_step(vehicle_id: int, step: StepRecord) -> None:
+            record.steps_done = max(record.steps_done, step.step + 1)
+
+        try:
+            outcome = asyncio.run(
+                fly(
+                    scenario,
+                    emulator_overrides={"tlog_dir": str(tlogs)},
+                    on_step=on_step,
+                    on_progress=view,
+                )
+            )
+        finally:
+            if view is not None:
+                view.close()
+        document = record.write_results(
+            outcome.result,
+            wall_time_s=outcome.wall_time_s,
+            figures=not arguments.no_figures,
+            vehicles=outcome.vehicles,
+        )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
         mission_s = scenario.timing.steps * scenario.timing.step_s
@@ -311,16 +373,24 @@ def _run(arguments: argparse.Namespace) -> int:
 def _vehicle(arguments: argparse.Namespace) -> int:
     import asyncio  # noqa: PLC0415
 
-    from .outputs import write_vehicle_run  # noqa: PLC0415
+    from .outputs import VEHICLE_FILES, Status, prepare_out_dir, write_vehicle_run  # noqa: PLC0415
     from .runner.process import VehicleRun, run_vehicle  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
-    out_dir = arguments.out or _mission_dir(scenario) / f"vehicle_{arguments.id}"
+    # No summary.json until the end: the ground station takes one as "this vehicle is done".
+    out_dir = prepare_out_dir(
+        arguments.out or _mission_dir(scenario) / f"vehicle_{arguments.id}", VEHICLE_FILES
+    )
     run = VehicleRun(arguments.id)
+    status: Status = "error"
     try:
         asyncio.run(run_vehicle(scenario, arguments.id, url=arguments.url, run=run))
+        status = "passed" if run.state == "done" else "error"
+    except KeyboardInterrupt:
+        status = "interrupted"
+        raise
     finally:
-        write_vehicle_run(run, out_dir, config_path=arguments.config)
+        write_vehicle_run(run, out_dir, config_path=arguments.config, status=status)
     following = sum(record.state == "following" for record in run.records)
     print(
         f"vehicle {arguments.id}: {run.state}, {len(run.records)} steps, {following} following "
@@ -334,10 +404,11 @@ def _vehicle(arguments: argparse.Namespace) -> int:
 def _ground(arguments: argparse.Namespace) -> int:
     import asyncio  # noqa: PLC0415
 
-    from .outputs import write_results  # noqa: PLC0415
+    from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from .runner.process import run_ground, wait_and_merge  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
+    mission_dir = prepare_out_dir(arguments.out or _mission_dir(scenario), RUN_FILES)
 
     last_state: dict[int, str] = {}
 
@@ -351,34 +422,35 @@ def _ground(arguments: argparse.Namespace) -> int:
                 flush=True,
             )
 
-    outcome = asyncio.run(run_ground(scenario, start_delay_s=arguments.start_delay, on_status=show))
-    done = len(outcome.statuses) - len(outcome.lost)
-    lost = ", ".join(
-        f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
-    )
-    print(
-        f"ground: mission {outcome.mission_id} over; {done} vehicle(s) done, lost: {lost or 'none'}"
-        f"; mission clock {outcome.clock_rate:.4f}x",
-        flush=True,
-    )
-    mission_dir = arguments.out or _mission_dir(scenario)
-    result = asyncio.run(wait_and_merge(scenario, mission_dir, outcome))
-    if result is None:
-        print(
-            f"ground: no truth in {mission_dir}/truth/ (no simulator): tracking and estimate "
-            "errors unavailable; per-vehicle results in the vehicles' folders"
+    with RunSummary(mission_dir, scenario, config_path=arguments.config) as record:
+        outcome = asyncio.run(
+            run_ground(scenario, start_delay_s=arguments.start_delay, on_status=show)
         )
-        return EXIT_OK
-    document = write_results(
-        result,
-        mission_dir,
-        config_path=arguments.config,
-        figures=not arguments.no_figures,
-        vehicles={
-            i: {"state": status.state, "detail": status.detail}
-            for i, status in outcome.statuses.items()
-        },
-    )
+        done = len(outcome.statuses) - len(outcome.lost)
+        lost = ", ".join(
+            f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
+        )
+        print(
+            f"ground: mission {outcome.mission_id} over; {done} vehicle(s) done, lost: "
+            f"{lost or 'none'}; mission clock {outcome.clock_rate:.4f}x",
+            flush=True,
+        )
+        result = asyncio.run(wait_and_merge(scenario, mission_dir, outcome))
+        if result is None:
+            record.finish("passed", "no truth (no simulator): expectations not checked")
+            print(
+                f"ground: no truth in {mission_dir}/truth/ (no simulator): tracking and estimate "
+                "errors unavailable; per-vehicle results in the vehicles' folders"
+            )
+            return EXIT_OK
+        document = record.write_results(
+            result,
+            figures=not arguments.no_figures,
+            vehicles={
+                i: {"state": status.state, "detail": status.detail}
+                for i, status in outcome.statuses.items()
+            },
+        )
     print(_summary_text(document, mission_dir))
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
 
@@ -407,10 +479,12 @@ def _mission_dir(scenario: Scenario) -> Path:
 def _ranges(arguments: argparse.Namespace) -> int:
     import asyncio  # noqa: PLC0415
 
+    from .outputs import TRUTH_FILES, prepare_out_dir  # noqa: PLC0415
     from .runner.ranges import run_range_provider  # noqa: PLC0415
     from .runner.scoring import write_truth_csv  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
+    out_dir = prepare_out_dir(arguments.out or _mission_dir(scenario) / "truth", TRUTH_FILES)
     print(
         f"ranges: SIMULATION AID - ranges are synthesised from {arguments.source.upper()} "
         "positions, not measured",
@@ -425,8 +499,6 @@ def _ranges(arguments: argparse.Namespace) -> int:
             seed=scenario.seed,
         )
     )
-    out_dir = arguments.out or _mission_dir(scenario) / "truth"
-    out_dir.mkdir(parents=True, exist_ok=True)
     write_truth_csv(stats.truth, [v.id for v in scenario.vehicles], out_dir / "truth.csv")
     lateness = ", ".join(f"{k} {v:.1f} ms" for k, v in stats.lateness_percentiles_ms().items())
     print(
