@@ -18,7 +18,8 @@ Exit codes:
 - 3: a runtime failure: a vehicle refused, was lost or the mission was aborted, a port is taken
   (the message names the setting that moves it), results could not be written; also an
   unexpected error (its traceback is printed, to be reported);
-- 130: interrupted (Ctrl-C); ``summary.json`` is written with ``status: interrupted``.
+- 130: interrupted by SIGINT (Ctrl-C), 143: by SIGTERM. Both stop the same way: a flight lands
+  first, and ``summary.json`` is written with ``status: interrupted``.
 
 ``--out``: a run first removes the earlier run's own files from the folder (summary.json,
 timeseries.csv, batch.csv, the figures, tlogs/vehicle_*.tlog: ``outputs.RUN_FILES``), so results
@@ -29,13 +30,17 @@ ended (``status``: running, passed, failed, interrupted or error).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
+import signal
 import sys
+import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from types import FrameType
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from .bus.errors import BusConnectionError, BusTimeoutError
 from .config import load_scenario
@@ -50,12 +55,14 @@ if TYPE_CHECKING:
     from .runner.controller import StepRecord
     from .runner.mission import Progress
 
+T = TypeVar("T")
+
 #: A subcommand: parsed arguments in, exit code out.
 Handler = Callable[[argparse.Namespace], int]
 
 EXIT_OK, EXIT_EXPECTATION_FAILED, EXIT_BAD_INPUT, EXIT_RUNTIME_FAILURE = 0, 1, 2, 3
-#: 128 + SIGINT's number, as a shell reports a process Ctrl-C ended.
-EXIT_INTERRUPTED = 130
+#: 128 + the signal's number, as a shell reports a process that signal ended.
+EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -65,8 +72,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.WARNING if getattr(arguments, "quiet", False) else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    _signals.received = "SIGINT"
     try:
-        return _unwrapped(arguments.handler, arguments)
+        with _terminate_as_interrupt():
+            return _unwrapped(arguments.handler, arguments)
     except (RunnerError, BusConnectionError, BusTimeoutError) as error:  # link, broker, vehicle
         print(f"error: {error}", file=sys.stderr)
         return EXIT_RUNTIME_FAILURE
@@ -77,14 +86,83 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        print(f"interrupted ({_signals.received})", file=sys.stderr)
+        return EXIT_TERMINATED if _signals.received == "SIGTERM" else EXIT_INTERRUPTED
     except OSError as error:  # e.g. the disk filled up while writing results
         print(f"error: {error}", file=sys.stderr)
         return EXIT_RUNTIME_FAILURE
     except Exception:  # a bug: its traceback, but not exit code 1, which means "failed"
         logging.getLogger(__name__).exception("unexpected error; please report it")
         return EXIT_RUNTIME_FAILURE
+
+
+class _StopSignals:
+    """Process-wide, as signal handlers are: which stop signal arrived, and how to stop the
+    asyncio main task that runs (see :func:`_run_async`)."""
+
+    def __init__(self) -> None:
+        self.received = "SIGINT"
+        self.cancel_main: Callable[[], None] | None = None
+
+
+_signals = _StopSignals()
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM stops a command as Ctrl-C does: a KeyboardInterrupt, or inside :func:`_run_async`
+    the cancellation of its main task first (a flight lands), noted so that the exit code tells
+    the two signals apart."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal handlers can only be set (and only run) in the main thread
+        return
+
+    def on_terminate(number: int, frame: FrameType | None) -> None:
+        _signals.received = "SIGTERM"
+        if _signals.cancel_main is not None:
+            _signals.cancel_main()
+        else:
+            raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
+def _run_async(coroutine: Coroutine[Any, Any, T]) -> T:
+    """``asyncio.run(coroutine)``; SIGTERM cancels its main task as asyncio does on Ctrl-C (so a
+    flight lands), then raises KeyboardInterrupt. Also when SIGINT is ignored, as in a
+    background job, where asyncio does not install its own handler."""
+    import asyncio  # noqa: PLC0415 - simulate does without
+
+    cancelled = False
+
+    async def main() -> T:
+        task, loop = asyncio.current_task(), asyncio.get_running_loop()
+
+        def cancel() -> None:
+            nonlocal cancelled
+            cancelled = True
+            if task is not None:
+                loop.call_soon_threadsafe(task.cancel)  # wakes the loop, as asyncio's handler
+
+        _signals.cancel_main = cancel
+        try:
+            return await coroutine
+        finally:
+            _signals.cancel_main = None
+
+    try:
+        result = asyncio.run(main())
+    except asyncio.CancelledError:
+        if cancelled:
+            raise KeyboardInterrupt from None
+        raise
+    if cancelled:  # the coroutine ended on its own terms, but the user asked it to stop
+        raise KeyboardInterrupt
+    return result
 
 
 def _emulator_errors() -> tuple[type[Exception], ...]:
@@ -319,8 +397,6 @@ def _simulate(arguments: argparse.Namespace) -> int:
 
 
 def _run(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
-
     from .config import validate_scenario  # noqa: PLC0415
     from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from .runner.mission import fly  # noqa: PLC0415
@@ -343,7 +419,7 @@ def _run(arguments: argparse.Namespace) -> int:
             record.steps_done = max(record.steps_done, step.step + 1)
 
         try:
-            outcome = asyncio.run(
+            outcome = _run_async(
                 fly(
                     scenario,
                     emulator_overrides={"tlog_dir": str(tlogs)},
@@ -371,8 +447,6 @@ def _run(arguments: argparse.Namespace) -> int:
 
 
 def _vehicle(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
-
     from .outputs import VEHICLE_FILES, Status, prepare_out_dir, write_vehicle_run  # noqa: PLC0415
     from .runner.process import VehicleRun, run_vehicle  # noqa: PLC0415
 
@@ -384,7 +458,7 @@ def _vehicle(arguments: argparse.Namespace) -> int:
     run = VehicleRun(arguments.id)
     status: Status = "error"
     try:
-        asyncio.run(run_vehicle(scenario, arguments.id, url=arguments.url, run=run))
+        _run_async(run_vehicle(scenario, arguments.id, url=arguments.url, run=run))
         status = "passed" if run.state == "done" else "error"
     except KeyboardInterrupt:
         status = "interrupted"
@@ -402,8 +476,6 @@ def _vehicle(arguments: argparse.Namespace) -> int:
 
 
 def _ground(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
-
     from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from .runner.process import run_ground, wait_and_merge  # noqa: PLC0415
 
@@ -423,7 +495,7 @@ def _ground(arguments: argparse.Namespace) -> int:
             )
 
     with RunSummary(mission_dir, scenario, config_path=arguments.config) as record:
-        outcome = asyncio.run(
+        outcome = _run_async(
             run_ground(scenario, start_delay_s=arguments.start_delay, on_status=show)
         )
         done = len(outcome.statuses) - len(outcome.lost)
@@ -435,7 +507,7 @@ def _ground(arguments: argparse.Namespace) -> int:
             f"{lost or 'none'}; mission clock {outcome.clock_rate:.4f}x",
             flush=True,
         )
-        result = asyncio.run(wait_and_merge(scenario, mission_dir, outcome))
+        result = _run_async(wait_and_merge(scenario, mission_dir, outcome))
         if result is None:
             record.finish("passed", "no truth (no simulator): expectations not checked")
             print(
@@ -477,8 +549,6 @@ def _mission_dir(scenario: Scenario) -> Path:
 
 
 def _ranges(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
-
     from .outputs import TRUTH_FILES, prepare_out_dir  # noqa: PLC0415
     from .runner.ranges import run_range_provider  # noqa: PLC0415
     from .runner.scoring import write_truth_csv  # noqa: PLC0415
@@ -490,7 +560,7 @@ def _ranges(arguments: argparse.Namespace) -> int:
         "positions, not measured",
         flush=True,
     )
-    stats = asyncio.run(
+    stats = _run_async(
         run_range_provider(
             scenario,
             source=arguments.source,

@@ -4,7 +4,11 @@ import csv
 import fnmatch
 import json
 import os
+import signal
 import socket
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -13,8 +17,10 @@ import yaml
 from mission_runner.cli import (
     EXIT_BAD_INPUT,
     EXIT_EXPECTATION_FAILED,
+    EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_RUNTIME_FAILURE,
+    EXIT_TERMINATED,
     main,
 )
 from mission_runner.outputs import RUN_FILES
@@ -295,6 +301,127 @@ def test_every_file_a_run_writes_is_one_the_next_run_removes(tmp_path):
     assert written
     for name in written:
         assert any(fnmatch.fnmatch(name, pattern) for pattern in RUN_FILES), name
+
+
+# --- Signals: SIGTERM stops like Ctrl-C, exit 128 + signal, summary.json says interrupted ---------
+
+
+@pytest.mark.parametrize(
+    ("stop", "code"), [(signal.SIGTERM, EXIT_TERMINATED), (signal.SIGINT, EXIT_INTERRUPTED)]
+)
+def test_a_signal_stops_simulate_with_its_exit_code_and_an_interrupted_summary(
+    stop, code, tmp_path
+):
+    config = scenario_file(tmp_path, set_value("timing", "steps", 1_000_000), name="long.yaml")
+    out = tmp_path / "out"
+    root = Path(__file__).resolve().parents[1]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "mission_runner.cli", "simulate", str(config), "--out", str(out)],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(root)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        summary = out / "summary.json"
+        # Written once the handlers are in place and the run starts; the run then takes minutes.
+        while process.poll() is None and not summary.exists():
+            time.sleep(0.05)
+        assert json.loads(summary.read_text())["status"] == "running"
+        process.send_signal(stop)
+        _, error = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert process.returncode == code, error
+    assert error.strip().endswith(f"interrupted ({stop.name})")
+    assert "Traceback" not in error
+    document = json.loads(summary.read_text())
+    assert document["status"] == "interrupted"
+    assert document["scenario"] == "paper_tracking"
+    assert 0 <= document["steps_done"] < 1_000_000
+    assert not (out / "timeseries.csv").exists()
+
+
+ASYNC_STOP = """
+import asyncio, signal, sys
+from mission_runner import cli
+
+signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job: asyncio adds no handler then
+
+
+async def fly():
+    try:
+        print("flying", flush=True)
+        await asyncio.sleep(3600)
+    except asyncio.CancelledError:
+        print("cancelled: landing", flush=True)
+        raise
+
+
+with cli._terminate_as_interrupt():
+    try:
+        cli._run_async(fly())
+    except KeyboardInterrupt:
+        print("KeyboardInterrupt", flush=True)
+"""
+
+
+def test_sigterm_cancels_the_asyncio_main_task_even_where_sigint_is_ignored(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    process = subprocess.Popen(
+        [sys.executable, "-c", ASYNC_STOP],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(root)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        assert process.stdout.readline() == "flying\n"
+        process.send_signal(signal.SIGTERM)
+        output, _ = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    # The coroutine sees a cancellation (where the flight code lands), the caller an interrupt.
+    assert output == "cancelled: landing\nKeyboardInterrupt\n"
+    assert process.returncode == 0
+
+
+@pytest.mark.mavsdk
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_sigterm_stops_a_flight_with_exit_143_and_an_interrupted_summary(tmp_path):
+    from tests.sitl.helpers import free_port_config
+
+    data = yaml.safe_load((CONFIGS / "paper_tracking_flyable.yaml").read_text())
+    data["flight"]["emulator"] = {"ports": free_port_config(4, gcs=False).model_dump()}
+    config = tmp_path / "flight.yaml"
+    config.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    root = Path(__file__).resolve().parents[1]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "mission_runner.cli", "run", str(config), "--out", str(out)],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(root), "PYTHONUNBUFFERED": "1"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        for line in process.stdout:  # the view prints a line per second of mission
+            if line.startswith("k="):
+                break
+        process.send_signal(signal.SIGTERM)
+        output, _ = process.communicate(timeout=120)
+    finally:
+        process.kill()
+    assert process.returncode == EXIT_TERMINATED, output
+    assert output.strip().endswith("interrupted (SIGTERM)")
+    assert "Traceback" not in output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "interrupted"
+    assert 0 < summary["steps_done"] < data["timing"]["steps"]
 
 
 # --- Runtime failures: exit 3, one line ----------------------------------------------------------
