@@ -176,7 +176,8 @@ def summary(
     scenario = result.scenario
     metrics = run_metrics(result)
     first = {name: _plain(values[0]) for name, values in metrics.items()}
-    failures = check_expectations(scenario.expect, first)
+    # Raw values, so that a diverged metric fails as "inf", not as "not measured".
+    failures = check_expectations(scenario.expect, {name: v[0] for name, v in metrics.items()})
     document: dict[str, Any] = {
         "status": "failed" if failures else "passed",
         **_about(scenario, config_path, result.runs),
@@ -192,7 +193,7 @@ def summary(
         document["batch"] = {name: distribution(values, name) for name, values in metrics.items()}
         per_run = [
             not check_expectations(
-                scenario.expect, {name: _plain(values[run]) for name, values in metrics.items()}
+                scenario.expect, {name: values[run] for name, values in metrics.items()}
             )
             for run in range(result.runs)
         ]

@@ -248,6 +248,26 @@ def test_an_error_during_the_run_leaves_a_summary_saying_so(tmp_path, capsys):
     assert summary["parameters"]["events"][0]["vehicle"] == 1
 
 
+@pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning", "ignore:invalid:RuntimeWarning")
+def test_estimates_that_diverge_fail_instead_of_reading_as_zero_error(tmp_path, capsys):
+    # An absurd (but finite) initial gain makes every estimate NaN; the localization error once
+    # skipped NaN edges and read 0, so this bound passed.
+    def absurd_gain(data):
+        data["algorithm"]["initial_gain"] = 1e300
+        data["expect"] = {"final_localization_error_m": {"max": 1e-6}}
+
+    config = scenario_file(tmp_path, absurd_gain)
+    out = tmp_path / "out"
+    code = main(["simulate", str(config), "--out", str(out), "--no-figures", "--quiet"])
+    assert code == EXIT_EXPECTATION_FAILED
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed"
+    assert summary["metrics"]["final_localization_error_m"] is None
+    assert summary["expectations"]["failures"] == [
+        "final_localization_error_m = inf: no value to compare"
+    ]
+
+
 # --- --out: checked before any work; a run never mixes with an earlier one -----------------------
 
 

@@ -230,9 +230,14 @@ def simulate(
         error_north = step.estimate_north_m - truth_north
         error_east = step.estimate_east_m - truth_east
         error = np.sqrt(error_north * error_north + error_east * error_east)
-        out["localization_error_m"][:, k] = np.where(np.isfinite(error), error, 0.0).max(
-            axis=(-1, -2)
+        # NaN: an edge not estimated (never ranged, or an end lost), which does not count. But an
+        # anchored edge between two live ends without a finite estimate has diverged (absurd
+        # noise or gains), which must read as infinitely wrong, not as 0.
+        diverged = (
+            swarm.state.edges.anchored & live[..., None] & np.isfinite(odometry[:, None, :, 0])
         )
+        error = np.where(diverged & ~np.isfinite(error), np.inf, error)
+        out["localization_error_m"][:, k] = np.where(np.isnan(error), 0.0, error).max(axis=(-1, -2))
         speed = np.sqrt(np.sum(step.consensus_m_s**2, axis=-1))
         out["consensus_speed_m_s"][:, k] = np.where(live, speed, 0.0).max(axis=-1)
 
