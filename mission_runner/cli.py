@@ -9,20 +9,38 @@
     mission-runner emulate CONFIG [sitl options]         emulated vehicles + the scenario's world
     mission-runner control CONFIG hold|resume|land|return|stop [--vehicle N]   operator command
 
-Exit codes: 0 success (and every ``expect:`` bound met), 1 an expectation failed, 2 bad input
-(the message names the problem and, for configs, the YAML path), 3 a runtime failure (a vehicle
-refused, was lost or the mission was aborted; the message says which and why), 130 interrupted.
+Exit codes:
+
+- 0: success (and every ``expect:`` bound met);
+- 1: an ``expect:`` bound failed;
+- 2: bad input, before any work: the scenario (the message names the YAML path), an option
+  (``--speed 0``), ``--out`` (a file, not writable), a batch too large for memory;
+- 3: a runtime failure: a vehicle refused, was lost or the mission was aborted, a port is taken
+  (the message names the setting that moves it), results could not be written; also an
+  unexpected error (its traceback is printed, to be reported);
+- 130: interrupted by SIGINT (Ctrl-C), 143: by SIGTERM. Both stop the same way: a flight lands
+  first, and ``summary.json`` is written with ``status: interrupted``.
+
+``--out``: a run first removes the earlier run's own files from the folder (summary.json,
+timeseries.csv, batch.csv, the figures, tlogs/vehicle_*.tlog: ``outputs.RUN_FILES``), so results
+of two runs never mix; any other file there is left alone. ``summary.json`` always says how the run
+ended (``status``: running, passed, failed, interrupted or error).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import math
+import signal
 import sys
+import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from types import FrameType
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from .bus.errors import BusConnectionError, BusTimeoutError
 from .config import load_scenario
@@ -34,12 +52,17 @@ if TYPE_CHECKING:
 
     from .bus import VehicleStatus
     from .config import Scenario
+    from .runner.controller import StepRecord
     from .runner.mission import Progress
+
+T = TypeVar("T")
 
 #: A subcommand: parsed arguments in, exit code out.
 Handler = Callable[[argparse.Namespace], int]
 
 EXIT_OK, EXIT_EXPECTATION_FAILED, EXIT_BAD_INPUT, EXIT_RUNTIME_FAILURE = 0, 1, 2, 3
+#: 128 + the signal's number, as a shell reports a process that signal ended.
+EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -49,8 +72,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.WARNING if getattr(arguments, "quiet", False) else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    _signals.received = "SIGINT"
     try:
-        return _unwrapped(arguments.handler, arguments)
+        with _terminate_as_interrupt():
+            return _unwrapped(arguments.handler, arguments)
     except (RunnerError, BusConnectionError, BusTimeoutError) as error:  # link, broker, vehicle
         print(f"error: {error}", file=sys.stderr)
         return EXIT_RUNTIME_FAILURE
@@ -61,8 +86,83 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+        print(f"interrupted ({_signals.received})", file=sys.stderr)
+        return EXIT_TERMINATED if _signals.received == "SIGTERM" else EXIT_INTERRUPTED
+    except OSError as error:  # e.g. the disk filled up while writing results
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_RUNTIME_FAILURE
+    except Exception:  # a bug: its traceback, but not exit code 1, which means "failed"
+        logging.getLogger(__name__).exception("unexpected error; please report it")
+        return EXIT_RUNTIME_FAILURE
+
+
+class _StopSignals:
+    """Process-wide, as signal handlers are: which stop signal arrived, and how to stop the
+    asyncio main task that runs (see :func:`_run_async`)."""
+
+    def __init__(self) -> None:
+        self.received = "SIGINT"
+        self.cancel_main: Callable[[], None] | None = None
+
+
+_signals = _StopSignals()
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM stops a command as Ctrl-C does: a KeyboardInterrupt, or inside :func:`_run_async`
+    the cancellation of its main task first (a flight lands), noted so that the exit code tells
+    the two signals apart."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal handlers can only be set (and only run) in the main thread
+        return
+
+    def on_terminate(number: int, frame: FrameType | None) -> None:
+        _signals.received = "SIGTERM"
+        if _signals.cancel_main is not None:
+            _signals.cancel_main()
+        else:
+            raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
+def _run_async(coroutine: Coroutine[Any, Any, T]) -> T:
+    """``asyncio.run(coroutine)``; SIGTERM cancels its main task as asyncio does on Ctrl-C (so a
+    flight lands), then raises KeyboardInterrupt. Also when SIGINT is ignored, as in a
+    background job, where asyncio does not install its own handler."""
+    import asyncio  # noqa: PLC0415 - simulate does without
+
+    cancelled = False
+
+    async def main() -> T:
+        task, loop = asyncio.current_task(), asyncio.get_running_loop()
+
+        def cancel() -> None:
+            nonlocal cancelled
+            cancelled = True
+            if task is not None:
+                loop.call_soon_threadsafe(task.cancel)  # wakes the loop, as asyncio's handler
+
+        _signals.cancel_main = cancel
+        try:
+            return await coroutine
+        finally:
+            _signals.cancel_main = None
+
+    try:
+        result = asyncio.run(main())
+    except asyncio.CancelledError:
+        if cancelled:
+            raise KeyboardInterrupt from None
+        raise
+    if cancelled:  # the coroutine ended on its own terms, but the user asked it to stop
+        raise KeyboardInterrupt
+    return result
 
 
 def _emulator_errors() -> tuple[type[Exception], ...]:
@@ -127,7 +227,9 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--realtime", action="store_true", help="real-time clock instead of the scenario's"
     )
-    run.add_argument("--speed", type=float, default=None, help="real-time speed factor")
+    run.add_argument(
+        "--speed", type=_positive_float, default=None, help="real-time speed factor (> 0)"
+    )
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress view, no summary")
     run.set_defaults(handler=_run)
@@ -153,7 +255,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     ground.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
     ground.add_argument(
-        "--start-delay", type=float, default=2.0, help="seconds from ready to k = 0"
+        "--start-delay", type=_non_negative_float, default=2.0, help="seconds from ready to k = 0"
     )
     ground.add_argument(
         "--out",
@@ -243,61 +345,97 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _positive_float(text: str) -> float:
+    value = _float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    value = _float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
+def _float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+    return value
+
+
 def _simulate(arguments: argparse.Namespace) -> int:
-    from .outputs import write_results  # noqa: PLC0415 - keep `--help` fast
-    from .sim.simulator import simulate  # noqa: PLC0415
+    from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415 - fast `--help`
+    from .sim.simulator import check_memory, simulate  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
-    out_dir = arguments.out or Path("out") / scenario.name
+    check_memory(scenario, arguments.runs, str(arguments.config))
+    out_dir = prepare_out_dir(arguments.out or Path("out") / scenario.name, RUN_FILES)
     progress = _progress(scenario.timing.steps, arguments.quiet, f"{scenario.name}")
-    started = time.perf_counter()
-    try:
-        result = simulate(scenario, runs=arguments.runs, on_step=progress.update_to)
-    finally:
-        progress.close()
-    wall = time.perf_counter() - started
-    document = write_results(
-        result,
-        out_dir,
-        config_path=arguments.config,
-        wall_time_s=wall,
-        figures=not arguments.no_figures,
-    )
+    with RunSummary(out_dir, scenario, config_path=arguments.config, runs=arguments.runs) as record:
+
+        def on_step(done: int, total: int) -> None:
+            record.steps_done = done
+            progress.update_to(done, total)
+
+        started = time.perf_counter()
+        try:
+            result = simulate(scenario, runs=arguments.runs, on_step=on_step)
+        finally:
+            progress.close()
+        document = record.write_results(
+            result, wall_time_s=time.perf_counter() - started, figures=not arguments.no_figures
+        )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
 
 
 def _run(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
-
     from .config import validate_scenario  # noqa: PLC0415
-    from .outputs import write_results  # noqa: PLC0415
+    from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from .runner.mission import fly  # noqa: PLC0415
+    from .sim.simulator import check_memory  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
     if arguments.realtime or arguments.speed is not None:
         data = scenario.model_dump(mode="json")
         data["flight"]["clock"] = "realtime"
-        data["flight"]["speed"] = arguments.speed or 1.0
+        data["flight"]["speed"] = 1.0 if arguments.speed is None else arguments.speed
         scenario = validate_scenario(data, str(arguments.config))
-    out_dir = arguments.out or Path("out") / f"{scenario.name}-run"
+    check_memory(scenario, 1, str(arguments.config))  # the flight's scored result
+    out_dir = prepare_out_dir(arguments.out or Path("out") / f"{scenario.name}-run", RUN_FILES)
     tlogs = out_dir / "tlogs"
-    tlogs.mkdir(parents=True, exist_ok=True)
+    tlogs.mkdir(exist_ok=True)
     view = None if arguments.quiet else _FlightView(scenario)
-    outcome = asyncio.run(
-        fly(scenario, emulator_overrides={"tlog_dir": str(tlogs)}, on_progress=view)
-    )
-    if view is not None:
-        view.close()
-    document = write_results(
-        outcome.result,
-        out_dir,
-        config_path=arguments.config,
-        wall_time_s=outcome.wall_time_s,
-        figures=not arguments.no_figures,
-        vehicles=outcome.vehicles,
-    )
+    with RunSummary(out_dir, scenario, config_path=arguments.config) as record:
+
+        def on_step(vehicle_id: int, step: StepRecord) -> None:
+            record.steps_done = max(record.steps_done, step.step + 1)
+
+        try:
+            outcome = _run_async(
+                fly(
+                    scenario,
+                    emulator_overrides={"tlog_dir": str(tlogs)},
+                    on_step=on_step,
+                    on_progress=view,
+                )
+            )
+        finally:
+            if view is not None:
+                view.close()
+        document = record.write_results(
+            outcome.result,
+            wall_time_s=outcome.wall_time_s,
+            figures=not arguments.no_figures,
+            vehicles=outcome.vehicles,
+        )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
         mission_s = scenario.timing.steps * scenario.timing.step_s
@@ -309,18 +447,24 @@ def _run(arguments: argparse.Namespace) -> int:
 
 
 def _vehicle(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
-
-    from .outputs import write_vehicle_run  # noqa: PLC0415
+    from .outputs import VEHICLE_FILES, Status, prepare_out_dir, write_vehicle_run  # noqa: PLC0415
     from .runner.process import VehicleRun, run_vehicle  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
-    out_dir = arguments.out or _mission_dir(scenario) / f"vehicle_{arguments.id}"
+    # No summary.json until the end: the ground station takes one as "this vehicle is done".
+    out_dir = prepare_out_dir(
+        arguments.out or _mission_dir(scenario) / f"vehicle_{arguments.id}", VEHICLE_FILES
+    )
     run = VehicleRun(arguments.id)
+    status: Status = "error"
     try:
-        asyncio.run(run_vehicle(scenario, arguments.id, url=arguments.url, run=run))
+        _run_async(run_vehicle(scenario, arguments.id, url=arguments.url, run=run))
+        status = "passed" if run.state == "done" else "error"
+    except KeyboardInterrupt:
+        status = "interrupted"
+        raise
     finally:
-        write_vehicle_run(run, out_dir, config_path=arguments.config)
+        write_vehicle_run(run, out_dir, config_path=arguments.config, status=status)
     following = sum(record.state == "following" for record in run.records)
     print(
         f"vehicle {arguments.id}: {run.state}, {len(run.records)} steps, {following} following "
@@ -332,12 +476,11 @@ def _vehicle(arguments: argparse.Namespace) -> int:
 
 
 def _ground(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
-
-    from .outputs import write_results  # noqa: PLC0415
+    from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from .runner.process import run_ground, wait_and_merge  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
+    mission_dir = prepare_out_dir(arguments.out or _mission_dir(scenario), RUN_FILES)
 
     last_state: dict[int, str] = {}
 
@@ -351,34 +494,35 @@ def _ground(arguments: argparse.Namespace) -> int:
                 flush=True,
             )
 
-    outcome = asyncio.run(run_ground(scenario, start_delay_s=arguments.start_delay, on_status=show))
-    done = len(outcome.statuses) - len(outcome.lost)
-    lost = ", ".join(
-        f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
-    )
-    print(
-        f"ground: mission {outcome.mission_id} over; {done} vehicle(s) done, lost: {lost or 'none'}"
-        f"; mission clock {outcome.clock_rate:.4f}x",
-        flush=True,
-    )
-    mission_dir = arguments.out or _mission_dir(scenario)
-    result = asyncio.run(wait_and_merge(scenario, mission_dir, outcome))
-    if result is None:
-        print(
-            f"ground: no truth in {mission_dir}/truth/ (no simulator): tracking and estimate "
-            "errors unavailable; per-vehicle results in the vehicles' folders"
+    with RunSummary(mission_dir, scenario, config_path=arguments.config) as record:
+        outcome = _run_async(
+            run_ground(scenario, start_delay_s=arguments.start_delay, on_status=show)
         )
-        return EXIT_OK
-    document = write_results(
-        result,
-        mission_dir,
-        config_path=arguments.config,
-        figures=not arguments.no_figures,
-        vehicles={
-            i: {"state": status.state, "detail": status.detail}
-            for i, status in outcome.statuses.items()
-        },
-    )
+        done = len(outcome.statuses) - len(outcome.lost)
+        lost = ", ".join(
+            f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
+        )
+        print(
+            f"ground: mission {outcome.mission_id} over; {done} vehicle(s) done, lost: "
+            f"{lost or 'none'}; mission clock {outcome.clock_rate:.4f}x",
+            flush=True,
+        )
+        result = _run_async(wait_and_merge(scenario, mission_dir, outcome))
+        if result is None:
+            record.finish("passed", "no truth (no simulator): expectations not checked")
+            print(
+                f"ground: no truth in {mission_dir}/truth/ (no simulator): tracking and estimate "
+                "errors unavailable; per-vehicle results in the vehicles' folders"
+            )
+            return EXIT_OK
+        document = record.write_results(
+            result,
+            figures=not arguments.no_figures,
+            vehicles={
+                i: {"state": status.state, "detail": status.detail}
+                for i, status in outcome.statuses.items()
+            },
+        )
     print(_summary_text(document, mission_dir))
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
 
@@ -405,18 +549,18 @@ def _mission_dir(scenario: Scenario) -> Path:
 
 
 def _ranges(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
-
+    from .outputs import TRUTH_FILES, prepare_out_dir  # noqa: PLC0415
     from .runner.ranges import run_range_provider  # noqa: PLC0415
     from .runner.scoring import write_truth_csv  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
+    out_dir = prepare_out_dir(arguments.out or _mission_dir(scenario) / "truth", TRUTH_FILES)
     print(
         f"ranges: SIMULATION AID - ranges are synthesised from {arguments.source.upper()} "
         "positions, not measured",
         flush=True,
     )
-    stats = asyncio.run(
+    stats = _run_async(
         run_range_provider(
             scenario,
             source=arguments.source,
@@ -425,8 +569,6 @@ def _ranges(arguments: argparse.Namespace) -> int:
             seed=scenario.seed,
         )
     )
-    out_dir = arguments.out or _mission_dir(scenario) / "truth"
-    out_dir.mkdir(parents=True, exist_ok=True)
     write_truth_csv(stats.truth, [v.id for v in scenario.vehicles], out_dir / "truth.csv")
     lateness = ", ".join(f"{k} {v:.1f} ms" for k, v in stats.lateness_percentiles_ms().items())
     print(
