@@ -97,7 +97,7 @@ MAV_STATE_ACTIVE = 4
 MAV_STATE_CRITICAL = 5
 
 #: MAV_PROTOCOL_CAPABILITY bits of AUTOPILOT_VERSION: exactly the ones PX4 sets
-#: (Mavlink::send_autopilot_capabilities; PX4 SITL v1.15 answers 0xE8FF), each of which the
+#: (Mavlink::send_autopilot_capabilities; a running PX4 SITL answers 0xE8FF), each of which the
 #: emulator handles. PX4 handles SET_POSITION_TARGET_GLOBAL_INT without setting its bit, and so
 #: does the emulator: a client that decides by the bits decides as it would with PX4.
 CAPABILITIES = (
