@@ -17,6 +17,8 @@ parts split the way PX4 splits its modules, which share one
 - :mod:`sitl.commander`: arming, mode switching, failsafes, auto-disarm;
 - :mod:`sitl.navigator`: TAKEOFF, HOLD/reposition, LAND, RTL, MISSION;
 - :mod:`sitl.offboard`: offboard setpoints and their timeout;
+- :mod:`sitl.flight_mode_manager`: the flight tasks of the modes the navigator does not fly:
+  the stick modes (:mod:`sitl.manual_control`, MANUAL_CONTROL input);
 - :mod:`sitl.land_detector`: landed / in air.
 
 The parts steer the vehicle only by writing setpoints and limits into its row of the shared
@@ -41,8 +43,10 @@ from sitl.commander import Commander
 from sitl.config import FlightLogConfig
 from sitl.flight_log import FlightLogger, FlightLogStore
 from sitl.ftp import FileSystem, static_directory
+from sitl.flight_mode_manager import FlightModeManager
 from sitl.geo import MapProjection
 from sitl.land_detector import LandDetector
+from sitl.manual_control import ManualControl, StickFlight
 from sitl.mavlink_receiver import MavlinkReceiver
 from sitl.mission import MissionTransfer
 from sitl.modes import FlightMode
@@ -124,10 +128,23 @@ class Px4Autopilot:
         self._land_detector = LandDetector(vehicle)
         self._navigator = Navigator(vehicle, set_mode=self._set_mode)
         self.mission: MissionTransfer = self._navigator.mission
+        self._manual_control = ManualControl(vehicle)
+        stick_flight = StickFlight(vehicle, self._manual_control)
+        self._flight_tasks = FlightModeManager(
+            vehicle,
+            {
+                FlightMode.POSCTL: stick_flight,
+                FlightMode.ALTCTL: stick_flight,
+                FlightMode.STABILIZED: stick_flight,
+                FlightMode.MANUAL: stick_flight,
+            },
+        )
         self._commander = Commander(
             vehicle,
             navigator=self._navigator,
             offboard=self._offboard,
+            manual_control=self._manual_control,
+            flight_tasks=self._flight_tasks,
             land_detector=self._land_detector,
             preflight_ready_after_s=preflight_ready_after_s,
             on_home_changed=self._announce_home,
@@ -156,6 +173,7 @@ class Px4Autopilot:
             files=self._file_system(ftp_ardupilot_extensions),
             ftp_echo_session=ftp_ardupilot_extensions,
             flight_logs=self.flight_logs,
+            handlers={"MANUAL_CONTROL": self._manual_control.on_manual_control},
         )
         self._navigator.apply_limits()
         self._commander.command_physics()
@@ -425,6 +443,7 @@ class Px4Autopilot:
                 0.0, self.battery_remaining_pct - self.battery_drain_percent_per_min * dt_s / 60.0
             )
             self._navigator.update(now_s)
+            self._flight_tasks.update(now_s)
             self._commander.update(now_s)
         self.mission.update(now_s)
         if self._flight_logger is not None:

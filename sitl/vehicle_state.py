@@ -112,6 +112,10 @@ class VehicleState:
     landing: bool = False
     flow_ok: bool = True
     gps_ok: bool = True
+    motors_failed: bool = False
+    """An injected motor failure: the vehicle cannot fly."""
+    battery_failed: bool = False
+    """An injected battery failure: the battery reads empty."""
 
     @property
     def position_ok(self) -> bool:
