@@ -18,7 +18,8 @@ parts split the way PX4 splits its modules, which share one
 - :mod:`sitl.navigator`: TAKEOFF, HOLD/reposition, LAND, RTL, MISSION;
 - :mod:`sitl.offboard`: offboard setpoints and their timeout;
 - :mod:`sitl.flight_mode_manager`: the flight tasks of the modes the navigator does not fly:
-  the stick modes (:mod:`sitl.manual_control`, MANUAL_CONTROL input);
+  the stick modes (:mod:`sitl.manual_control`, MANUAL_CONTROL input), ORBIT
+  (:mod:`sitl.orbit`, MAV_CMD_DO_ORBIT);
 - :mod:`sitl.land_detector`: landed / in air.
 
 The parts steer the vehicle only by writing setpoints and limits into its row of the shared
@@ -40,10 +41,11 @@ from pymavlink.dialects.v20 import common as mavlink
 from sitl import imu
 from sitl import physics as ph
 from sitl.commander import Commander
+from sitl.commands import bind
 from sitl.config import FlightLogConfig
 from sitl.flight_log import FlightLogger, FlightLogStore
-from sitl.ftp import FileSystem, static_directory
 from sitl.flight_mode_manager import FlightModeManager
+from sitl.ftp import FileSystem, static_directory
 from sitl.geo import MapProjection
 from sitl.land_detector import LandDetector
 from sitl.manual_control import ManualControl, StickFlight
@@ -53,6 +55,7 @@ from sitl.modes import FlightMode
 from sitl.navigator import Navigator
 from sitl.odometry import Odometry
 from sitl.offboard import Offboard
+from sitl.orbit import ORBIT_COMMANDS, Orbit
 from sitl.params import ParamStore, pack_param_pck
 from sitl.telemetry import TelemetryBuilder
 from sitl.vehicle_state import Link, Snapshot, VehicleContext, VehicleState
@@ -130,6 +133,7 @@ class Px4Autopilot:
         self.mission: MissionTransfer = self._navigator.mission
         self._manual_control = ManualControl(vehicle)
         stick_flight = StickFlight(vehicle, self._manual_control)
+        self.orbit = Orbit(vehicle, set_mode=self._set_mode)
         self._flight_tasks = FlightModeManager(
             vehicle,
             {
@@ -137,6 +141,7 @@ class Px4Autopilot:
                 FlightMode.ALTCTL: stick_flight,
                 FlightMode.STABILIZED: stick_flight,
                 FlightMode.MANUAL: stick_flight,
+                FlightMode.ORBIT: self.orbit,
             },
         )
         self._commander = Commander(
@@ -174,6 +179,7 @@ class Px4Autopilot:
             ftp_echo_session=ftp_ardupilot_extensions,
             flight_logs=self.flight_logs,
             handlers={"MANUAL_CONTROL": self._manual_control.on_manual_control},
+            command_tables=[bind(self.orbit, ORBIT_COMMANDS)],
         )
         self._navigator.apply_limits()
         self._commander.command_physics()
