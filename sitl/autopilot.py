@@ -19,7 +19,8 @@ parts split the way PX4 splits its modules, which share one
 - :mod:`sitl.offboard`: offboard setpoints and their timeout;
 - :mod:`sitl.flight_mode_manager`: the flight tasks of the modes the navigator does not fly:
   the stick modes (:mod:`sitl.manual_control`, MANUAL_CONTROL input), ORBIT
-  (:mod:`sitl.orbit`, MAV_CMD_DO_ORBIT);
+  (:mod:`sitl.orbit`, MAV_CMD_DO_ORBIT), FOLLOW_TARGET (:mod:`sitl.follow_target`,
+  FOLLOW_TARGET input);
 - :mod:`sitl.land_detector`: landed / in air.
 
 The parts steer the vehicle only by writing setpoints and limits into its row of the shared
@@ -45,6 +46,7 @@ from sitl.commands import bind
 from sitl.config import FlightLogConfig
 from sitl.flight_log import FlightLogger, FlightLogStore
 from sitl.flight_mode_manager import FlightModeManager
+from sitl.follow_target import FollowTarget
 from sitl.ftp import FileSystem, static_directory
 from sitl.geo import MapProjection
 from sitl.land_detector import LandDetector
@@ -134,6 +136,7 @@ class Px4Autopilot:
         self._manual_control = ManualControl(vehicle)
         stick_flight = StickFlight(vehicle, self._manual_control)
         self.orbit = Orbit(vehicle, set_mode=self._set_mode)
+        self.follow_target = FollowTarget(vehicle)
         self._flight_tasks = FlightModeManager(
             vehicle,
             {
@@ -142,6 +145,7 @@ class Px4Autopilot:
                 FlightMode.STABILIZED: stick_flight,
                 FlightMode.MANUAL: stick_flight,
                 FlightMode.ORBIT: self.orbit,
+                FlightMode.FOLLOW_TARGET: self.follow_target,
             },
         )
         self._commander = Commander(
@@ -178,7 +182,10 @@ class Px4Autopilot:
             files=self._file_system(ftp_ardupilot_extensions),
             ftp_echo_session=ftp_ardupilot_extensions,
             flight_logs=self.flight_logs,
-            handlers={"MANUAL_CONTROL": self._manual_control.on_manual_control},
+            handlers={
+                "MANUAL_CONTROL": self._manual_control.on_manual_control,
+                "FOLLOW_TARGET": self.follow_target.on_follow_target,
+            },
             command_tables=[bind(self.orbit, ORBIT_COMMANDS)],
         )
         self._navigator.apply_limits()

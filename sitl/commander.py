@@ -245,6 +245,8 @@ class Commander:
         if mode.stick_controlled and not self._manual.signal_fresh():
             # PX4's printRejectMode (the tab marks texts that PX4 also sends as events).
             denial = f"Switching to {mode.display_name} is currently not available\t"
+        elif mode is FlightMode.FOLLOW_TARGET and not state.position_ok:
+            denial = f"Switching to {mode.display_name} is currently not available\t"
         elif mode is FlightMode.OFFBOARD and not self._offboard.signal_fresh():
             denial = "Switching to Offboard denied: no setpoints"
         elif mode is FlightMode.MISSION and not self._navigator.has_mission:
