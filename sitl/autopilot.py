@@ -21,6 +21,8 @@ parts split the way PX4 splits its modules, which share one
   the stick modes (:mod:`sitl.manual_control`, MANUAL_CONTROL input), ORBIT
   (:mod:`sitl.orbit`, MAV_CMD_DO_ORBIT), FOLLOW_TARGET (:mod:`sitl.follow_target`,
   FOLLOW_TARGET input);
+- :mod:`sitl.failure_injection`: SYS_FAILURE_EN and MAV_CMD_INJECT_FAILURE, and the same
+  failures for the emulator's fault API;
 - :mod:`sitl.land_detector`: landed / in air.
 
 The parts steer the vehicle only by writing setpoints and limits into its row of the shared
@@ -44,6 +46,7 @@ from sitl import physics as ph
 from sitl.commander import Commander
 from sitl.commands import bind
 from sitl.config import FlightLogConfig
+from sitl.failure_injection import FAILURE_COMMANDS, FailureInjector, LinkSwitch
 from sitl.flight_log import FlightLogger, FlightLogStore
 from sitl.flight_mode_manager import FlightModeManager
 from sitl.follow_target import FollowTarget
@@ -123,7 +126,7 @@ class Px4Autopilot:
         self.telemetry = TelemetryBuilder(self)
         home_latitude_deg, _ = projection.to_global(*self._state.home_ned_m[:2])
         self._earth_field_ned_gauss = imu.earth_field_ned_gauss(home_latitude_deg)
-        self.battery_remaining_pct = 100.0
+        self._battery_pct = 100.0
         self._last_update_s = 0.0
         self._cache_step = -1
         self._cache_global: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -158,6 +161,12 @@ class Px4Autopilot:
             preflight_ready_after_s=preflight_ready_after_s,
             on_home_changed=self._announce_home,
         )
+        self._failures = FailureInjector(
+            vehicle,
+            set_sensor=self.set_sensor,
+            manual_control=self._manual_control,
+            on_motors=self._motors_changed,
+        )
         self.flight_logs = FlightLogStore(flight_logs.max_logs if flight_logs else 1)
         self._flight_logger = (
             FlightLogger(
@@ -186,7 +195,10 @@ class Px4Autopilot:
                 "MANUAL_CONTROL": self._manual_control.on_manual_control,
                 "FOLLOW_TARGET": self.follow_target.on_follow_target,
             },
-            command_tables=[bind(self.orbit, ORBIT_COMMANDS)],
+            command_tables=[
+                bind(self.orbit, ORBIT_COMMANDS),
+                bind(self._failures, FAILURE_COMMANDS),
+            ],
         )
         self._navigator.apply_limits()
         self._commander.command_physics()
@@ -212,6 +224,20 @@ class Px4Autopilot:
     def landed_state(self) -> int:
         """MAV_LANDED_STATE as of the last :meth:`update`."""
         return self._state.landed_state
+
+    @property
+    def battery_remaining_pct(self) -> float:
+        """State of charge, %: 0 while an injected battery failure lasts (PX4 SITL's battery
+        simulator reads empty then)."""
+        return 0.0 if self._state.battery_failed else self._battery_pct
+
+    @battery_remaining_pct.setter
+    def battery_remaining_pct(self, percent: float) -> None:
+        self._battery_pct = percent
+
+    @property
+    def motors_failed(self) -> bool:
+        return self._state.motors_failed
 
     @property
     def failsafe_active(self) -> bool:
@@ -423,6 +449,27 @@ class Px4Autopilot:
         else:
             raise ValueError(f"unknown sensor {sensor!r}; use 'flow' or 'gps'")
 
+    def inject_failure(self, unit: int, failure_type: int, instance: int = 0) -> bool:
+        """Inject a PX4 failure (FAILURE_UNIT_*, FAILURE_TYPE_*; type OK ends it) as
+        MAV_CMD_INJECT_FAILURE would, whatever SYS_FAILURE_EN; False if unsupported (see
+        :mod:`sitl.failure_injection`)."""
+        if not self._state.alive:
+            return False
+        return self._failures.inject(unit, failure_type, instance)
+
+    def failure_supported(self, unit: int, failure_type: int, instance: int = 0) -> bool:
+        return self._failures.supported(unit, failure_type, instance)
+
+    @property
+    def link_switch(self) -> LinkSwitch | None:
+        """Turns every link of this vehicle on (True) or off, for the mavlink_signal failure;
+        set by whoever owns the links."""
+        return self._failures.link_switch
+
+    @link_switch.setter
+    def link_switch(self, switch: LinkSwitch | None) -> None:
+        self._failures.link_switch = switch
+
     def deny_arming(self, count: int, text: str, retry_window_s: float) -> None:
         """Refuse the next ``count`` arm attempts with STATUSTEXT ``text`` (added to any
         refusals still pending); see :class:`sitl.config.DenyArmingFault`."""
@@ -452,8 +499,8 @@ class Px4Autopilot:
         dt_s = max(now_s - self._last_update_s, 0.0)
         self._last_update_s = now_s
         if state.armed:
-            self.battery_remaining_pct = max(
-                0.0, self.battery_remaining_pct - self.battery_drain_percent_per_min * dt_s / 60.0
+            self._battery_pct = max(
+                0.0, self._battery_pct - self.battery_drain_percent_per_min * dt_s / 60.0
             )
             self._navigator.update(now_s)
             self._flight_tasks.update(now_s)
@@ -486,6 +533,11 @@ class Px4Autopilot:
     def _set_mode(self, mode: FlightMode, failsafe: bool = False) -> None:
         """The navigator's way to the commander's mode switch."""
         self._commander.set_mode(mode, failsafe)
+
+    def _motors_changed(self) -> None:
+        vehicle = self._vehicle
+        vehicle.physics.motor_failure[vehicle.index] = self._state.motors_failed
+        self._commander.command_physics()
 
     def _param_changed(self, name: str, value: float) -> None:
         self._navigator.apply_limits()

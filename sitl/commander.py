@@ -273,7 +273,7 @@ class Commander:
         """Hand this vehicle's physics row to whatever flies the current state."""
         state = self._state
         vehicle = self._vehicle
-        if not state.alive:
+        if not state.alive or state.motors_failed:
             vehicle.motors_off()
             return
         if not state.armed:
