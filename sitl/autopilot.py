@@ -23,6 +23,7 @@ parts split the way PX4 splits its modules, which share one
   FOLLOW_TARGET input);
 - :mod:`sitl.failure_injection`: SYS_FAILURE_EN and MAV_CMD_INJECT_FAILURE, and the same
   failures for the emulator's fault API;
+- :mod:`sitl.calibration`: MAV_CMD_PREFLIGHT_CALIBRATION and its "[cal]" progress texts;
 - :mod:`sitl.land_detector`: landed / in air.
 
 The parts steer the vehicle only by writing setpoints and limits into its row of the shared
@@ -43,6 +44,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import imu
 from sitl import physics as ph
+from sitl.calibration import CALIBRATION_COMMANDS, Calibration
 from sitl.commander import Commander
 from sitl.commands import bind
 from sitl.config import FlightLogConfig
@@ -161,6 +163,7 @@ class Px4Autopilot:
             preflight_ready_after_s=preflight_ready_after_s,
             on_home_changed=self._announce_home,
         )
+        self._calibration = Calibration(vehicle)
         self._failures = FailureInjector(
             vehicle,
             set_sensor=self.set_sensor,
@@ -198,6 +201,7 @@ class Px4Autopilot:
             command_tables=[
                 bind(self.orbit, ORBIT_COMMANDS),
                 bind(self._failures, FAILURE_COMMANDS),
+                bind(self._calibration, CALIBRATION_COMMANDS),
             ],
         )
         self._navigator.apply_limits()
@@ -234,6 +238,11 @@ class Px4Autopilot:
     @battery_remaining_pct.setter
     def battery_remaining_pct(self, percent: float) -> None:
         self._battery_pct = percent
+
+    @property
+    def calibrating(self) -> bool:
+        """A calibration runs (PX4: MAV_STATE_CALIBRATING, arming denied)."""
+        return self._state.calibrating
 
     @property
     def motors_failed(self) -> bool:
@@ -506,6 +515,7 @@ class Px4Autopilot:
             self._flight_tasks.update(now_s)
             self._commander.update(now_s)
         self.mission.update(now_s)
+        self._calibration.update(now_s)
         if self._flight_logger is not None:
             self._flight_logger.update(now_s)
         self._receiver.pump()

@@ -421,6 +421,9 @@ class Commander:
         if p1 == _ARM:
             if state.armed:
                 return mavlink.MAV_RESULT_ACCEPTED
+            if state.calibrating:  # PX4 checks this before anything else, forced or not
+                statustext(now, critical, "Arming denied: calibrating\t")
+                return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
             if not force:
                 if not self.ready(now):
                     reason = "estimator not ready" if state.position_ok else "no position"

@@ -116,6 +116,8 @@ class VehicleState:
     """An injected motor failure: the vehicle cannot fly."""
     battery_failed: bool = False
     """An injected battery failure: the battery reads empty."""
+    calibrating: bool = False
+    """A sensor or RC calibration is under way."""
 
     @property
     def position_ok(self) -> bool:
