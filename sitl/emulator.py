@@ -949,14 +949,8 @@ class Emulator:
         self, fault: KillFault | LinkDropFault | SensorFault | DenyArmingFault | FailureFault
     ) -> None:
         if isinstance(fault, FailureFault):
-            self.inject_failure(
-                fault.vehicle_index,
-                fault.unit,
-                fault.type,
-                instance=fault.instance,
-                at_s=fault.at_s,
-                duration_s=fault.duration_s,
-            )
+            when = fault.model_dump(include={"instance", "at_s", "duration_s"})
+            self.inject_failure(fault.vehicle_index, fault.unit, fault.type, **when)
         elif isinstance(fault, KillFault):
             self.kill_vehicle(fault.vehicle_index, fault.at_s)
         elif isinstance(fault, LinkDropFault):

@@ -23,8 +23,8 @@ class FlightTask(Protocol):
     def activate(self) -> None:
         """The vehicle starts flying the mode (armed): take over from the current motion."""
 
-    def update(self, now_s: float) -> None:
-        """One autopilot step at ``now_s``."""
+    def update(self, dt_s: float) -> None:
+        """One autopilot step, ``dt_s`` after the previous one (0 right after activation)."""
 
 
 class FlightModeManager:
@@ -33,6 +33,7 @@ class FlightModeManager:
     def __init__(self, vehicle: VehicleContext, tasks: Mapping[FlightMode, FlightTask]) -> None:
         self._vehicle = vehicle
         self._tasks = dict(tasks)
+        self._last_s: float | None = None
 
     def flies(self, mode: FlightMode) -> bool:
         return mode in self._tasks
@@ -40,9 +41,12 @@ class FlightModeManager:
     def activate(self) -> None:
         task = self._tasks.get(self._vehicle.state.mode)
         if task is not None:
+            self._last_s = None
             task.activate()
 
     def update(self, now_s: float) -> None:
         task = self._tasks.get(self._vehicle.state.mode)
         if task is not None:
-            task.update(now_s)
+            dt = 0.0 if self._last_s is None else max(now_s - self._last_s, 0.0)
+            self._last_s = now_s
+            task.update(dt)

@@ -27,7 +27,6 @@ import math
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl import physics as ph
 from sitl.vehicle_state import Link, VehicleContext
 
 _MIN_POSITION_FUSION_S = 0.5  # TargetEstimator MINIMUM_TIME_BETWEEN_POS_FUSIONS_MS
@@ -166,7 +165,6 @@ class FollowTarget:
         self._orbit_angle_rad = 0.0
         self._orbit_rate_rad_s = 0.0
         self._hold_ned_m = [0.0, 0.0, 0.0]
-        self._last_s: float | None = None
 
     # ------------------------------------------------------------------ input
     def on_follow_target(self, msg: mavlink.MAVLink_message, link: Link) -> None:
@@ -190,16 +188,10 @@ class FollowTarget:
         self._orbit_angle_rad = 0.0
         self._orbit_rate_rad_s = 0.0
         self._hold_ned_m = list(self._vehicle.position_ned())
-        self._last_s = None
-        self._steer(0.0)
+        self.update(0.0)
 
-    def update(self, now_s: float) -> None:
-        dt = 0.0 if self._last_s is None else max(now_s - self._last_s, 0.0)
-        self._last_s = now_s
-        self._steer(dt)
-
-    # ---------------------------------------------------------------- internals
-    def _steer(self, dt: float) -> None:
+    def update(self, dt: float) -> None:
+        """One step of PX4's FlightTaskAutoFollowTarget::update."""
         vehicle = self._vehicle
         p = vehicle.params
         now = vehicle.state.now_s
@@ -211,7 +203,7 @@ class FollowTarget:
             estimator.measure(pending[0], pending[1], pending[2], p["FLW_TGT_RS"])
         target = estimator.position_ned_m
         if target is None:
-            self._write(self._hold_ned_m, [0.0, 0.0, 0.0], math.nan)
+            vehicle.fly_to(self._hold_ned_m)
             return
         self._filter(target, estimator.velocity_ned_m_s, dt)
         assert self._filter_pos is not None
@@ -241,9 +233,9 @@ class FollowTarget:
         if abs(down - pos[2]) < _ALTITUDE_ACCEPTANCE_M:
             tangential = [-math.sin(angle) * rate * distance, math.cos(angle) * rate * distance]
             feedforward = [tangential[0] + tgt_vel[0], tangential[1] + tgt_vel[1], 0.0]
-            self._write([desired[0], desired[1], down], feedforward, yaw)
+            vehicle.fly_to([desired[0], desired[1], down], feedforward, yaw_rad=yaw)
         else:
-            self._write([pos[0], pos[1], down], [0.0, 0.0, 0.0], yaw)
+            vehicle.fly_to([pos[0], pos[1], down], yaw_rad=yaw)
 
     def _filter(self, target: list[float], velocity: list[float], dt: float) -> None:
         """PX4's second-order reference model of the target (position with rate feed-forward)."""
@@ -271,13 +263,3 @@ class FollowTarget:
         rate = self._orbit_rate_rad_s
         self._orbit_rate_rad_s = max(rate - step, min(rate + step, wanted))
         self._orbit_angle_rad = _wrap_pi(self._orbit_angle_rad + self._orbit_rate_rad_s * dt)
-
-    def _write(self, position_ned: list[float], feedforward_ned: list[float], yaw: float) -> None:
-        vehicle = self._vehicle
-        i = vehicle.index
-        phys = vehicle.physics
-        phys.control_mode[i] = ph.POSITION
-        phys.position_setpoint_ned_m[i] = position_ned
-        phys.velocity_feedforward_ned_m_s[i] = feedforward_ned
-        phys.yaw_setpoint_rad[i] = yaw
-        phys.yaw_rate_setpoint_rad_s[i] = math.nan

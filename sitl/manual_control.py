@@ -145,7 +145,6 @@ class StickFlight:
         self._hold_ne: list[float] | None = None
         self._hold_down: float | None = None
         self._hold_yaw = math.nan
-        self._last_s: float | None = None
 
     def activate(self) -> None:
         """The mode was entered (armed): carry on from the current motion."""
@@ -155,17 +154,10 @@ class StickFlight:
         self._hold_ne = None
         self._hold_down = None
         self._hold_yaw = math.nan
-        self._last_s = None
-        self._command(0.0)
+        self.update(0.0)
 
-    def update(self, now_s: float) -> None:
-        """Fly one autopilot step of the current stick mode."""
-        dt = 0.0 if self._last_s is None else max(now_s - self._last_s, 0.0)
-        self._last_s = now_s
-        self._command(dt)
-
-    # ------------------------------------------------------------------ internals
-    def _command(self, dt: float) -> None:
+    def update(self, dt: float) -> None:
+        """Fly one autopilot step of the current stick mode, ``dt`` after the last."""
         vehicle = self._vehicle
         p = vehicle.params
         mode = vehicle.state.mode
@@ -255,11 +247,7 @@ class StickFlight:
 
     def _write(self, velocity_ned: list[float], yaw_rate: float, yaw: float) -> None:
         vehicle = self._vehicle
-        i = vehicle.index
-        phys = vehicle.physics
         # The automatic modes' yaw-rate limit (MPC_YAWRAUTO_MAX) does not bind the yaw stick.
-        phys.max_yaw_rate_rad_s[i] = math.radians(vehicle.params["MPC_MAN_Y_MAX"])
-        phys.control_mode[i] = ph.VELOCITY
-        phys.velocity_setpoint_ned_m_s[i] = velocity_ned
-        phys.yaw_rate_setpoint_rad_s[i] = yaw_rate
-        phys.yaw_setpoint_rad[i] = yaw
+        limit = math.radians(vehicle.params["MPC_MAN_Y_MAX"])
+        vehicle.physics.max_yaw_rate_rad_s[vehicle.index] = limit
+        vehicle.fly_at(velocity_ned, yaw_rad=yaw, yaw_rate_rad_s=yaw_rate)

@@ -25,7 +25,6 @@ from typing import Protocol
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl import physics as ph
 from sitl.commands import Command, CommandTable
 from sitl.modes import FlightMode
 from sitl.vehicle_state import Link, VehicleContext
@@ -35,7 +34,6 @@ _ACCELERATION_MAX_M_S2 = 2.0  # FlightTaskOrbit::_acceleration_max (centripetal)
 _ON_CIRCLE_M = 2.0  # FlightTaskOrbit::_horizontal_acceptance_radius
 _RADIAL_GAIN_1_S = 1.0
 _YAW_GAIN_1_S = 2.0
-_INT32_MAX = 2**31 - 1  # COMMAND_INT x/y meaning "not given"
 
 
 class ModeSwitch(Protocol):
@@ -60,7 +58,6 @@ class Orbit:
         self._orbiting = False
         self._speed_m_s = 0.0  # slew-rate limited |velocity|
         self._hold_ned_m = [0.0, 0.0, 0.0]  # where a failed or landed orbit stays
-        self._last_s: float | None = None
 
     # ---------------------------------------------------------------- state
     @property
@@ -81,12 +78,7 @@ class Orbit:
     def activate(self) -> None:
         """ORBIT entered while armed: a fresh orbit around the current position."""
         self._reset()
-        self._steer(0.0)
-
-    def update(self, now_s: float) -> None:
-        dt = 0.0 if self._last_s is None else max(now_s - self._last_s, 0.0)
-        self._last_s = now_s
-        self._steer(dt)
+        self.update(0.0)
 
     # ---------------------------------------------------------------- command
     def _cmd_do_orbit(self, cmd: Command, link: Link) -> int:
@@ -108,7 +100,7 @@ class Orbit:
                 state.now_s, mavlink.MAV_SEVERITY_CRITICAL, "Orbit radius limit exceeded\t"
             )
         if state.armed and state.mode is FlightMode.ORBIT:
-            self._steer(0.0)
+            self.update(0.0)
         return mavlink.MAV_RESULT_ACCEPTED
 
     def _apply(self, cmd: Command) -> bool:
@@ -141,14 +133,9 @@ class Orbit:
             else:
                 self._yaw_behaviour = behaviour
         self._initial_heading_rad = vehicle.attitude()[2]
-        if cmd.frame is None:
-            lat, lon = p[4], p[5]
-            given = math.isfinite(lat) and math.isfinite(lon)
-        else:
-            given = _INT32_MAX not in (cmd.x_int, cmd.y_int)
-            lat, lon = cmd.x_int * 1e-7, cmd.y_int * 1e-7
-        if given and -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0:
-            self._center_ned_m[0], self._center_ned_m[1] = vehicle.projection.to_local(lat, lon)
+        given = cmd.latitude_longitude()
+        if given is not None and -90.0 <= given[0] <= 90.0 and -180.0 <= given[1] <= 180.0:
+            self._center_ned_m[0], self._center_ned_m[1] = vehicle.projection.to_local(*given)
         if math.isfinite(p[6]):
             # PX4 reads param 7 as AMSL whatever the frame (MAVSDK sends AMSL in frame 3 too).
             self._center_ned_m[2] = vehicle.down_from_altitude(p[6], relative_to_home=False)
@@ -168,7 +155,6 @@ class Orbit:
         self._failed = False
         self._orbiting = False
         self._speed_m_s = 0.0
-        self._last_s = None
         self._hold_ned_m = list(vehicle.position_ned())
 
     def _on_circle(self) -> bool:
@@ -180,18 +166,12 @@ class Orbit:
             and abs(pos[2] - c[2]) < self._vehicle.params["NAV_MC_ALT_RAD"]
         )
 
-    def _steer(self, dt: float) -> None:
+    def update(self, dt: float) -> None:
+        """One step of PX4's FlightTaskOrbit::update, ``dt`` after the last."""
         vehicle = self._vehicle
-        state = vehicle.state
-        i = vehicle.index
-        phys = vehicle.physics
         pos = vehicle.position_ned()
-        if self._failed or state.landed:
-            phys.control_mode[i] = ph.POSITION
-            phys.position_setpoint_ned_m[i] = self._hold_ned_m
-            phys.velocity_feedforward_ned_m_s[i] = 0.0
-            phys.yaw_setpoint_rad[i] = math.nan
-            phys.yaw_rate_setpoint_rad_s[i] = math.nan
+        if self._failed or vehicle.state.landed:
+            vehicle.fly_to(self._hold_ned_m)
             return
         self._orbiting = True
         c = self._center_ned_m
@@ -206,11 +186,7 @@ class Orbit:
             if distance <= 1e-6:
                 dn, scale = 1.0, self._radius_m  # from the centre: start north of it
             target = [c[0] + dn * scale, c[1] + de * scale, c[2]]
-            phys.control_mode[i] = ph.POSITION
-            phys.position_setpoint_ned_m[i] = target
-            phys.velocity_feedforward_ned_m_s[i] = 0.0
-            phys.yaw_setpoint_rad[i] = math.atan2(-de, -dn) if distance > 0.5 else math.nan
-            phys.yaw_rate_setpoint_rad_s[i] = math.nan
+            vehicle.fly_to(target, yaw_rad=math.atan2(-de, -dn) if distance > 0.5 else math.nan)
             return
         accel = vehicle.params["MPC_ACC_HOR"]
         speed = abs(self._velocity_m_s)
@@ -225,24 +201,18 @@ class Orbit:
             un * tangential + ue * radial,
             _RADIAL_GAIN_1_S * (c[2] - pos[2]),
         ]
-        phys.control_mode[i] = ph.VELOCITY
-        phys.velocity_setpoint_ned_m_s[i] = velocity
-        self._steer_yaw(un, ue, direction)
+        vehicle.fly_at(velocity, yaw_rate_rad_s=self._yaw_rate(un, ue, direction))
 
-    def _steer_yaw(self, un: float, ue: float, direction: float) -> None:
-        """FlightTaskOrbit::_generate_circle_yaw_setpoints, with the turn rate fed forward."""
-        vehicle = self._vehicle
-        i = vehicle.index
-        phys = vehicle.physics
-        yaw = vehicle.attitude()[2]
+    def _yaw_rate(self, un: float, ue: float, direction: float) -> float:
+        """FlightTaskOrbit::_generate_circle_yaw_setpoints as a yaw rate (rad/s), with the
+        turn rate fed forward."""
+        yaw = self._vehicle.attitude()[2]
         rate_ff = direction * self._speed_m_s / self._radius_m
         behaviour = self._yaw_behaviour
         if behaviour == mavlink.ORBIT_YAW_BEHAVIOUR_HOLD_INITIAL_HEADING:
             target, rate_ff = self._initial_heading_rad, 0.0
         elif behaviour == mavlink.ORBIT_YAW_BEHAVIOUR_UNCONTROLLED:
-            phys.yaw_setpoint_rad[i] = math.nan
-            phys.yaw_rate_setpoint_rad_s[i] = 0.0
-            return
+            return 0.0
         elif behaviour == mavlink.ORBIT_YAW_BEHAVIOUR_HOLD_FRONT_TANGENT_TO_CIRCLE:
             target = math.atan2(direction * un, -direction * ue)
         elif behaviour == mavlink.ORBIT_YAW_BEHAVIOUR_RC_CONTROLLED:
@@ -250,8 +220,7 @@ class Orbit:
         else:
             target = math.atan2(-ue, -un)
         error = (target - yaw + math.pi) % (2.0 * math.pi) - math.pi
-        phys.yaw_setpoint_rad[i] = math.nan
-        phys.yaw_rate_setpoint_rad_s[i] = rate_ff + _YAW_GAIN_1_S * error
+        return rate_ff + _YAW_GAIN_1_S * error
 
 
 #: The command PX4 answers with its orbit mode (commander + flight mode manager).

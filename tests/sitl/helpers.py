@@ -200,24 +200,14 @@ class Bench:
             vehicle,
         )
 
-    def sticks(
-        self,
-        seconds: float,
-        *,
-        x: int = 0,
-        y: int = 0,
-        z: int = 500,
-        r: int = 0,
-        rate_hz: float = 20.0,
-        vehicle: int = 0,
-    ) -> None:
-        """Stream MANUAL_CONTROL (x pitch, y roll, r yaw in [-1000, 1000], z throttle in
-        [0, 1000]) at ``rate_hz`` while stepping for ``seconds`` (one message first)."""
-        every = max(1, round(1.0 / (rate_hz * self.dt)))
-        msg = mavlink.MAVLink_manual_control_message(vehicle + 1, x, y, z, r, 0)
+    def sticks(self, seconds: float, *, x: int = 0, y: int = 0, z: int = 500, r: int = 0) -> None:
+        """Stream MANUAL_CONTROL to vehicle 0 (x pitch, y roll, r yaw in [-1000, 1000], z
+        throttle in [0, 1000]) at 20 Hz while stepping for ``seconds`` (one message first)."""
+        every = max(1, round(0.05 / self.dt))
+        msg = mavlink.MAVLink_manual_control_message(1, x, y, z, r, 0)
         for k in range(round(seconds / self.dt)):
             if k % every == 0:
-                self.deliver(msg, vehicle)
+                self.deliver(msg)
             self.step()
 
     def airborne(self, vehicle: int = 0) -> None:

@@ -14,10 +14,8 @@ from pymavlink.dialects.v20.common import MAV_RESULT_DENIED as DENIED
 from pymavlink.dialects.v20.common import MAV_RESULT_TEMPORARILY_REJECTED as TEMPORARILY_REJECTED
 from pymavlink.dialects.v20.common import MAV_RESULT_UNSUPPORTED as UNSUPPORTED
 
-from sitl import Emulator, EmulatorConfig
-from sitl.config import ClockConfig
-from tests.sitl.helpers import Bench, free_port_config
-from tests.sitl.mavsdk_helpers import healthy, mavsdk_connected
+from tests.sitl.helpers import Bench
+from tests.sitl.mavsdk_helpers import api_config, emulated_drones, healthy
 
 CALIBRATE = mavlink.MAV_CMD_PREFLIGHT_CALIBRATION
 NAN = math.nan
@@ -120,16 +118,11 @@ def test_calibration_is_refused_while_armed_or_busy() -> None:
 @pytest.mark.mavsdk
 @pytest.mark.asyncio
 async def test_mavsdk_calibration_plugin() -> None:
-    cfg = EmulatorConfig(
-        vehicles=1, ports=free_port_config(1, gcs=False), clock=ClockConfig(speed=10.0)
-    )
-    async with (
-        Emulator(cfg) as emulator,
-        mavsdk_connected([emulator.endpoints[0].mavsdk_url], 1) as (_, drones, _),
-    ):
-        drone = drones[0]
-        calibration = CalibrationAsync(drone.system)
+    async with emulated_drones(api_config(speed=10.0)) as (emulator, [drone]):
+        # Until MAVSDK has seen enough of the vehicle to know it is PX4, its calibration plugin
+        # answers UNSUPPORTED at once (PX4 SITL likewise): health is a later sign of that.
         await healthy(drone)
+        calibration = CalibrationAsync(drone.system)
         updates = [(result, data) async for result, data in calibration.calibrate_gyro()]
         assert updates[-1][0] == Result.SUCCESS
         progress = [data.progress for _, data in updates if data.has_progress]

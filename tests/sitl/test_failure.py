@@ -19,7 +19,7 @@ from sitl import Emulator, EmulatorConfig
 from sitl.config import ClockConfig
 from sitl.modes import FlightMode
 from tests.sitl.helpers import Bench, RawClient, free_port_config
-from tests.sitl.mavsdk_helpers import first, healthy, mavsdk_connected, take_off
+from tests.sitl.mavsdk_helpers import api_config, emulated_drones, first, healthy, take_off
 
 INJECT = mavlink.MAV_CMD_INJECT_FAILURE
 U = mavlink  # FAILURE_UNIT_* / FAILURE_TYPE_* live in the dialect module
@@ -225,14 +225,7 @@ async def test_fault_api_and_config_inject_the_same_failures() -> None:
 @pytest.mark.mavsdk
 @pytest.mark.asyncio
 async def test_mavsdk_failure_plugin_injects_gps_and_motor_failures() -> None:
-    cfg = EmulatorConfig(
-        vehicles=1, ports=free_port_config(1, gcs=False), clock=ClockConfig(speed=5.0)
-    )
-    async with (
-        Emulator(cfg) as emulator,
-        mavsdk_connected([emulator.endpoints[0].mavsdk_url], 1) as (_, drones, _),
-    ):
-        drone = drones[0]
+    async with emulated_drones(api_config(speed=5.0)) as (emulator, [drone]):
         failure = FailureAsync(drone.system)
         await healthy(drone)
         await failure.inject(FailureUnit.SENSOR_GPS, FailureType.OFF, 0)

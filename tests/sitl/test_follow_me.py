@@ -5,9 +5,8 @@ MAVSDK's follow_me plugin."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import math
-from collections.abc import AsyncIterator, Callable
+from collections.abc import Awaitable, Callable
 
 import numpy as np
 import pytest
@@ -17,11 +16,9 @@ from pymavlink.dialects.v20 import common as mavlink
 from pymavlink.dialects.v20.common import MAV_RESULT_ACCEPTED as ACCEPTED
 from pymavlink.dialects.v20.common import MAV_RESULT_TEMPORARILY_REJECTED as TEMPORARILY_REJECTED
 
-from sitl import Emulator, EmulatorConfig
-from sitl.config import ClockConfig
 from sitl.modes import FlightMode
-from tests.sitl.helpers import Bench, free_port_config
-from tests.sitl.mavsdk_helpers import first, mavsdk_connected, take_off
+from tests.sitl.helpers import Bench
+from tests.sitl.mavsdk_helpers import api_config, emulated_drones, first, periodically, take_off
 
 AUTO, FOLLOW_TARGET = 4, 8
 GROUND_AMSL_M = 488.0  # the Bench's ground
@@ -137,39 +134,11 @@ def test_follow_target_mode_is_accepted_on_the_ground_but_prevents_arming() -> N
     assert bench.texts()[-1] == "Arming denied: Resolve system health failures first"
 
 
-@contextlib.asynccontextmanager
-async def phone(
-    follow_me: FollowMeAsync, location: Callable[[], TargetLocation], rate_hz: float = 10.0
-) -> AsyncIterator[None]:
-    """Report ``location()`` with follow_me.set_target_location at ``rate_hz`` (wall)."""
-
-    async def report() -> None:
-        while True:
-            await follow_me.set_target_location(location())
-            await asyncio.sleep(1.0 / rate_hz)
-
-    async with asyncio.TaskGroup() as group:
-        task = group.create_task(report(), name="follow-me-target")
-        try:
-            yield
-        finally:
-            task.cancel()
-
-
 @pytest.mark.mavsdk
 @pytest.mark.asyncio
 async def test_mavsdk_follow_me_follows_a_moving_target() -> None:
-    config = EmulatorConfig(
-        vehicles=1,
-        ports=free_port_config(1, gcs=False),
-        clock=ClockConfig(speed=5.0),
-        params={"MIS_TAKEOFF_ALT": 5.0},
-    )
-    async with (
-        Emulator(config) as emulator,
-        mavsdk_connected([emulator.endpoints[0].mavsdk_url], 1) as (_, drones, _),
-    ):
-        drone = drones[0]
+    config = api_config(speed=5.0, params={"MIS_TAKEOFF_ALT": 5.0})
+    async with emulated_drones(config) as (emulator, [drone]):
         follow_me = FollowMeAsync(drone.system)
         await follow_me.set_config(
             Config(
@@ -213,7 +182,10 @@ async def test_mavsdk_follow_me_follows_a_moving_target() -> None:
                 lat, lon, config.home.altitude_amsl_m, 0.0, speed if moving_since else 0.0, 0.0
             )
 
-        async with phone(follow_me, location):
+        def report() -> Awaitable[None]:  # a phone's position, 10 Hz wall
+            return follow_me.set_target_location(location())
+
+        async with periodically(report, 10.0, "follow-me-target"):
             await emulator.run_for(25.0)
             n, e, d = emulator.truth.position_ned_m[0]
             assert math.hypot(n - 14.0, e) < 0.15

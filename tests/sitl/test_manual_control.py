@@ -9,10 +9,8 @@ sticks; tilt MPC_MAN_TILT_MAX 35 deg at full stick in Altitude mode (no expo).
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import math
-from collections.abc import AsyncIterator
+from collections.abc import Awaitable
 
 import numpy as np
 import pytest
@@ -21,12 +19,10 @@ from mavsdk.asyncio.plugins.telemetry import FlightMode as MavsdkFlightMode
 from pymavlink.dialects.v20.common import MAV_RESULT_ACCEPTED as ACCEPTED
 from pymavlink.dialects.v20.common import MAV_RESULT_TEMPORARILY_REJECTED as TEMPORARILY_REJECTED
 
-from sitl import Emulator, EmulatorConfig
-from sitl.config import ClockConfig
 from sitl.manual_control import deadzone, expo
 from sitl.modes import FlightMode
-from tests.sitl.helpers import Bench, free_port_config
-from tests.sitl.mavsdk_helpers import first, mavsdk_connected, take_off
+from tests.sitl.helpers import Bench
+from tests.sitl.mavsdk_helpers import api_config, emulated_drones, first, periodically, take_off
 
 POSCTL, ALTCTL, STABILIZED = 3, 2, 7
 
@@ -198,46 +194,21 @@ def test_sticks_take_off_from_the_ground_only_above_the_takeoff_throttle() -> No
 SPEED = 2.0
 
 
-@contextlib.asynccontextmanager
-async def streaming(
-    manual: ManualControlAsync, sticks: list[float], rate_hz: float = 20.0
-) -> AsyncIterator[None]:
-    """Send ``sticks`` (x, y, z, r as MAVSDK takes them) at ``rate_hz`` wall time, as MAVSDK
-    asks of its users; change the list in place to move the sticks."""
-
-    async def send() -> None:
-        while True:
-            await asyncio.sleep(1.0 / rate_hz)
-            await manual.set_manual_control_input(*sticks)
-
-    await manual.set_manual_control_input(*sticks)  # MAVSDK will not start without one
-    async with asyncio.TaskGroup() as group:
-        task = group.create_task(send(), name="manual-control-input")
-        try:
-            yield
-        finally:
-            task.cancel()
-
-
 @pytest.mark.mavsdk
 @pytest.mark.asyncio
 async def test_mavsdk_manual_control_flies_position_and_altitude_modes() -> None:
-    config = EmulatorConfig(
-        vehicles=1,
-        ports=free_port_config(1, gcs=False),
-        clock=ClockConfig(speed=SPEED),
-        # PX4 SITL's rcS scales COM_RC_LOSS_T with the speed factor for the same reason.
-        params={"COM_RC_LOSS_T": 1.0 * SPEED},
-    )
-    async with (
-        Emulator(config) as emulator,
-        mavsdk_connected([emulator.endpoints[0].mavsdk_url], 1) as (_, drones, _),
-    ):
-        drone = drones[0]
+    # MAVSDK's users send the sticks on wall time; PX4 SITL's rcS scales COM_RC_LOSS_T with
+    # the speed factor for the same reason.
+    config = api_config(speed=SPEED, params={"COM_RC_LOSS_T": 1.0 * SPEED})
+    async with emulated_drones(config) as (emulator, [drone]):
         manual = ManualControlAsync(drone.system)
         await take_off(drone)
         sticks = [0.0, 0.0, 0.5, 0.0]  # x pitch, y roll, z throttle (0.5 centred), r yaw
-        async with streaming(manual, sticks):
+
+        def send_sticks() -> Awaitable[None]:
+            return manual.set_manual_control_input(*sticks)
+
+        async with periodically(send_sticks, 20.0, "manual-control-input"):
             await manual.start_position_control()
             await first(
                 drone.telemetry.subscribe_flight_mode(),

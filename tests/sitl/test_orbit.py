@@ -13,11 +13,9 @@ from pymavlink.dialects.v20 import common as mavlink
 from pymavlink.dialects.v20.common import MAV_RESULT_ACCEPTED as ACCEPTED
 from pymavlink.dialects.v20.common import MAV_RESULT_TEMPORARILY_REJECTED as TEMPORARILY_REJECTED
 
-from sitl import Emulator, EmulatorConfig
-from sitl.config import ClockConfig
 from sitl.modes import FlightMode
-from tests.sitl.helpers import Bench, free_port_config
-from tests.sitl.mavsdk_helpers import first, mavsdk_connected, take_off
+from tests.sitl.helpers import Bench
+from tests.sitl.mavsdk_helpers import api_config, emulated_drones, first, take_off
 
 DO_ORBIT = mavlink.MAV_CMD_DO_ORBIT
 GROUND_AMSL_M = 488.0  # the Bench's ground
@@ -180,17 +178,8 @@ def test_orbit_needs_a_position_estimate() -> None:
 @pytest.mark.mavsdk
 @pytest.mark.asyncio
 async def test_mavsdk_do_orbit_flies_the_circle() -> None:
-    config = EmulatorConfig(
-        vehicles=1,
-        ports=free_port_config(1, gcs=False),
-        clock=ClockConfig(speed=5.0),
-        params={"MIS_TAKEOFF_ALT": 10.0},
-    )
-    async with (
-        Emulator(config) as emulator,
-        mavsdk_connected([emulator.endpoints[0].mavsdk_url], 1) as (_, drones, _),
-    ):
-        drone = drones[0]
+    config = api_config(speed=5.0, params={"MIS_TAKEOFF_ALT": 10.0})
+    async with emulated_drones(config) as (emulator, [drone]):
         await take_off(drone, 10.0)
         lat, lon = emulator.projection.to_global(20.0, 0.0)
         amsl = config.home.altitude_amsl_m + 10.0
