@@ -204,6 +204,7 @@ class Px4Autopilot:
                 bind(self._calibration, CALIBRATION_COMMANDS),
             ],
         )
+        self._receiver.shell.pxh.commands["failure"] = self._failures.shell_command
         self._navigator.apply_limits()
         self._commander.command_physics()
 

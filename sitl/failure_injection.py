@@ -22,6 +22,9 @@ Everything else is answered UNSUPPORTED, as PX4 answers a type its handler does 
 (motor garbage). Real PX4 SITL with SIH handles only motor and battery (sensor failures need the
 Gazebo simulator, and no PX4 module handles optical_flow, rc_signal or mavlink_signal): it does
 not answer the others at all, so MAVSDK times out there.
+
+PX4's ``failure`` shell command (``failure gps off``, ``failure motor off -i 1``) is there too,
+in the vehicle's MAVLink shell (:mod:`sitl.shell`), with PX4's texts.
 """
 
 from __future__ import annotations
@@ -157,6 +160,36 @@ class FailureInjector:
             self.link_switch(ok)
         return True
 
+    def shell_command(self, args: list[str]) -> tuple[str, int]:
+        """PX4's ``failure <unit> <type> [-i <instance>]`` (systemcmds/failure): its texts and
+        exit status."""
+        if int(self._vehicle.params["SYS_FAILURE_EN"]) != 1:
+            return "ERROR [failure] Failure injection disabled by SYS_FAILURE_EN param.\n", 1
+        if args == ["help"]:
+            return _FAILURE_USAGE, 0
+        instance = 0
+        words = list(args)
+        if "-i" in words:
+            at = words.index("-i")
+            value = words[at + 1] if at + 1 < len(words) else ""
+            del words[at : at + 2]
+            instance = int(value) if value.isdigit() else 0  # PX4: atoi
+        if len(words) < 2:
+            return _FAILURE_USAGE + "ERROR [failure] Not enough arguments.\n", 1
+        unit, failure_type = words[0], words[1]
+        if unit not in UNITS:
+            return f"ERROR [failure] Component '{unit}' not found\n", 1
+        if failure_type not in TYPES:
+            return f"ERROR [failure] Failure type '{failure_type}' not found\n", 1
+        unit_id, type_id = UNITS[unit], TYPES[failure_type]
+        text = (
+            f"WARN  [failure] inject failure unit: {unit} ({unit_id}), "
+            f"type: {failure_type} ({type_id}), instance: {instance}\n"
+        )
+        if not self.inject(unit_id, type_id, instance):
+            return text + f"ERROR [failure] Result: {mavlink.MAV_RESULT_UNSUPPORTED}\n", 1
+        return text, 0
+
     def _cmd_inject_failure(self, cmd: Command, link: Link) -> int:
         if int(self._vehicle.params["SYS_FAILURE_EN"]) != 1:
             return mavlink.MAV_RESULT_DENIED
@@ -168,6 +201,20 @@ class FailureInjector:
             return mavlink.MAV_RESULT_UNSUPPORTED
         return mavlink.MAV_RESULT_ACCEPTED
 
+
+_FAILURE_USAGE = (
+    "\n### Description\nInject failures into system.\n\n### Implementation\n"
+    "This system command sends a vehicle command over uORB to trigger failure.\n\n"
+    "### Examples\nTest the GPS failsafe by stopping GPS:\n\nfailure gps off\n\n"
+    "Usage: failure [arguments...]\n\n"
+    "   help          Show this help text\n\n"
+    "   gps|...       Specify component\n\n"
+    "   ok|off|...    Specify failure type\n"
+    "     [-i <val>]  sensor instance (0=all)\n"
+    "                 default: 0\n\n"
+    "Components:\n" + "".join(f"- {name}\n" for name in UNITS) + "\n"
+    "Failure types:\n" + "".join(f"- {name}\n" for name in TYPES)
+)
 
 #: The command PX4's failure injection answers (MAVLink receiver + the unit's module).
 FAILURE_COMMANDS: CommandTable[FailureInjector] = {

@@ -167,21 +167,23 @@ def _os_version_number() -> int:
 class Pxh:
     """PX4's shell for one vehicle: :meth:`run` takes a command line, returns what PX4 prints.
 
-    ``announce_param(name)`` is called after ``param set`` changed a parameter.
+    ``announce_param(name)`` is called after ``param set`` changed a parameter. ``commands``
+    adds commands that other parts of the autopilot own (name -> handler(args) returning the
+    text and the exit status), such as ``failure``.
     """
 
     vehicle: VehicleContext
     announce_param: Callable[[str], None] = lambda name: None
     started: datetime = field(default_factory=lambda: datetime.now(UTC))
+    commands: dict[str, Callable[[list[str]], tuple[str, int]]] = field(default_factory=dict)
 
     def run(self, line: str) -> str:
         words = line.split()
         if not words or words[0].startswith("#"):
             return ""
         command, args = words[0], words[1:]
-        handler = {"param": self._param, "commander": self._commander, "ver": self._ver}.get(
-            command
-        )
+        own = {"param": self._param, "commander": self._commander, "ver": self._ver}
+        handler = {**own, **self.commands}.get(command)
         if handler is not None:
             text, status = handler(args)
             if status:
@@ -189,7 +191,7 @@ class Pxh:
             return text
         if command == "help":
             return "Builtin Commands:\n" + "".join(
-                f"  {name}\n" for name in ("commander", "param", "ver")
+                f"  {name}\n" for name in sorted(("commander", "param", "ver", *self.commands))
             )
         return f"Invalid command: {command}\ntype 'help' for a list of commands\n"
 
@@ -401,6 +403,11 @@ class MavlinkShell:
         self._vehicle = vehicle
         self._pxh = pxh
         self._sessions: dict[str, _Session] = {}
+
+    @property
+    def pxh(self) -> Pxh:
+        """The shell's command interpreter (to add commands to)."""
+        return self._pxh
 
     @property
     def open_sessions(self) -> list[str]:

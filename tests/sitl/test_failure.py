@@ -154,6 +154,31 @@ def test_mavlink_signal_needs_the_emulator_links() -> None:
     assert inject(bench, U.FAILURE_UNIT_SYSTEM_MAVLINK_SIGNAL, U.FAILURE_TYPE_OFF) == UNSUPPORTED
 
 
+def test_px4s_failure_shell_command_injects_the_same_failures() -> None:
+    bench = Bench()
+    pxh = bench.ap._receiver.shell.pxh
+    assert pxh.run("failure gps off") == (
+        "WARN  [failure] inject failure unit: gps (4), type: off (1), instance: 0\n"
+    )
+    assert not bench.ap.gps_ok
+    assert pxh.run("failure motor off -i 1").endswith("type: off (1), instance: 1\n")
+    assert bench.ap.motors_failed
+    assert pxh.run("failure gyro off").endswith(
+        "ERROR [failure] Result: 3\nCommand 'failure' failed, returned 1.\n"
+    )
+    assert pxh.run("failure compass off") == (
+        "ERROR [failure] Component 'compass' not found\nCommand 'failure' failed, returned 1.\n"
+    )
+    assert pxh.run("failure gps").endswith("ERROR [failure] Not enough arguments.\n" + FAILED)
+    bench.ap.params.set("SYS_FAILURE_EN", 0)
+    assert pxh.run("failure gps ok") == (
+        "ERROR [failure] Failure injection disabled by SYS_FAILURE_EN param.\n" + FAILED
+    )
+
+
+FAILED = "Command 'failure' failed, returned 1.\n"
+
+
 def config(**kwargs: object) -> EmulatorConfig:
     return EmulatorConfig(
         vehicles=1,
