@@ -47,22 +47,6 @@ DATA_BYTES = 70
 _TARGET_OFFSET = 79
 """Payload offset of SERIAL_CONTROL's extension fields target_system, target_component."""
 _READ_ONLY_PARAMS = frozenset(["MAV_SYS_ID", "MAV_COMP_ID"])  # as for PARAM_SET: reboot only
-#: PX4's nav_state_names (src/lib/modes/ui.hpp) of the emulator's modes.
-_NAV_STATE_NAMES = {
-    "MANUAL": "Manual",
-    "ALTCTL": "Altitude",
-    "POSCTL": "Position",
-    "MISSION": "Mission",
-    "HOLD": "Hold",
-    "RTL": "Return",
-    "OFFBOARD": "Offboard",
-    "STABILIZED": "Stabilized",
-    "TAKEOFF": "Takeoff",
-    "LAND": "Land",
-    "FOLLOW_TARGET": "Follow Target",
-    "FOLLOW_ME": "Follow Target",
-    "ORBIT": "Orbit",
-}
 #: Subcommands PX4 has that the emulator does not run (``param``, ``commander``).
 _PARAM_ELSEWHERE = frozenset(
     [
@@ -335,7 +319,7 @@ def _matches(pattern: str, name: str) -> bool:
 
 
 def _nav_state_name(mode: FlightMode) -> str:
-    return _NAV_STATE_NAMES.get(mode.name, mode.name.replace("_", " ").title())
+    return mode.display_name  # PX4's nav_state_names (src/lib/modes/ui.hpp)
 
 
 class SerialControl(mavlink.MAVLink_serial_control_message):
