@@ -144,13 +144,18 @@ class Calibration:
         """Say what is due by ``now_s``; the worker is idle after its last text."""
         vehicle = self._vehicle
         texts = self._texts
+        if not texts and self.running is None:
+            return  # idle: the usual case, once per autopilot step
         while texts and texts[0][0] <= now_s + 1e-9:
             _, severity, text = texts.popleft()
             if text:
                 vehicle.statustext(now_s, severity, text)
         if not texts:
             self.running = None
-        vehicle.state.calibrating = self.running is not None or self.rc_calibration
+        self._publish()
+
+    def _publish(self) -> None:
+        self._vehicle.state.calibrating = self.running is not None or self.rc_calibration
 
     def _start(self, name: str) -> int:
         now = self._vehicle.state.now_s
@@ -200,7 +205,7 @@ class Calibration:
         if _is(p4, 1):
             self.rc_calibration = True
             vehicle.statustext(state.now_s, _INFO, "Calibration: Disabling RC input\t")
-            self.update(state.now_s)
+            self._publish()
             return mavlink.MAV_RESULT_ACCEPTED
         if _is(p4, 2):
             return self._start("rc_trim")
@@ -224,7 +229,7 @@ class Calibration:
             if self.rc_calibration:
                 self.rc_calibration = False
                 vehicle.statustext(state.now_s, _INFO, "Calibration: Restoring RC input\t")
-                self.update(state.now_s)
+                self._publish()
             return mavlink.MAV_RESULT_ACCEPTED
         return mavlink.MAV_RESULT_UNSUPPORTED
 

@@ -107,9 +107,9 @@ class ManualControl:
 
     def signal_fresh(self) -> bool:
         """Manual control input arrived within the last COM_RC_LOSS_T seconds."""
+        if self.signal_blocked or self._last_input_s == -math.inf:
+            return False  # the common case of no joystick at all: no parameter lookup
         vehicle = self._vehicle
-        if self.signal_blocked:
-            return False
         return vehicle.state.now_s - self._last_input_s <= vehicle.params["COM_RC_LOSS_T"]
 
     def shaped(self) -> Sticks:
