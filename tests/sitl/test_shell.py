@@ -195,7 +195,7 @@ def test_ver_prints_px4s_fields() -> None:
 
 def test_help_and_unknown_commands() -> None:
     bench = Bench()
-    assert run(bench, "help") == "Builtin Commands:\n  commander\n  param\n  ver\n"
+    assert run(bench, "help") == ("Builtin Commands:\n  commander\n  failure\n  param\n  ver\n")
     assert run(bench, "reboot") == "Invalid command: reboot\ntype 'help' for a list of commands\n"
 
 
