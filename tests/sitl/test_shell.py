@@ -337,6 +337,15 @@ class MavsdkShellReader:
             self.text += received.data
             self._changed.set()
 
+    async def wait_subscribed(self, timeout_s: float = 5.0) -> None:
+        """``ver hw`` until its prompt comes back: the gRPC subscription is set up some loop
+        iterations after ``collect`` starts, and output sent before it is lost (MAVSDK
+        sends no empty line)."""
+        async with asyncio.timeout(timeout_s):
+            while PROMPT not in self.text:
+                with contextlib.suppress(TimeoutError):
+                    await self.command("ver hw", timeout_s=0.2)
+
     async def command(self, line: str, timeout_s: float = 5.0) -> str:
         start = len(self.text)
         await self.shell.send(line, Device.SHELL)
@@ -357,7 +366,7 @@ async def mavsdk_shell(system: System) -> AsyncIterator[MavsdkShellReader]:
     reader = MavsdkShellReader(ShellAsync(system))
     async with asyncio.TaskGroup() as group:
         collector = group.create_task(reader.collect(), name="mavsdk-shell-receive")
-        await asyncio.sleep(0)  # let it subscribe before anything is sent
+        await reader.wait_subscribed()
         try:
             yield reader
         finally:
