@@ -43,9 +43,10 @@ class LinkModel:
     publishing, on the bus's clock. The draws for the n-th delivery on a topic to a
     subscription depend only on ``seed``, the topic, n, the subscription's pattern and the
     client it belongs to (:meth:`InProcessBus.client`), never on how the publishers' or
-    subscribers' tasks interleave, so a run is reproducible. Unless ``reorder`` is True, a message never overtakes an
-    earlier one on the same topic to the same subscription (MQTT keeps a publisher's order
-    per topic); messages of different topics, i.e. of different vehicles, may overtake.
+    subscribers' tasks interleave, so a run is reproducible. Unless ``reorder`` is True, a
+    message never overtakes an earlier one on the same topic to the same subscription (MQTT
+    keeps a publisher's order per topic); messages of different topics, i.e. of different
+    vehicles, may overtake.
     """
 
     latency_s: float = 0.0
