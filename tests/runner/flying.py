@@ -1,8 +1,12 @@
 """Helpers for tests that fly scenarios through the full stack (MAVSDK + UDP + emulator)."""
 
+import contextlib
 import os
+import re
+import signal
 import subprocess
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
@@ -42,3 +46,76 @@ def start(*arguments):
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
         text=True,
     )
+
+
+def wait_for(process, pattern, seen):
+    """Read ``process``'s output until a line matches ``pattern``; every line goes to ``seen``."""
+    for line in process.stdout:
+        seen.append(line)
+        if re.search(pattern, line):
+            return line
+    raise AssertionError(f"no line matching {pattern!r}:\n{''.join(seen[-40:])}")
+
+
+def mqtt_scenario_file(tmp_path, broker, name, steps, base="paper_tracking_flyable"):
+    """``configs/<base>.yaml`` renamed, shortened to ``steps`` and put on ``broker``'s bus."""
+    data = yaml.safe_load((CONFIGS / f"{base}.yaml").read_text())
+    data["name"] = name
+    data["timing"]["steps"] = steps
+    data["bus"] = {"kind": "mqtt", "mqtt": {"host": broker.host, "port": broker.port}}
+    path = tmp_path / "swarm.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+@dataclass
+class Swarm:
+    """The processes of a mission flown as it flies for real (see :func:`swarm`)."""
+
+    world: subprocess.Popen
+    ground: subprocess.Popen | None = None
+    vehicles: list[subprocess.Popen] = field(default_factory=list)
+    world_output: str = ""
+
+
+@contextlib.contextmanager
+def swarm(scenario, tmp_path, vehicles=4, ground_arguments=()):
+    """``mission-runner emulate`` (emulator and world, on free ports), then a ``ground`` station
+    and one ``vehicle`` process per drone, all on the scenario's bus. Processes still running
+    at the end are killed, the world is stopped and its output kept in ``world_output``."""
+    ports = free_port_config(vehicles, gcs=False)
+    world = start(
+        "mission_runner.cli",
+        "emulate",
+        scenario,
+        "--no-gcs",
+        "--api-port-base",
+        str(ports.api_remote_base),
+        "--api-local-port-base",
+        str(ports.api_local_base),
+    )
+    flying = Swarm(world)
+    try:
+        wait_for(world, "world on the mqtt bus", [])
+        flying.ground = start("mission_runner.cli", "ground", scenario, *ground_arguments)
+        flying.vehicles = [
+            start(
+                "mission_runner.cli",
+                "vehicle",
+                scenario,
+                "--id",
+                str(i + 1),
+                "--url",
+                f"udpin://0.0.0.0:{ports.api_remote_base + i}",
+                "--out",
+                str(tmp_path / f"vehicle_{i + 1}"),
+            )
+            for i in range(vehicles)
+        ]
+        yield flying
+    finally:
+        for process in [flying.ground, *flying.vehicles]:
+            if process is not None and process.poll() is None:
+                process.kill()
+        world.send_signal(signal.SIGINT)
+        flying.world_output, _ = world.communicate(timeout=30)

@@ -4,75 +4,26 @@
 (UNIX time)."""
 
 import re
-import signal
 
 import pytest
-import yaml
 
-from tests.sitl.helpers import free_port_config
-
-from .flying import CONFIGS, start
+from .flying import mqtt_scenario_file, swarm
 
 pytestmark = [pytest.mark.mavsdk, pytest.mark.mqtt, pytest.mark.slow]
 
 STEPS = 320  # 40 s of mission at T = 0.125 s: converged with margin on a loaded machine
 
 
-def scenario_file(tmp_path, broker):
-    data = yaml.safe_load((CONFIGS / "paper_tracking_flyable.yaml").read_text())
-    data["name"] = "swarm_processes"
-    data["timing"]["steps"] = STEPS
-    data["bus"] = {"kind": "mqtt", "mqtt": {"host": broker.host, "port": broker.port}}
-    path = tmp_path / "swarm.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
-
-
 @pytest.mark.timeout(300)
 def test_four_vehicle_processes_a_ground_station_and_the_emulator_over_mosquitto(
     tmp_path, mosquitto
 ):
-    scenario = str(scenario_file(tmp_path, mosquitto))
-    ports = free_port_config(4, gcs=False)
-    sitl = start(
-        "mission_runner.cli",
-        "emulate",
-        scenario,
-        "--no-gcs",
-        "--api-port-base",
-        str(ports.api_remote_base),
-        "--api-local-port-base",
-        str(ports.api_local_base),
-    )
-    processes = []
-    try:
-        for line in sitl.stdout:  # wait for the world to be up
-            if "world on the mqtt bus" in line:
-                break
-        ground = start("mission_runner.cli", "ground", scenario)
-        vehicles = [
-            start(
-                "mission_runner.cli",
-                "vehicle",
-                scenario,
-                "--id",
-                str(i + 1),
-                "--url",
-                f"udpin://0.0.0.0:{ports.api_remote_base + i}",
-                "--out",
-                str(tmp_path / f"vehicle_{i + 1}"),
-            )
-            for i in range(4)
-        ]
-        processes = [ground, *vehicles]
+    scenario = mqtt_scenario_file(tmp_path, mosquitto, "swarm_processes", STEPS)
+    with swarm(scenario, tmp_path) as flying:
+        ground, vehicles = flying.ground, flying.vehicles
         ground_out, _ = ground.communicate(timeout=260)
         outputs = [vehicle.communicate(timeout=60)[0] for vehicle in vehicles]
-    finally:
-        for process in processes:
-            if process.poll() is None:
-                process.kill()
-        sitl.send_signal(signal.SIGINT)
-        sitl_out, _ = sitl.communicate(timeout=30)
+    sitl_out = flying.world_output
 
     assert ground.returncode == 0, ground_out
     assert re.search(r"mission \w+ over; 4 vehicle\(s\) done, lost: none", ground_out), ground_out
