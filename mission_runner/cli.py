@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
-import math
 import signal
 import sys
 import threading
@@ -42,6 +41,7 @@ from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from . import argtypes
 from .bus.errors import BusConnectionError, BusTimeoutError
 from .config import load_scenario
 from .errors import MissionRunnerError
@@ -211,7 +211,10 @@ def _parser() -> argparse.ArgumentParser:
         "--out", type=Path, default=None, help="output folder (default: out/<scenario name>)"
     )
     simulate.add_argument(
-        "--runs", type=_positive_int, default=1, help="batch of N initial conditions (default 1)"
+        "--runs",
+        type=argtypes.positive_int,
+        default=1,
+        help="batch of N initial conditions (default 1)",
     )
     simulate.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     simulate.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
@@ -228,7 +231,7 @@ def _parser() -> argparse.ArgumentParser:
         "--realtime", action="store_true", help="real-time clock instead of the scenario's"
     )
     run.add_argument(
-        "--speed", type=_positive_float, default=None, help="real-time speed factor (> 0)"
+        "--speed", type=argtypes.positive_float, default=None, help="real-time speed factor (> 0)"
     )
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress view, no summary")
@@ -238,7 +241,9 @@ def _parser() -> argparse.ArgumentParser:
         "vehicle", help="one vehicle's controller as its own process (talks over MQTT only)"
     )
     vehicle.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
-    vehicle.add_argument("--id", type=_positive_int, required=True, help="this vehicle's id")
+    vehicle.add_argument(
+        "--id", type=argtypes.positive_int, required=True, help="this vehicle's id"
+    )
     vehicle.add_argument(
         "--url", help="MAVSDK connection URL (default: the scenario's, else PX4 SITL's)"
     )
@@ -255,7 +260,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     ground.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
     ground.add_argument(
-        "--start-delay", type=_non_negative_float, default=2.0, help="seconds from ready to k = 0"
+        "--start-delay",
+        type=argtypes.non_negative_float,
+        default=2.0,
+        help="seconds from ready to k = 0",
     )
     ground.add_argument(
         "--out",
@@ -281,7 +289,10 @@ def _parser() -> argparse.ArgumentParser:
         "on UDP <truth-port-base> + id - 1; gps: GLOBAL_POSITION_INT through MAVSDK (--url)",
     )
     ranges.add_argument(
-        "--truth-port-base", type=_port, default=19410, help="UDP port of vehicle id 1's truth"
+        "--truth-port-base",
+        type=argtypes.port,
+        default=19410,
+        help="UDP port of vehicle id 1's truth",
     )
     ranges.add_argument(
         "--url",
@@ -306,7 +317,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     operate.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
     operate.add_argument("command", choices=("hold", "resume", "land", "return", "stop"))
-    operate.add_argument("--vehicle", type=_positive_int, default=None, help="one vehicle's id")
+    operate.add_argument(
+        "--vehicle", type=argtypes.positive_int, default=None, help="one vehicle's id"
+    )
     operate.add_argument("--reason", default=None, help="a note the vehicles log and report")
     operate.set_defaults(handler=_control)
 
@@ -326,47 +339,6 @@ def _parser() -> argparse.ArgumentParser:
     )
     px4sitl.add_arguments(px4)
     return parser
-
-
-def _port(text: str) -> int:
-    value = _positive_int(text)
-    if value > 65535:
-        raise argparse.ArgumentTypeError(f"not a UDP port: {value}")
-    return value
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    value = _float(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return value
-
-
-def _non_negative_float(text: str) -> float:
-    value = _float(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return value
-
-
-def _float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
-    return value
 
 
 def _simulate(arguments: argparse.Namespace) -> int:

@@ -87,6 +87,7 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
+from . import argtypes
 from .config import Scenario, load_scenario
 from .runner.errors import RunnerError, RunnerTimeoutError
 from .tasks import first_completed
@@ -792,20 +793,6 @@ async def run_px4_sitl_command(
     return ran
 
 
-def _positive_float(text: str) -> float:
-    value = float(text)
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number (got {text})")
-    return value
-
-
-def _instance_number(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0 (got {text})")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``px4-sitl`` command's arguments (module docstring) and ``handler=command``."""
     default_px4_dir = os.environ.get("PX4_SITL_DIR")
@@ -820,12 +807,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--first-instance",
-        type=_instance_number,
+        type=argtypes.non_negative_int,
         default=0,
         help="PX4 instance of the first vehicle; vehicle ids must be instance + 1 (default 0)",
     )
     parser.add_argument(
-        "--speed", type=_positive_float, default=1.0, help="simulation speed factor (default 1)"
+        "--speed",
+        type=argtypes.positive_float,
+        default=1.0,
+        help="simulation speed factor (default 1)",
     )
     parser.add_argument(
         "--work-dir",
