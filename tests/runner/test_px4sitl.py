@@ -308,17 +308,31 @@ def script_build(root: Path, body: str) -> Path:
 
 
 async def group_gone(pgid: int, timeout_s: float) -> bool:
-    """Whether process group ``pgid`` is empty within ``timeout_s`` (killed members can stay
-    zombies for a moment, until init reaps them)."""
+    """Whether process group ``pgid`` has no running member within ``timeout_s``. Killed members
+    stay zombies until init reaps them, which a container's init may do late or never: a
+    zombie runs nothing, so it does not count."""
     loop = asyncio.get_running_loop()
     deadline_s = loop.time() + timeout_s
     while loop.time() < deadline_s:
-        try:
-            os.killpg(pgid, 0)
-        except ProcessLookupError:
+        if not running_members(pgid):
             return True
         await asyncio.sleep(0.05)
     return False
+
+
+def running_members(pgid: int) -> list[int]:
+    """The pids of group ``pgid``'s members that are not zombies (from /proc)."""
+    members = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:  # the process ended meanwhile
+            continue
+        # pid (comm) state ppid pgrp ...: comm may hold spaces and parentheses.
+        state, _, group = text[text.rindex(")") + 2 :].split()[:3]
+        if int(group) == pgid and state != "Z":
+            members.append(int(stat.parent.name))
+    return members
 
 
 def process_gone(pid: int) -> bool:
