@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from .config import load_scenario
 from .errors import MissionRunnerError
+from .recording import LogCapture
 from .runner.errors import RunnerError
 
 if TYPE_CHECKING:
@@ -237,9 +238,16 @@ def _simulate(arguments: argparse.Namespace) -> int:
     scenario = load_scenario(arguments.config)
     out_dir = arguments.out or Path("out") / scenario.name
     progress = _progress(scenario.timing.steps, arguments.quiet, f"{scenario.name}")
+    capture = LogCapture()
+
+    def on_step(done: int, total: int) -> None:
+        capture.stamp(done * scenario.timing.step_s)
+        progress.update_to(done, total)
+
     started = time.perf_counter()
     try:
-        result = simulate(scenario, runs=arguments.runs, on_step=progress.update_to)
+        with capture.attached():
+            result = simulate(scenario, runs=arguments.runs, on_step=on_step)
     finally:
         progress.close()
     wall = time.perf_counter() - started
@@ -249,6 +257,7 @@ def _simulate(arguments: argparse.Namespace) -> int:
         config_path=arguments.config,
         wall_time_s=wall,
         figures=not arguments.no_figures,
+        logs=capture.lines,
     )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
@@ -272,9 +281,16 @@ def _run(arguments: argparse.Namespace) -> int:
     tlogs = out_dir / "tlogs"
     tlogs.mkdir(parents=True, exist_ok=True)
     view = None if arguments.quiet else _FlightView(scenario)
-    outcome = asyncio.run(
-        fly(scenario, emulator_overrides={"tlog_dir": str(tlogs)}, on_progress=view)
-    )
+    capture = LogCapture()
+    with capture.attached():
+        outcome = asyncio.run(
+            fly(
+                scenario,
+                emulator_overrides={"tlog_dir": str(tlogs)},
+                on_step=lambda _, record: capture.stamp(record.time_s),
+                on_progress=view,
+            )
+        )
     if view is not None:
         view.close()
     document = write_results(
@@ -284,6 +300,9 @@ def _run(arguments: argparse.Namespace) -> int:
         wall_time_s=outcome.wall_time_s,
         figures=not arguments.no_figures,
         vehicles=outcome.vehicles,
+        records=outcome.records,
+        start_s=outcome.start_s,
+        logs=capture.lines,
     )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
@@ -304,10 +323,22 @@ def _vehicle(arguments: argparse.Namespace) -> int:
     scenario = load_scenario(arguments.config)
     out_dir = arguments.out or _mission_dir(scenario) / f"vehicle_{arguments.id}"
     run = VehicleRun(arguments.id)
+    capture = LogCapture()
     try:
-        asyncio.run(run_vehicle(scenario, arguments.id, url=arguments.url, run=run))
+        with capture.attached():
+            asyncio.run(
+                run_vehicle(
+                    scenario,
+                    arguments.id,
+                    url=arguments.url,
+                    run=run,
+                    on_step=lambda _, record: capture.stamp(record.time_s),
+                )
+            )
     finally:
-        write_vehicle_run(run, out_dir, config_path=arguments.config)
+        write_vehicle_run(
+            run, out_dir, config_path=arguments.config, scenario=scenario, logs=capture.lines
+        )
     following = sum(record.state == "following" for record in run.records)
     print(
         f"vehicle {arguments.id}: {run.state}, {len(run.records)} steps, {following} following "
@@ -323,6 +354,7 @@ def _ground(arguments: argparse.Namespace) -> int:
 
     from .outputs import write_results  # noqa: PLC0415
     from .runner.process import run_ground, wait_and_merge  # noqa: PLC0415
+    from .runner.scoring import mission_records  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
 
@@ -334,7 +366,16 @@ def _ground(arguments: argparse.Namespace) -> int:
                 flush=True,
             )
 
-    outcome = asyncio.run(run_ground(scenario, start_delay_s=arguments.start_delay, on_status=show))
+    capture = LogCapture()
+
+    def on_status(status: VehicleStatus) -> None:
+        capture.stamp(status.time_s)
+        show(status)
+
+    with capture.attached():
+        outcome = asyncio.run(
+            run_ground(scenario, start_delay_s=arguments.start_delay, on_status=on_status)
+        )
     done = len(outcome.statuses) - len(outcome.lost)
     lost = ", ".join(
         f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
@@ -361,6 +402,9 @@ def _ground(arguments: argparse.Namespace) -> int:
             i: {"state": status.state, "detail": status.detail}
             for i, status in outcome.statuses.items()
         },
+        records=mission_records(mission_dir, (v.id for v in scenario.vehicles)),
+        start_s=outcome.start_s or 0.0,
+        logs=capture.lines,
     )
     print(_summary_text(document, mission_dir))
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
@@ -491,7 +535,7 @@ def _summary_text(document: Mapping[str, Any], out_dir: Path) -> str:
         verdict = "PASS" if expectations["passed"] else "FAIL"
         lines.append(f"expectations: {verdict} ({len(expectations['checked'])} checked)")
         lines += [f"  failed: {failure}" for failure in expectations["failures"]]
-    written = ["summary.json", "timeseries.csv", *document.get("figures", [])]
+    written = ["summary.json", "timeseries.csv", "recording.mcap", *document.get("figures", [])]
     lines.append(f"results in {out_dir}/ ({', '.join(written)})")
     return "\n".join(lines)
 

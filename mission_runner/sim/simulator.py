@@ -33,7 +33,9 @@ class SimulationResult:
     phases_rad ``(B, K+1, N)``; commands_m_s ``(B, K, N, 2)`` (after the speed bound);
     live ``(B, K+1, N)``; tracking_error_m ``(B, K+1)``; localization_error_m ``(B, K)`` (max over
     estimated edges at step k); phase_spacing_error_rad ``(B, K+1)``; consensus_speed_m_s
-    ``(B, K)`` (max over vehicles of |sat(ubar)|); separation_m ``(B, K+1)`` (closest live pair).
+    ``(B, K)`` (max over vehicles of |sat(ubar)|); separation_m ``(B, K+1)`` (closest live pair);
+    estimates_m ``(K, N, N+1, 2)`` run 0's phat_ij(k) [north, east] (slot 0 the target; NaN where
+    not estimated), or None (flights carry theirs in the controllers' step records).
     """
 
     scenario: Scenario
@@ -50,6 +52,7 @@ class SimulationResult:
     separation_m: NDArray[np.float64]
     #: Flight-only metrics, ``{name: (B,) array}`` (see ``config.FLIGHT_METRICS``).
     extra_metrics: dict[str, NDArray[Any]] = field(default_factory=dict)
+    estimates_m: NDArray[np.float64] | None = None
 
     @property
     def runs(self) -> int:
@@ -156,6 +159,8 @@ def simulate(
         "localization_error_m": np.empty((runs, steps)),
         "consensus_speed_m_s": np.empty((runs, steps)),
         "separation_m": np.empty((runs, steps + 1)),
+        # Run 0 only: a 1000-run batch would hold 1000 times as much for nobody to look at.
+        "estimates_m": np.empty((steps, n, n + 1, 2)),
     }
     not_self = ~np.eye(n, n + 1, k=1, dtype=bool)
     target_column = np.concatenate([senses[:, None], np.ones((n, n), dtype=bool)], axis=1)
@@ -189,6 +194,8 @@ def simulate(
             shape_now=shapes[k],
             shape_next=shapes[k + 1],
         )
+        out["estimates_m"][k, ..., 0] = step.estimate_north_m[0]
+        out["estimates_m"][k, ..., 1] = step.estimate_east_m[0]
         error_north = step.estimate_north_m - truth_north
         error_east = step.estimate_east_m - truth_east
         error = np.sqrt(error_north * error_north + error_east * error_east)
@@ -232,7 +239,7 @@ def score(
 
     times ``(K+1,)``, target ``(K+1, 2)``; ``out`` the series named as the result's fields
     (positions_m, phases_rad, commands_m_s, live, localization_error_m, consensus_speed_m_s,
-    separation_m), shaped as documented there."""
+    separation_m; optionally estimates_m), shaped as documented there."""
     positions, live = out["positions_m"], out["live"]
     tracking = tracking_error(positions, live, target)
     spacing = splay_spacing_error(out["phases_rad"], live)
