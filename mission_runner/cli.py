@@ -1,7 +1,8 @@
 """``mission-runner``: the command line.
 
-    mission-runner simulate CONFIG [--out DIR] [--runs N] [--no-figures] [--quiet]
-    mission-runner run CONFIG [--out DIR] [--realtime [--speed F]] [--no-figures] [--quiet]
+    mission-runner simulate CONFIG [--out DIR] [--runs N] [--no-figures] [--replay] [--quiet]
+    mission-runner run CONFIG [--out DIR] [--realtime [--speed F]] [--no-figures] [--replay]
+    mission-runner replay OUT_DIR [--every N] [--fps F] [--width PX] [--gif FILE]  animate a run
     mission-runner vehicle CONFIG --id N [--url URL] [--out DIR]   one vehicle's controller (MQTT)
     mission-runner ground CONFIG [--start-delay S]       prepare, start and watch vehicle processes
     mission-runner ranges CONFIG [--source sih|gps]      synthesised UWB ranges (simulation aid)
@@ -33,6 +34,7 @@ if TYPE_CHECKING:
 
     from .bus import VehicleStatus
     from .config import Scenario
+    from .replay import ReplayFiles
     from .runner.mission import Progress
 
 #: A subcommand: parsed arguments in, exit code out.
@@ -114,6 +116,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     simulate.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     simulate.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+    _replay_flag(simulate)
     simulate.set_defaults(handler=_simulate)
 
     run = commands.add_parser(
@@ -129,7 +132,30 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--speed", type=float, default=None, help="real-time speed factor")
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress view, no summary")
+    _replay_flag(run)
     run.set_defaults(handler=_run)
+
+    replay = commands.add_parser(
+        "replay",
+        help="animate a run (simulate, run or ground output folder) from its recording.mcap: "
+        "replay.gif, and replay.mp4 where ffmpeg is on the PATH",
+    )
+    replay.add_argument("out_dir", type=Path, help="the run's output folder")
+    replay.add_argument(
+        "--every", type=_positive_int, default=1, help="one frame every N steps (default 1)"
+    )
+    replay.add_argument("--fps", type=float, default=20.0, help="frames per second (default 20)")
+    replay.add_argument(
+        "--width", type=_positive_int, default=800, help="frame width in pixels (default 800)"
+    )
+    replay.add_argument(
+        "--trail", type=_positive_int, default=None, help="trail length in steps (default: all)"
+    )
+    replay.add_argument(
+        "--gif", type=Path, default=None, help="where the GIF goes (default OUT_DIR/replay.gif)"
+    )
+    replay.add_argument("--no-mp4", action="store_true", help="no MP4 even if ffmpeg is there")
+    replay.set_defaults(handler=_replay)
 
     vehicle = commands.add_parser(
         "vehicle", help="one vehicle's controller as its own process (talks over MQTT only)"
@@ -214,6 +240,38 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _replay_flag(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--replay",
+        action="store_true",
+        help="also animate the run: replay.gif (and replay.mp4 where ffmpeg is on the PATH)",
+    )
+
+
+def _replay(arguments: argparse.Namespace) -> int:
+    from .replay import write_replay  # noqa: PLC0415 - matplotlib is slow to import
+
+    files = write_replay(
+        arguments.out_dir,
+        gif=arguments.gif,
+        every=arguments.every,
+        fps=arguments.fps,
+        width_px=arguments.width,
+        trail_steps=arguments.trail,
+        mp4=not arguments.no_mp4,
+    )
+    print(_replay_text(files))
+    return EXIT_OK
+
+
+def _replay_text(files: ReplayFiles) -> str:
+    width, height = files.size_px
+    written = f"{files.gif}" + (f" and {files.mp4}" if files.mp4 else " (no ffmpeg: no MP4)")
+    return (
+        f"replay: {files.frames} frames of {width}x{height} px in {files.render_s:.1f} s: {written}"
+    )
+
+
 def _port(text: str) -> int:
     value = _positive_int(text)
     if value > 65535:
@@ -261,7 +319,18 @@ def _simulate(arguments: argparse.Namespace) -> int:
     )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
+    _maybe_replay(arguments, out_dir)
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
+
+
+def _maybe_replay(arguments: argparse.Namespace, out_dir: Path) -> None:
+    """``--replay``: animate what was just written."""
+    if arguments.replay:
+        from .replay import write_replay  # noqa: PLC0415
+
+        files = write_replay(out_dir)
+        if not arguments.quiet:
+            print(_replay_text(files))
 
 
 def _run(arguments: argparse.Namespace) -> int:
@@ -311,6 +380,7 @@ def _run(arguments: argparse.Namespace) -> int:
             f"flown: {mission_s:g} s of mission in {outcome.mission_wall_time_s:.2f} s wall "
             f"({mission_s / outcome.mission_wall_time_s:.1f}x real time); MAVLink logs in {tlogs}/"
         )
+    _maybe_replay(arguments, out_dir)
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
 
 

@@ -600,13 +600,17 @@ def write_vehicle_recording(
 
 @dataclass(frozen=True)
 class RecordedMessage:
-    """A message read back: its topic, schema name, mission time [s] and decoded content (a
-    protobuf message for Foxglove's schemas, a dict for this project's JSON ones)."""
+    """A message read back: its topic, schema name, log time (mission clock, ns) and decoded
+    content (a protobuf message for Foxglove's schemas, a dict for this project's JSON ones)."""
 
     topic: str
     schema: str
-    time_s: float
+    log_time_ns: int
     message: Any
+
+    @property
+    def time_s(self) -> float:
+        return self.log_time_ns / 1e9
 
 
 class _JsonDecoders(McapDecoderFactory):
@@ -630,8 +634,19 @@ def read_recording(
             topics=wanted, log_time_order=True
         ):
             yield RecordedMessage(
-                channel.topic, schema.name if schema else "", message.log_time / 1e9, decoded
+                channel.topic, schema.name if schema else "", message.log_time, decoded
             )
+
+
+def recording_metadata(path: PathName) -> dict[str, dict[str, str]]:
+    """A recording's metadata records by name (``scenario``: name, step_s, steps, vehicles,
+    radius_m)."""
+    from mcap.reader import make_reader  # noqa: PLC0415
+
+    with open(path, "rb") as handle:
+        return {
+            record.name: dict(record.metadata) for record in make_reader(handle).iter_metadata()
+        }
 
 
 @contextlib.contextmanager
