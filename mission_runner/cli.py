@@ -3,6 +3,7 @@
     mission-runner simulate CONFIG [--out DIR] [--runs N] [--no-figures] [--replay] [--quiet]
     mission-runner run CONFIG [--out DIR] [--realtime [--speed F]] [--no-figures] [--replay]
     mission-runner replay OUT_DIR [--every N] [--fps F] [--width PX] [--gif FILE]  animate a run
+    mission-runner schema [--out FILE]                   the scenario's JSON Schema
     mission-runner vehicle CONFIG --id N [--url URL] [--out DIR]   one vehicle's controller (MQTT)
     mission-runner ground CONFIG [--start-delay S]       prepare, start and watch vehicle processes
     mission-runner ranges CONFIG [--source sih|gps]      synthesised UWB ranges (simulation aid)
@@ -222,6 +223,13 @@ def _parser() -> argparse.ArgumentParser:
     )
     ranges.set_defaults(handler=_ranges)
 
+    schema = commands.add_parser(
+        "schema",
+        help="print the scenario file's JSON Schema (for an editor's YAML language server)",
+    )
+    schema.add_argument("--out", type=Path, default=None, help="write it there instead")
+    schema.set_defaults(handler=_schema)
+
     from . import px4sitl  # noqa: PLC0415 - only its argument definitions
     from .world import emulated  # noqa: PLC0415
 
@@ -238,6 +246,21 @@ def _parser() -> argparse.ArgumentParser:
     )
     px4sitl.add_arguments(px4)
     return parser
+
+
+def _schema(arguments: argparse.Namespace) -> int:
+    import json  # noqa: PLC0415
+
+    from .config import scenario_json_schema  # noqa: PLC0415
+
+    text = json.dumps(scenario_json_schema(), indent=2) + "\n"
+    if arguments.out is None:
+        sys.stdout.write(text)
+    else:
+        from .outputs import write_atomic  # noqa: PLC0415
+
+        write_atomic(arguments.out, text)
+    return EXIT_OK
 
 
 def _replay_flag(parser: argparse.ArgumentParser) -> None:
