@@ -4,8 +4,9 @@ Exception tree::
 
     MissionRunnerError
     ├── ConfigError          a scenario file is unreadable or invalid (names the YAML path)
-    └── SimulationError      the numeric simulator cannot run a valid scenario (e.g. all
-                             target-sensing vehicles lost)
+    ├── SimulationError      the numeric simulator cannot run a valid scenario (e.g. all
+    │                        target-sensing vehicles lost)
+    └── ReplayError          a folder cannot be replayed (no recording, or no truth to draw)
 """
 
 
@@ -30,3 +31,8 @@ class ConfigError(MissionRunnerError):
 
 class SimulationError(MissionRunnerError):
     """A valid scenario reached a state the simulator cannot continue from."""
+
+
+class ReplayError(MissionRunnerError):
+    """A run cannot be replayed: its folder has no ``recording.mcap``, or one without the truth
+    to draw (a vehicle process's own)."""

@@ -20,6 +20,7 @@ drawn in it. Topics and what each carries: README, "Seeing a mission".
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import logging
@@ -232,21 +233,21 @@ class VehicleView:
             "time_s": self.time_s,
             "state": self.state,
             "live": self.live,
-            "phase_rad": _finite(self.phase_rad),
-            "command_north_m_s": _finite(command[0]),
-            "command_east_m_s": _finite(command[1]),
-            "command_down_m_s": _finite(command[2]),
-            "consensus_north_m_s": _finite(consensus[0]),
-            "consensus_east_m_s": _finite(consensus[1]),
+            "phase_rad": finite_or_none(self.phase_rad),
+            "command_north_m_s": finite_or_none(command[0]),
+            "command_east_m_s": finite_or_none(command[1]),
+            "command_down_m_s": finite_or_none(command[2]),
+            "consensus_north_m_s": finite_or_none(consensus[0]),
+            "consensus_east_m_s": finite_or_none(consensus[1]),
             "neighbours_used": None if self.neighbours_used is None else list(self.neighbours_used),
-            "setpoint_lateness_s": _finite(self.setpoint_lateness_s),
-            "odometry_north_m": _finite(odometry[0]),
-            "odometry_east_m": _finite(odometry[1]),
-            "odometry_down_m": _finite(odometry[2]),
-            "position_north_m": _finite(position[0]),
-            "position_east_m": _finite(position[1]),
-            "slot_north_m": _finite(slot[0]),
-            "slot_east_m": _finite(slot[1]),
+            "setpoint_lateness_s": finite_or_none(self.setpoint_lateness_s),
+            "odometry_north_m": finite_or_none(odometry[0]),
+            "odometry_east_m": finite_or_none(odometry[1]),
+            "odometry_down_m": finite_or_none(odometry[2]),
+            "position_north_m": finite_or_none(position[0]),
+            "position_east_m": finite_or_none(position[1]),
+            "slot_north_m": finite_or_none(slot[0]),
+            "slot_east_m": finite_or_none(slot[1]),
             "estimates": [
                 {"peer": peer, "north_m": float(value[0]), "east_m": float(value[1])}
                 for peer, value in sorted((self.estimates_m or {}).items())
@@ -307,6 +308,38 @@ class MissionChannels:
             )
             for i in vehicle_ids
         }
+        self._last_state: dict[int, str] = {}
+
+    def log_step(
+        self,
+        time_s: float,
+        *,
+        shape: NDArray[np.float64],
+        target_m: NDArray[np.float64] | None,
+        positions_m: Mapping[int, NDArray[np.float64]],
+        phases_rad: Mapping[int, float],
+        views: Sequence[VehicleView],
+        metrics: Mapping[str, Any] | None = None,
+    ) -> None:
+        """Everything about one step: the truth (target and known ``positions_m`` north/east
+        ``(2,)`` by id; without a target, vehicles are drawn from their odometry), the formation
+        with each vehicle's slot from its phase and ``shape`` ``(3, 3)``, the metrics, every
+        vehicle's ``views`` (given their truth and slot here) and their state changes as events."""
+        slots: dict[int, NDArray[np.float64]] = {}
+        if target_m is not None:
+            self.log_truth(time_s, target_m, positions_m)
+            ids = [i for i, phase in phases_rad.items() if math.isfinite(phase)]
+            offsets = desired_offsets(np.array([phases_rad[i] for i in ids]), self.radius_m, shape)
+            slots = {i: target_m + offset for i, offset in zip(ids, offsets, strict=True)}
+            self.log_formation(time_s, target_m, shape, slots)
+        else:  # no truth at all (a vehicle process, a live view of a real mission)
+            self.log_odometry(time_s, views)
+        if metrics is not None:
+            self.log_metrics(time_s, metrics)
+        for view in views:
+            view.position_m = positions_m.get(view.vehicle_id)
+            view.slot_m = slots.get(view.vehicle_id)
+            self.log_vehicle(view)
 
     def log_truth(
         self,
@@ -402,9 +435,18 @@ class MissionChannels:
 
     def log_vehicle(self, view: VehicleView) -> None:
         """``/vehicles/<id>/state`` and ``/vehicles/<id>/scene``: where this vehicle estimates
-        its neighbours and the target (in its own frame) and its velocity command."""
+        its neighbours and the target (in its own frame) and its velocity command; a change of
+        its state is an event."""
         at = _nanoseconds(view.time_s)
         self.state[view.vehicle_id].log(view.document(), log_time=at)
+        before = self._last_state.get(view.vehicle_id)
+        if before is not None and before != view.state:
+            self.log_event(
+                view.time_s,
+                f"vehicle {view.vehicle_id}: {before} -> {view.state} at step {view.step}",
+                logging.INFO if view.state == "following" else logging.WARNING,
+            )
+        self._last_state[view.vehicle_id] = view.state
         stamp = _timestamp(view.time_s)
         colour = self.colours[view.vehicle_id]
         spheres, texts = [], []
@@ -502,64 +544,36 @@ def write_recording(
         vehicle_id: {record.step: record for record in vehicle_records}
         for vehicle_id, vehicle_records in (records or {}).items()
     }
-    events = _scheduled_events(scenario, start_s)
-    pending_logs = sorted(logs, key=lambda line: line.time_s if line.time_s is not None else -1)
-    previous_state: dict[int, str] = {}
     with _mcap(path, scenario) as context:
         channels = MissionChannels(context, ids, scenario.algorithm.radius_m)
+        backlog = _Backlog(channels, start_s, _scheduled_events(scenario, start_s), logs)
         for k in range(steps + 1):
             time_s = start_s + k * step_s
-            for at_s, message in [e for e in events if e[0] <= time_s]:
-                channels.log_event(at_s, message)
-                events.remove((at_s, message))
-            while pending_logs and (pending_logs[0].time_s or start_s) <= time_s:
-                line = pending_logs.pop(0)
-                channels.log_line(max(line.time_s or start_s, start_s), line)
-            target = result.target_m[k]
+            backlog.until(time_s)
             positions = result.positions_m[0, k]
-            live = result.live[0, k]
-            known = {
-                vehicle_id: positions[index]
-                for index, vehicle_id in enumerate(ids)
-                if np.all(np.isfinite(positions[index]))
-            }
-            channels.log_truth(time_s, target, known)
-            phases = result.phases_rad[0, k]
-            slots = desired_offsets(phases, scenario.algorithm.radius_m, shape(k)) + target
-            channels.log_formation(
-                time_s,
-                target,
-                shape(k),
-                {
-                    i: slots[index]
-                    for index, i in enumerate(ids)
-                    if np.all(np.isfinite(slots[index]))
-                },
-            )
-            channels.log_metrics(time_s, _metrics_document(result, k, time_s))
+            views = []
             for index, vehicle_id in enumerate(ids):
                 view = _vehicle_view(
                     result, by_step, index=index, vehicle_id=vehicle_id, k=k, time_s=time_s
                 )
-                if view is None:
-                    continue
-                view.position_m = known.get(vehicle_id)
-                view.slot_m = slots[index] if np.all(np.isfinite(slots[index])) else None
-                view.live = bool(live[index])
-                channels.log_vehicle(view)
-                before = previous_state.get(vehicle_id)
-                if before is not None and before != view.state:
-                    channels.log_event(
-                        time_s,
-                        f"vehicle {vehicle_id}: {before} -> {view.state} at step {k}",
-                        logging.WARNING if view.state != "following" else logging.INFO,
-                    )
-                previous_state[vehicle_id] = view.state
+                if view is not None:
+                    view.live = bool(result.live[0, k, index])
+                    views.append(view)
+            channels.log_step(
+                time_s,
+                shape=shape(k),
+                target_m=result.target_m[k],
+                positions_m={
+                    vehicle_id: positions[index]
+                    for index, vehicle_id in enumerate(ids)
+                    if np.all(np.isfinite(positions[index]))
+                },
+                phases_rad=dict(zip(ids, result.phases_rad[0, k].tolist(), strict=True)),
+                views=views,
+                metrics=_metrics_document(result, k, time_s),
+            )
         end_s = start_s + steps * step_s
-        for at_s, message in events:
-            channels.log_event(at_s, message)
-        for line in pending_logs:
-            channels.log_line(end_s, line)
+        backlog.until(math.inf)
         if verdict is not None:
             channels.log_event(end_s, verdict)
 
@@ -575,27 +589,44 @@ def write_vehicle_recording(
     """One vehicle process's recording (no truth): its state, estimates and command per step,
     drawn in its odometry frame ``odom_<id>``; its state changes; its log lines."""
     start_s = records[0].time_s if records else 0.0
-    pending_logs = sorted(logs, key=lambda line: line.time_s if line.time_s is not None else -1)
     with _mcap(path, scenario) as context:
         radius = scenario.algorithm.radius_m if scenario is not None else 1.0
         channels = MissionChannels(context, [vehicle_id], radius)
-        previous = None
+        backlog = _Backlog(channels, start_s, (), logs)
         for record in records:
-            while pending_logs and (pending_logs[0].time_s or start_s) <= record.time_s:
-                line = pending_logs.pop(0)
-                channels.log_line(max(line.time_s or start_s, start_s), line)
+            backlog.until(record.time_s)
             view = view_of_record(record, vehicle_id, live=record.state == "following")
             channels.log_odometry(record.time_s, [view])
             channels.log_vehicle(view)
-            if previous is not None and previous != record.state:
-                channels.log_event(
-                    record.time_s,
-                    f"vehicle {vehicle_id}: {previous} -> {record.state} at step {record.step}",
-                )
-            previous = record.state
-        end_s = records[-1].time_s if records else start_s
-        for line in pending_logs:
-            channels.log_line(max(line.time_s or end_s, end_s), line)
+        backlog.until(math.inf)
+
+
+class _Backlog:
+    """Events ``(time_s, text)`` and log lines waiting for the step at their time, so the
+    recording stays in time order; a line from before k = 0 (no time) goes out at k = 0."""
+
+    def __init__(
+        self,
+        channels: MissionChannels,
+        start_s: float,
+        events: Iterable[tuple[float, str]],
+        logs: Iterable[LogLine],
+    ) -> None:
+        self.channels = channels
+        items: list[tuple[float, str | LogLine]] = [*events]
+        items += [
+            (start_s if line.time_s is None else max(line.time_s, start_s), line) for line in logs
+        ]
+        self.items = collections.deque(sorted(items, key=lambda item: item[0]))
+
+    def until(self, time_s: float) -> None:
+        """Log everything due at or before ``time_s``."""
+        while self.items and self.items[0][0] <= time_s:
+            at_s, item = self.items.popleft()
+            if isinstance(item, LogLine):
+                self.channels.log_line(at_s, item)
+            else:
+                self.channels.log_event(at_s, item)
 
 
 @dataclass(frozen=True)
@@ -713,10 +744,10 @@ def _metrics_document(result: SimulationResult, k: int, time_s: float) -> dict[s
     return {
         "step": k,
         "time_s": time_s,
-        "tracking_error_m": _finite(result.tracking_error_m[0, k]),
-        "localization_error_m": None if last else _finite(result.localization_error_m[0, k]),
-        "phase_spacing_error_rad": _finite(result.phase_spacing_error_rad[0, k]),
-        "consensus_speed_m_s": None if last else _finite(result.consensus_speed_m_s[0, k]),
+        "tracking_error_m": finite_or_none(result.tracking_error_m[0, k]),
+        "localization_error_m": None if last else finite_or_none(result.localization_error_m[0, k]),
+        "phase_spacing_error_rad": finite_or_none(result.phase_spacing_error_rad[0, k]),
+        "consensus_speed_m_s": None if last else finite_or_none(result.consensus_speed_m_s[0, k]),
         "live_vehicles": int(result.live[0, k].sum()),
     }
 
@@ -733,7 +764,8 @@ def _scheduled_events(scenario: Scenario, start_s: float) -> list[tuple[float, s
     return sorted(events)
 
 
-def _finite(value: float | np.floating[Any] | None) -> float | None:
+def finite_or_none(value: float | np.floating[Any] | None) -> float | None:
+    """A number for JSON: NaN, infinities and None as None."""
     if value is None:
         return None
     value = float(value)

@@ -26,7 +26,7 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 from PIL import Image, ImageDraw, ImageFont
 
-from .errors import MissionRunnerError
+from .errors import ReplayError
 from .recording import PALETTE, RECORDING, read_recording, recording_metadata
 
 if TYPE_CHECKING:
@@ -36,10 +36,6 @@ if TYPE_CHECKING:
 
 GIF = "replay.gif"
 MP4 = "replay.mp4"
-
-
-class ReplayError(MissionRunnerError):
-    """A run cannot be replayed (no recording, or one without the truth to draw)."""
 
 
 @dataclass

@@ -11,9 +11,10 @@ from PIL import Image
 
 from mission_runner.cli import EXIT_BAD_INPUT, EXIT_OK, main
 from mission_runner.config import validate_scenario
+from mission_runner.errors import ReplayError
 from mission_runner.outputs import write_results
 from mission_runner.recording import PALETTE
-from mission_runner.replay import GIF, Replay, ReplayError, frame_steps, load_track, write_replay
+from mission_runner.replay import GIF, Replay, frame_steps, load_track, write_replay
 from mission_runner.sim.simulator import simulate
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
