@@ -4,6 +4,8 @@
     mission-runner run CONFIG [--out DIR] [--realtime [--speed F]] [--no-figures] [--replay]
     mission-runner replay OUT_DIR [--every N] [--fps F] [--width PX] [--gif FILE]  animate a run
     mission-runner schema [--out FILE]                   the scenario's JSON Schema
+    mission-runner view CONFIG [--port N]                a running mission's bus, live in Foxglove
+    mission-runner layout CONFIG [--out FILE]            a Foxglove layout for the scenario's topics
     mission-runner vehicle CONFIG --id N [--url URL] [--out DIR]   one vehicle's controller (MQTT)
     mission-runner ground CONFIG [--start-delay S]       prepare, start and watch vehicle processes
     mission-runner ranges CONFIG [--source sih|gps]      synthesised UWB ranges (simulation aid)
@@ -18,15 +20,16 @@ refused, was lost or the mission was aborted; the message says which and why), 1
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ParamSpec
 
 from .config import load_scenario
-from .errors import MissionRunnerError
+from .errors import ConfigError, MissionRunnerError
 from .recording import LogCapture
 from .runner.errors import RunnerError
 
@@ -35,8 +38,12 @@ if TYPE_CHECKING:
 
     from .bus import VehicleStatus
     from .config import Scenario
+    from .live import LiveServer
     from .replay import ReplayFiles
+    from .runner.controller import StepRecord
     from .runner.mission import Progress
+
+P = ParamSpec("P")
 
 #: A subcommand: parsed arguments in, exit code out.
 Handler = Callable[[argparse.Namespace], int]
@@ -134,6 +141,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress view, no summary")
     _replay_flag(run)
+    _live_flags(run)
     run.set_defaults(handler=_run)
 
     replay = commands.add_parser(
@@ -189,7 +197,25 @@ def _parser() -> argparse.ArgumentParser:
         "out/<name>-mission): the ground station merges them into summary.json and figures",
     )
     ground.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    _live_flags(ground)
     ground.set_defaults(handler=_ground)
+
+    view = commands.add_parser(
+        "view",
+        help="serve a running mission's bus (vehicle processes over MQTT) to Foxglove over its "
+        "WebSocket protocol, until Ctrl-C",
+    )
+    view.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
+    view.add_argument("--host", default="127.0.0.1", help="address to serve on")
+    view.add_argument("--port", type=_port_or_zero, default=8765, help="port (0: any free one)")
+    view.set_defaults(handler=_view)
+
+    layout = commands.add_parser(
+        "layout", help="print a Foxglove layout for the scenario's recording and live view"
+    )
+    layout.add_argument("config", type=Path, help="scenario YAML file (for its vehicle ids)")
+    layout.add_argument("--out", type=Path, default=None, help="write it there instead")
+    layout.set_defaults(handler=_layout)
 
     ranges = commands.add_parser(
         "ranges",
@@ -249,17 +275,95 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _schema(arguments: argparse.Namespace) -> int:
-    import json  # noqa: PLC0415
-
     from .config import scenario_json_schema  # noqa: PLC0415
 
-    text = json.dumps(scenario_json_schema(), indent=2) + "\n"
-    if arguments.out is None:
+    return _print_json(scenario_json_schema(), arguments.out)
+
+
+def _layout(arguments: argparse.Namespace) -> int:
+    import json  # noqa: PLC0415
+
+    from .layout import foxglove_layout  # noqa: PLC0415
+
+    scenario = load_scenario(arguments.config)
+    layout = foxglove_layout([vehicle.id for vehicle in scenario.vehicles])
+    return _print_json(json.loads(layout.to_json()), arguments.out)
+
+
+def _print_json(document: object, out: Path | None) -> int:
+    """``document`` as indented JSON on stdout, or written to ``out``."""
+    import json  # noqa: PLC0415
+
+    text = json.dumps(document, indent=2) + "\n"
+    if out is None:
         sys.stdout.write(text)
     else:
         from .outputs import write_atomic  # noqa: PLC0415
 
-        write_atomic(arguments.out, text)
+        write_atomic(out, text)
+    return EXIT_OK
+
+
+def _live_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--live",
+        action="store_true",
+        help="serve the mission to Foxglove over its WebSocket protocol while it flies",
+    )
+    parser.add_argument("--live-host", default="127.0.0.1", help="address to serve on")
+    parser.add_argument(
+        "--live-port", type=_port_or_zero, default=8765, help="port (0: any free one)"
+    )
+
+
+def _live_server(arguments: argparse.Namespace, scenario: Scenario) -> LiveServer | None:
+    """The ``--live`` server, not yet started (None without ``--live``)."""
+    if not getattr(arguments, "live", False):
+        return None
+    from .live import LiveServer  # noqa: PLC0415
+
+    return LiveServer(scenario, host=arguments.live_host, port=arguments.live_port)
+
+
+def _every(callbacks: Sequence[Callable[P, None]]) -> Callable[P, None]:
+    """One callback calling each of ``callbacks`` in turn."""
+
+    def call(*args: P.args, **kwargs: P.kwargs) -> None:
+        for callback in callbacks:
+            callback(*args, **kwargs)
+
+    return call
+
+
+def _view(arguments: argparse.Namespace) -> int:
+    import asyncio  # noqa: PLC0415
+
+    from .live import LiveLog, LiveServer, serve_bus  # noqa: PLC0415
+
+    scenario = load_scenario(arguments.config)
+    if scenario.bus.kind != "mqtt":
+        raise ConfigError(
+            str(arguments.config),
+            [
+                (
+                    "bus.kind",
+                    "view watches a mission's MQTT bus: set mqtt (an in-process mission is "
+                    "watched with 'mission-runner run --live')",
+                )
+            ],
+        )
+    with LiveServer(scenario, host=arguments.host, port=arguments.port) as server:
+        print(f"view: {server.url} (Foxglove: Open connection); Ctrl-C to stop", flush=True)
+        live_log = LiveLog(server.channels)
+        with live_log.attached():
+            asyncio.run(
+                serve_bus(
+                    scenario,
+                    server.channels,
+                    client_id=f"{scenario.name}-view",
+                    on_time=live_log.stamp,
+                )
+            )
     return EXIT_OK
 
 
@@ -300,6 +404,10 @@ def _port(text: str) -> int:
     if value > 65535:
         raise argparse.ArgumentTypeError(f"not a UDP port: {value}")
     return value
+
+
+def _port_or_zero(text: str) -> int:
+    return 0 if text == "0" else _port(text)
 
 
 def _positive_int(text: str) -> int:
@@ -374,13 +482,28 @@ def _run(arguments: argparse.Namespace) -> int:
     tlogs.mkdir(parents=True, exist_ok=True)
     view = None if arguments.quiet else _FlightView(scenario)
     capture = LogCapture()
-    with capture.attached():
+    step_callbacks: list[Callable[[int, StepRecord], None]] = [
+        lambda _, record: capture.stamp(record.time_s)
+    ]
+    progress_callbacks: list[Callable[[Progress], None]] = [view] if view is not None else []
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(capture.attached())
+        server = _live_server(arguments, scenario)
+        if server is not None:
+            from .live import FlightFeed, LiveLog  # noqa: PLC0415
+
+            stack.enter_context(server)
+            print(f"live: {server.url} (Foxglove: Open connection)", flush=True)
+            feed = FlightFeed(scenario, server.channels)
+            live_log = stack.enter_context(LiveLog(server.channels).attached())
+            step_callbacks += [feed.on_step, lambda _, record: live_log.stamp(record.time_s)]
+            progress_callbacks.append(feed.on_progress)
         outcome = asyncio.run(
             fly(
                 scenario,
                 emulator_overrides={"tlog_dir": str(tlogs)},
-                on_step=lambda _, record: capture.stamp(record.time_s),
-                on_progress=view,
+                on_step=_every(step_callbacks),
+                on_progress=_every(progress_callbacks),
             )
         )
     if view is not None:
@@ -465,10 +588,27 @@ def _ground(arguments: argparse.Namespace) -> int:
         capture.stamp(status.time_s)
         show(status)
 
-    with capture.attached():
-        outcome = asyncio.run(
-            run_ground(scenario, start_delay_s=arguments.start_delay, on_status=on_status)
-        )
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(capture.attached())
+        ground = run_ground(scenario, start_delay_s=arguments.start_delay, on_status=on_status)
+        server = _live_server(arguments, scenario)
+        if server is None:
+            outcome = asyncio.run(ground)
+        else:
+            from .live import LiveLog, alongside  # noqa: PLC0415
+
+            stack.enter_context(server)
+            print(f"live: {server.url} (Foxglove: Open connection)", flush=True)
+            live_log = stack.enter_context(LiveLog(server.channels).attached())
+            outcome = asyncio.run(
+                alongside(
+                    ground,
+                    scenario,
+                    server.channels,
+                    client_id=f"{scenario.name}-ground-view",
+                    on_time=live_log.stamp,
+                )
+            )
     done = len(outcome.statuses) - len(outcome.lost)
     lost = ", ".join(
         f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
