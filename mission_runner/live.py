@@ -19,10 +19,9 @@ microseconds per step, in the caller's thread; the server sends from its own thr
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -31,7 +30,14 @@ import foxglove
 import numpy as np
 
 from .enclosing import splay_spacing_error
-from .recording import LogLine, MissionChannels, VehicleView, finite_or_none, view_of_record
+from .recording import (
+    LogCapture,
+    LogLine,
+    MissionChannels,
+    VehicleView,
+    finite_or_none,
+    view_of_record,
+)
 
 if TYPE_CHECKING:
     from foxglove.websocket import ServerListener, WebSocketServer
@@ -107,30 +113,18 @@ class LiveServer:
         return f"ws://{self.host}:{self.port}"
 
 
-class LiveLog(logging.Handler):
-    """Sends log lines to ``/log`` as they are written, stamped with the mission time last
-    seen (``stamp``), like :class:`.recording.LogCapture` does for the recording."""
+class LiveLog(LogCapture):
+    """Sends log lines to ``/log`` as they are written (instead of keeping them), stamped with
+    the mission time last seen (lines before any: at 0)."""
 
     def __init__(self, channels: MissionChannels, level: int = logging.INFO) -> None:
         super().__init__(level)
         self.channels = channels
-        self.time_s = 0.0
-
-    def stamp(self, time_s: float) -> None:
-        self.time_s = time_s
 
     def emit(self, record: logging.LogRecord) -> None:
-        line = LogLine(self.time_s, record.levelno, record.name, record.getMessage())
-        self.channels.log_line(self.time_s, line)
-
-    @contextlib.contextmanager
-    def attached(self) -> Iterator[LiveLog]:
-        root = logging.getLogger()
-        root.addHandler(self)
-        try:
-            yield self
-        finally:
-            root.removeHandler(self)
+        time_s = 0.0 if self.time_s is None else self.time_s
+        line = LogLine(time_s, record.levelno, record.name, record.getMessage())
+        self.channels.log_line(time_s, line)
 
 
 class FlightFeed:

@@ -103,6 +103,20 @@ class Subscribed:
             self.done.set()
 
 
+@contextlib.contextmanager
+def subscribed(scenario, topics):
+    """A live server for ``scenario`` and a client subscribed to ``topics`` (in place)."""
+    listener = Subscribed(len(topics))
+    with (
+        LiveServer(scenario, port=0, listener=listener) as server,
+        foxglove_client(server.url) as client,
+    ):
+        client.wait_for_topics(topics)
+        client.subscribe(topics)
+        assert listener.done.wait(WAIT_S)
+        yield server, client
+
+
 def short_scenario(steps):
     data = yaml.safe_load((CONFIGS / "paper_tracking.yaml").read_text())
     data["timing"]["steps"] = steps
@@ -116,14 +130,7 @@ def test_a_flight_feed_sends_a_pose_per_vehicle_per_step_to_a_foxglove_client():
     records = flight_records(result, start_s=0.0)
     ids = [1, 2, 3, 4]
     topics = [f"/vehicles/{i}/pose" for i in ids] + ["/vehicles/2/state", "/log"]
-    listener = Subscribed(len(topics))
-    with (
-        LiveServer(scenario, port=0, listener=listener) as server,
-        foxglove_client(server.url) as client,
-    ):
-        client.wait_for_topics(topics)
-        client.subscribe(topics)
-        assert listener.done.wait(WAIT_S)
+    with subscribed(scenario, topics) as (server, client):
         feed = FlightFeed(scenario, server.channels)
         live_log = LiveLog(server.channels)
         for k in range(steps):
@@ -224,7 +231,6 @@ def test_the_view_of_a_mission_bus_sends_each_step_message_and_status(mosquitto)
     scenario = validate_scenario(data, "mqtt")
     topics = scenario.bus.topics(scenario.name)
     watched = ["/vehicles/1/state", "/vehicles/2/state", "/tf", "/mission/events"]
-    listener = Subscribed(len(watched))
     steps, start_s = 5, 1.7e9
 
     async def mission(server, client):
@@ -249,13 +255,7 @@ def test_the_view_of_a_mission_bus_sends_each_step_message_and_status(mosquitto)
             view.cancel()
         return received
 
-    with (
-        LiveServer(scenario, port=0, listener=listener) as server,
-        foxglove_client(server.url) as client,
-    ):
-        client.wait_for_topics(watched)
-        client.subscribe(watched)
-        assert listener.done.wait(WAIT_S)
+    with subscribed(scenario, watched) as (server, client):
         received = asyncio.run(mission(server, client))
     states = [(t, m["step"], m["phase_rad"]) for t, _, m in received if t.endswith("/state")]
     assert sorted(states) == sorted(
