@@ -10,6 +10,8 @@ Foxglove's top view are maps, east to the right: the same picture mirrored about
 
 from __future__ import annotations
 
+import csv
+import json
 import math
 import shutil
 import subprocess
@@ -26,8 +28,9 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 from PIL import Image, ImageDraw, ImageFont
 
+from .enclosing.shape import desired_offsets
 from .errors import ReplayError
-from .recording import PALETTE, RECORDING, read_recording, recording_metadata
+from .recording import PALETTE, RECORDING, circle_points, read_recording, recording_metadata
 
 if TYPE_CHECKING:
     from matplotlib.lines import Line2D
@@ -71,14 +74,63 @@ class Track:
 
 
 def load_track(out_dir: PathName) -> Track:
-    """The run in ``out_dir`` (a ``simulate``, ``run`` or ``ground`` folder) from its
-    ``recording.mcap``."""
+    """The run in ``out_dir`` (a ``simulate``, ``run`` or ``ground`` folder): from its
+    ``recording.mcap``, or, in a folder written before recordings existed, from its
+    ``timeseries.csv`` and ``summary.json`` (no estimates nor controller states there)."""
     path = Path(out_dir) / RECORDING
-    if not path.exists():
-        raise ReplayError(
-            f"{path} not found: replay a folder written by 'mission-runner simulate', 'run' or "
-            "'ground' (a vehicle process's own folder has no truth to draw)"
-        )
+    if path.exists():
+        return _track_from_recording(path)
+    if (Path(out_dir) / "timeseries.csv").exists() and (Path(out_dir) / "summary.json").exists():
+        return _track_from_tables(Path(out_dir))
+    raise ReplayError(
+        f"{path} not found (nor timeseries.csv and summary.json): replay a folder written by "
+        "'mission-runner simulate', 'run' or 'ground' (a vehicle process's own has no truth)"
+    )
+
+
+def _track_from_tables(out_dir: Path) -> Track:
+    """A track from ``timeseries.csv``, the circle and slots from the scenario in
+    ``summary.json`` (its ``parameters``)."""
+    from .config import validate_scenario  # noqa: PLC0415
+    from .wiring import shape_schedule  # noqa: PLC0415
+
+    document = json.loads((out_dir / "summary.json").read_text())
+    scenario = validate_scenario(document["parameters"], str(out_dir / "summary.json"))
+    with open(out_dir / "timeseries.csv", newline="", encoding="utf-8") as handle:
+        rows = list(csv.DictReader(handle))
+    ids = [vehicle.id for vehicle in scenario.vehicles]
+    n, samples = len(ids), len(rows)
+
+    def column(name: str) -> NDArray[np.float64]:
+        return np.array([float(row[name] or "nan") for row in rows])
+
+    positions = np.stack(
+        [np.stack([column(f"v{i}_north_m"), column(f"v{i}_east_m")], -1) for i in ids], 1
+    )
+    phases = np.stack([column(f"v{i}_phase_rad") for i in ids], 1)
+    target = np.stack([column("target_north_m"), column("target_east_m")], -1)
+    shape = shape_schedule(scenario)
+    radius = scenario.algorithm.radius_m
+    return Track(
+        name=scenario.name,
+        vehicle_ids=ids,
+        times_s=column("time_s"),
+        target_m=target,
+        positions_m=positions,
+        live=np.stack([column(f"v{i}_live") == 1 for i in ids], 1),
+        slots_m=np.stack(
+            [target[k] + desired_offsets(phases[k], radius, shape(k)) for k in range(samples)]
+        ),
+        circle_m=np.stack([circle_points(target[k], shape(k), radius) for k in range(samples)]),
+        estimates_m=np.full((samples, n, n + 1, 2), np.nan),
+        states=np.full((samples, n), "", dtype=str),
+        tracking_error_m=column("tracking_error_m"),
+        localization_error_m=column("localization_error_m"),
+        phase_spacing_error_rad=column("phase_spacing_error_rad"),
+    )
+
+
+def _track_from_recording(path: Path) -> Track:
     metrics: dict[int, dict[str, Any]] = {}
     messages = list(read_recording(path))
     for message in messages:

@@ -123,3 +123,21 @@ def test_a_folder_without_a_recording_is_bad_input(tmp_path, capsys):
 def test_an_mp4_beside_the_gif_where_ffmpeg_exists(run_dir, tmp_path):
     files = write_replay(run_dir, gif=tmp_path / "replay.gif", every=5)
     assert files.mp4 is not None and files.mp4.stat().st_size > 0
+
+
+def test_a_folder_from_before_recordings_replays_from_its_tables(run_dir, tmp_path):
+    """timeseries.csv and summary.json alone: the same positions, membership, circle and slots
+    (no estimates, no controller states)."""
+    old = tmp_path / "old"
+    old.mkdir()
+    for name in ("timeseries.csv", "summary.json"):
+        shutil.copy(run_dir / name, old / name)
+    recorded, tabled = load_track(run_dir), load_track(old)
+    assert tabled.name == recorded.name
+    assert np.allclose(tabled.positions_m, recorded.positions_m, atol=1e-6)
+    assert np.array_equal(tabled.live, recorded.live)
+    assert np.allclose(tabled.circle_m, recorded.circle_m, atol=1e-6)
+    slots = np.isfinite(recorded.slots_m)
+    assert np.allclose(tabled.slots_m[slots], recorded.slots_m[slots], atol=1e-6)
+    assert np.isnan(tabled.estimates_m).all()
+    assert write_replay(old, every=20, mp4=False).frames == 3
