@@ -11,6 +11,7 @@
     mission-runner ranges CONFIG [--source sih|gps]      synthesised UWB ranges (simulation aid)
     mission-runner px4-sitl CONFIG --px4-dir DIR         real PX4 SITL (SIH), one per vehicle
     mission-runner emulate CONFIG [sitl options]         emulated vehicles + the scenario's world
+    mission-runner control CONFIG hold|resume|land|return|stop [--vehicle N]   operator command
 
 Exit codes: 0 success (and every ``expect:`` bound met), 1 an expectation failed, 2 bad input
 (the message names the problem and, for configs, the YAML path), 3 a runtime failure (a vehicle
@@ -28,6 +29,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ParamSpec
 
+from .bus.errors import BusConnectionError, BusTimeoutError
 from .config import load_scenario
 from .errors import ConfigError, MissionRunnerError
 from .recording import LogCapture
@@ -60,7 +62,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         return _unwrapped(arguments.handler, arguments)
-    except RunnerError as error:
+    except (RunnerError, BusConnectionError, BusTimeoutError) as error:  # link, broker, vehicle
         print(f"error: {error}", file=sys.stderr)
         return EXIT_RUNTIME_FAILURE
     except _emulator_errors() as error:  # e.g. a port already taken: one line naming the setting
@@ -255,6 +257,17 @@ def _parser() -> argparse.ArgumentParser:
     )
     schema.add_argument("--out", type=Path, default=None, help="write it there instead")
     schema.set_defaults(handler=_schema)
+
+    operate = commands.add_parser(
+        "control",
+        help="operator command to the running mission of vehicle processes: hold, resume, land, "
+        "return or stop, for every vehicle or one",
+    )
+    operate.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
+    operate.add_argument("command", choices=("hold", "resume", "land", "return", "stop"))
+    operate.add_argument("--vehicle", type=_positive_int, default=None, help="one vehicle's id")
+    operate.add_argument("--reason", default=None, help="a note the vehicles log and report")
+    operate.set_defaults(handler=_control)
 
     from . import px4sitl  # noqa: PLC0415 - only its argument definitions
     from .world import emulated  # noqa: PLC0415
@@ -574,8 +587,12 @@ def _ground(arguments: argparse.Namespace) -> int:
 
     scenario = load_scenario(arguments.config)
 
+    last_state: dict[int, str] = {}
+
     def show(status: VehicleStatus) -> None:
-        if status.state not in ("following", "holding") or status.step % 40 == 0:
+        changed = last_state.get(status.vehicle_id) != status.state
+        last_state[status.vehicle_id] = status.state
+        if changed or status.step % 40 == 0:
             detail = f": {status.detail}" if status.detail else ""
             print(
                 f"vehicle {status.vehicle_id}: {status.state} (step {status.step}){detail}",
@@ -641,6 +658,22 @@ def _ground(arguments: argparse.Namespace) -> int:
     )
     print(_summary_text(document, mission_dir))
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
+
+
+def _control(arguments: argparse.Namespace) -> int:
+    import asyncio  # noqa: PLC0415
+
+    from .bus import ControlCommand  # noqa: PLC0415
+    from .runner.process import send_control  # noqa: PLC0415
+
+    scenario = load_scenario(arguments.config)
+    command = ControlCommand(arguments.command)
+    mission_id = asyncio.run(
+        send_control(scenario, command, vehicle_id=arguments.vehicle, reason=arguments.reason)
+    )
+    who = f"vehicle {arguments.vehicle}" if arguments.vehicle else "every vehicle"
+    print(f"control: {command.value} sent to {who} of mission {mission_id}")
+    return EXIT_OK
 
 
 def _mission_dir(scenario: Scenario) -> Path:

@@ -385,6 +385,25 @@ class DisplacementTrackingConfig(Model):
     )
 
 
+class SafetyConfig(Model):
+    """Keeping vehicles apart: the paper has no collision avoidance, so the guard is an addition
+    (off by default, to keep the paper's behaviour)."""
+
+    min_separation_m: PositiveFloat | None = Field(
+        None,
+        title="Minimum separation",
+        description="Vehicles keep at least this horizontal distance [m]: a guard between the "
+        "law and the setpoint, from measured ranges and the estimates (never truth), in simulate "
+        "and in flight. None: no guard.",
+    )
+    separation_gain_1_s: PositiveFloat = Field(
+        4.0,
+        title="Separation gain",
+        description="How fast two vehicles may close on the minimum separation [1/s]: their "
+        "distance above it shrinks at most this fast (exponentially).",
+    )
+
+
 class FlightConfig(Model):
     """How ``mission-runner run`` flies the scenario (ignored by ``simulate``)."""
 
@@ -484,6 +503,9 @@ class Scenario(Model):
     events: list[EventConfig] = Field([], title="Events", description="Losses and joins.")
     batch: BatchConfig = Field(BatchConfig(), title="Batch", description="For --runs N.")
     metrics: MetricsConfig = Field(MetricsConfig(), title="Metrics", description="Tolerances.")
+    safety: SafetyConfig = Field(
+        SafetyConfig(), title="Safety", description="Separation guard (simulate and flight)."
+    )
     flight: FlightConfig = Field(
         FlightConfig(), title="Flight", description="How mission-runner run flies it."
     )
@@ -646,7 +668,26 @@ def _rule_problems(scenario: Scenario) -> list[Problem]:
         problems.append(("vehicles", "a vehicle sensing the target must be present from k = 0"))
     problems += _shape_problems(scenario)
     problems += _emulator_problems(scenario)
+    problems += _separation_problems(scenario)
     return problems
+
+
+def _separation_problems(scenario: Scenario) -> list[Problem]:
+    """A minimum separation the enclosing circle cannot hold is a contradiction, not a guard."""
+    separation = scenario.safety.min_separation_m
+    n = len(scenario.vehicles)
+    if separation is None or n < 2:
+        return []
+    spacing = 2 * scenario.algorithm.radius_m * math.sin(math.pi / n)
+    if separation >= spacing:
+        return [
+            (
+                "safety.min_separation_m",
+                f"must be < {spacing:.3g} m, the spacing of {n} vehicles evenly on a circle of "
+                f"radius {scenario.algorithm.radius_m:g} m",
+            )
+        ]
+    return []
 
 
 def _emulator_problems(scenario: Scenario) -> list[Problem]:

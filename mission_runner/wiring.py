@@ -67,6 +67,8 @@ def controller_settings(scenario: Scenario, vehicle: VehicleConfig) -> Controlle
         tracking_gain_1_s=flight.displacement_tracking.gain_1_s,
         tracking_integral_gain_1_s2=flight.displacement_tracking.integral_gain_1_s2,
         tracking_max_correction_m_s=flight.displacement_tracking.max_correction_m_s,
+        min_separation_m=scenario.safety.min_separation_m,
+        separation_gain_1_s=scenario.safety.separation_gain_1_s,
     )
 
 

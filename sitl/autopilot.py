@@ -35,8 +35,12 @@ from collections.abc import Callable
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from sitl import imu
 from sitl import physics as ph
 from sitl.commander import Commander
+from sitl.config import FlightLogConfig
+from sitl.flight_log import FlightLogger, FlightLogStore
+from sitl.ftp import FileSystem, static_directory
 from sitl.geo import MapProjection
 from sitl.land_detector import LandDetector
 from sitl.mavlink_receiver import MavlinkReceiver
@@ -45,7 +49,7 @@ from sitl.modes import FlightMode
 from sitl.navigator import Navigator
 from sitl.odometry import Odometry
 from sitl.offboard import Offboard
-from sitl.params import ParamStore
+from sitl.params import ParamStore, pack_param_pck
 from sitl.telemetry import TelemetryBuilder
 from sitl.vehicle_state import Link, Snapshot, VehicleContext, VehicleState
 
@@ -63,6 +67,9 @@ class Px4Autopilot:
     that corresponds to simulated time 0 (for SYSTEM_TIME) unless ``unix_time_us`` gives the
     UNIX time for a simulated time. ``boot_offset_s`` is how long the autopilot had been running
     at simulated time 0: every timestamp it sends is on that boot clock.
+    ``ftp_ardupilot_extensions`` adds what ArduPilot's FTP server does beyond PX4's
+    (:class:`sitl.config.FtpConfig`); ``flight_logs`` says how to record the flight logs (None:
+    not at all).
     """
 
     def __init__(
@@ -80,6 +87,8 @@ class Px4Autopilot:
         unix_epoch_start_us: int = 0,
         unix_time_us: Callable[[float], int] | None = None,
         boot_offset_s: float = 0.0,
+        ftp_ardupilot_extensions: bool = False,
+        flight_logs: FlightLogConfig | None = None,
     ) -> None:
         self.index = index
         self.ground_amsl_m = ground_amsl_m
@@ -103,6 +112,8 @@ class Px4Autopilot:
         self.compid = self._vehicle.compid
         self.params.set_silently("MAV_SYS_ID", self.sysid)
         self.telemetry = TelemetryBuilder(self)
+        home_latitude_deg, _ = projection.to_global(*self._state.home_ned_m[:2])
+        self._earth_field_ned_gauss = imu.earth_field_ned_gauss(home_latitude_deg)
         self.battery_remaining_pct = 100.0
         self._last_update_s = 0.0
         self._cache_step = -1
@@ -121,6 +132,20 @@ class Px4Autopilot:
             preflight_ready_after_s=preflight_ready_after_s,
             on_home_changed=self._announce_home,
         )
+        self.flight_logs = FlightLogStore(flight_logs.max_logs if flight_logs else 1)
+        self._flight_logger = (
+            FlightLogger(
+                self,
+                self.params,
+                self.flight_logs,
+                rate_hz=flight_logs.rate_hz,
+                max_log_bytes=flight_logs.max_log_bytes,
+            )
+            if flight_logs is not None and flight_logs.enabled
+            else None
+        )
+        self._statustext_observer: Callable[[float, int, str], None] | None = None
+        self._vehicle.on_statustext = self._on_statustext
         self._receiver = MavlinkReceiver(
             vehicle,
             commander=self._commander,
@@ -128,6 +153,9 @@ class Px4Autopilot:
             offboard=self._offboard,
             telemetry=self.telemetry,
             boot_time_s=self.boot_time_s,
+            files=self._file_system(ftp_ardupilot_extensions),
+            ftp_echo_session=ftp_ardupilot_extensions,
+            flight_logs=self.flight_logs,
         )
         self._navigator.apply_limits()
         self._commander.command_physics()
@@ -196,11 +224,11 @@ class Px4Autopilot:
     @property
     def on_statustext(self) -> Callable[[float, int, str], None] | None:
         """Called with (time_s, severity, text) for every STATUSTEXT."""
-        return self._vehicle.on_statustext
+        return self._statustext_observer
 
     @on_statustext.setter
     def on_statustext(self, observer: Callable[[float, int, str], None] | None) -> None:
-        self._vehicle.on_statustext = observer
+        self._statustext_observer = observer
 
     def ready(self, now_s: float) -> bool:
         """Preflight checks pass: estimator converged, a position source works, alive."""
@@ -282,6 +310,20 @@ class Px4Autopilot:
         wind = phys.wind
         wind_ned = [0.0, 0.0, 0.0] if wind is None else [float(v) for v in wind.velocity_ned_m_s[i]]
         return p, q, r, accel, wind_ned
+
+    def inertial_frd(self) -> tuple[imu.Vector3, imu.Vector3, imu.Vector3]:
+        """What the vehicle's IMU and magnetometer read: specific force (m/s^2), body rates
+        (rad/s) and the earth's field (gauss), all in the body frame FRD (see :mod:`sitl.imu`)."""
+        i = self.index
+        s = self._vehicle.snapshot
+        roll, pitch, yaw = s.roll_rad[i], s.pitch_rad[i], s.yaw_rad[i]
+        an, ae, ad = s.acceleration_ned_m_s2[i]
+        force = imu.specific_force_frd((an, ae, ad), roll, pitch, yaw)
+        rates = imu.body_rates_frd(
+            roll, pitch, s.roll_rate_rad_s[i], s.pitch_rate_rad_s[i], s.yaw_rate_rad_s[i]
+        )
+        field = imu.ned_to_frd(self._earth_field_ned_gauss, roll, pitch, yaw)
+        return force, rates, field
 
     def height_above_ground_m(self) -> float:
         return self._vehicle.height_above_ground_m()
@@ -385,8 +427,30 @@ class Px4Autopilot:
             self._navigator.update(now_s)
             self._commander.update(now_s)
         self.mission.update(now_s)
+        if self._flight_logger is not None:
+            self._flight_logger.update(now_s)
+        self._receiver.pump()
 
     # ================================================================ wiring
+    def _on_statustext(self, now_s: float, severity: int, text: str) -> None:
+        if self._flight_logger is not None:
+            self._flight_logger.text(now_s, severity, text)
+        if self._statustext_observer is not None:
+            self._statustext_observer(now_s, severity, text)
+
+    def _file_system(self, ardupilot_extensions: bool) -> FileSystem:
+        """What MAVLink FTP serves: PX4's log directory with the flight logs and, with
+        ArduPilot's extensions, the parameters in ArduPilot's packed file."""
+        files = FileSystem(static_directory({"log": self.flight_logs.directory()}))
+        if ardupilot_extensions:
+            params = self.params
+
+            def param_pck(query: str) -> bytes:
+                return pack_param_pck(params, with_defaults="withdefaults=1" in query)
+
+            files.special["@PARAM/param.pck"] = param_pck
+        return files
+
     def _set_mode(self, mode: FlightMode, failsafe: bool = False) -> None:
         """The navigator's way to the commander's mode switch."""
         self._commander.set_mode(mode, failsafe)

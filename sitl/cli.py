@@ -6,6 +6,7 @@ Examples::
     sitl --vehicles 10 --speed 5 --tlog-dir runs/tlogs
     sitl --config emulator.yaml --api-port-base 24540   # beside a real PX4 SITL
     sitl --vehicles 4 --sih-like              # clocks, GPS error and ground truth like PX4 SIH
+    sitl --signing-passphrase "$PASS" --signing-key-dir keys   # MAVLink 2 signing on from the start
 
 ``--config`` takes a YAML file holding :class:`sitl.config.EmulatorConfig` fields, or a scenario
 file with an ``emulator:`` section; command line options override it.
@@ -100,6 +101,22 @@ def add_emulator_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tlog-dir", type=Path, help="record vehicle_<sysid>.tlog files here")
     parser.add_argument(
         "--seed", type=int, help="random seed (wind, odometry noise, GPS error, boot offsets)"
+    )
+    signing = parser.add_argument_group("MAVLink 2 message signing (as PX4)")
+    signing.add_argument(
+        "--signing-passphrase",
+        metavar="PASS",
+        help="start every vehicle with signing on, the key being SHA-256 of PASS (MAVProxy: "
+        "'signing key PASS'); without it a ground station can still set a key with "
+        "SETUP_SIGNING",
+    )
+    signing.add_argument(
+        "--signing-key-dir",
+        type=Path,
+        metavar="DIR",
+        help="keep each vehicle's key and timestamp in DIR/vehicle_<sysid>/"
+        "mavlink-signing-key.bin across runs (PX4's format); a vehicle with a key there "
+        "starts with signing on",
     )
     sih = parser.add_argument_group("PX4 SIH fidelity")
     sih.add_argument(
@@ -200,6 +217,14 @@ def load_config(args: argparse.Namespace) -> EmulatorConfig:
     if args.px4_compat_ports:
         ports["px4_compat_ports"] = True
     data["ports"] = ports
+    if args.signing_passphrase is not None or args.signing_key_dir is not None:
+        signing = dict(data.get("signing") or {})
+        if args.signing_passphrase is not None:
+            signing.pop("key_hex", None)  # the command line wins over the file's key
+            signing["passphrase"] = args.signing_passphrase
+        if args.signing_key_dir is not None:
+            signing["key_dir"] = str(args.signing_key_dir)
+        data["signing"] = signing
     _apply_sih_options(args, data)
     return EmulatorConfig.model_validate(data)
 
@@ -289,6 +314,11 @@ def describe(emulator: Emulator, config: EmulatorConfig) -> None:
         )
     if config.tlog_dir is not None:
         print(f"  recording tlogs in {config.tlog_dir}")
+    signed = [ep.sysid for ep in emulator.endpoints if emulator.signing(ep.index).active]
+    if signed:
+        print(f"  MAVLink signing on for sysid {', '.join(map(str, signed))}")
+    if config.signing.key_dir is not None:
+        print(f"  signing keys kept in {config.signing.key_dir}")
     sys.stdout.flush()
 
 

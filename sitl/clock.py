@@ -263,8 +263,11 @@ class Clock:
         while self.allowed_time_s() <= time_s:
             self._changed.clear()
             timeout = self._wait_timeout_s(time_s)
+            # asyncio.timeout, not wait_for: Python 3.11's wait_for can swallow a cancellation
+            # that races with the event, and the physics loop would then never end.
             try:
-                await asyncio.wait_for(self._changed.wait(), timeout)
+                async with asyncio.timeout(timeout):
+                    await self._changed.wait()
             except TimeoutError:
                 self._drop_stalled(time_s)
 

@@ -15,9 +15,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 
 from sitl.params import validate_overrides
+from sitl.signing import key_from_passphrase
 
 MAX_VEHICLES = 250
 """System ids are index + 1 and PX4's MAV_SYS_ID stops at 250 for vehicles."""
@@ -320,6 +321,25 @@ class StreamRates(_Model):
         description="Rate, Hz, of the ground-truth state (PX4 streams it only on SIH's own "
         "link, see truth_stream).",
     )
+    highres_imu_hz: float = Field(
+        10.0,
+        ge=0,
+        le=100,
+        title="HIGHRES_IMU",
+        description="Rate, Hz, of the IMU, magnetometer and barometer readings in SI units. "
+        "PX4 streams 50 Hz on the onboard/API link and none on the GCS link; 10 Hz here, like "
+        "the other API streams below PX4's rates, because 50 Hz puts a datagram into every "
+        "physics step of every vehicle (58 instead of 23 per simulated second). 50 restores "
+        "PX4's rate; MAVSDK's set_rate_imu() changes it at run time.",
+    )
+    scaled_imu_hz: float = Field(
+        0.0,
+        ge=0,
+        le=100,
+        title="SCALED_IMU",
+        description="Rate, Hz, of the IMU readings in integer units (PX4 streams it on USB "
+        "links only; SET_MESSAGE_INTERVAL turns it on).",
+    )
 
 
 def _gcs_rates() -> StreamRates:
@@ -332,6 +352,7 @@ def _gcs_rates() -> StreamRates:
         home_position_hz=0.5,
         battery_status_hz=0.5,
         altitude_hz=1.0,
+        highres_imu_hz=0.0,
     )
 
 
@@ -347,6 +368,54 @@ class TelemetryConfig(_Model):
         default_factory=_gcs_rates,
         title="GCS link rates",
         description="Stream rates on the GCS link (QGroundControl, MAVProxy).",
+    )
+
+
+class FlightLogConfig(_Model):
+    """The flight logs every vehicle records (ULog, in memory) and serves over the MAVLink log
+    protocol and FTP; when they start and stop is PX4's SDLOG_MODE parameter."""
+
+    enabled: bool = Field(
+        True,
+        title="Record flight logs",
+        description="Record a ULog per flight (PX4's logger does; SDLOG_MODE chooses when).",
+    )
+    rate_hz: float = Field(
+        10.0,
+        gt=0.0,
+        le=100.0,
+        title="Sample rate",
+        description="Samples per simulated second of each logged topic (PX4 logs most "
+        "topics faster; 10 Hz keeps a flight at ~2 kB/s and costs ~0.07 % of a core per "
+        "armed vehicle).",
+    )
+    max_logs: int = Field(
+        20,
+        ge=1,
+        le=10_000,
+        title="Logs kept",
+        description="Logs each vehicle keeps; the oldest goes when a new one starts.",
+    )
+    max_log_bytes: int = Field(
+        16 * 1024 * 1024,
+        ge=4096,
+        title="Log size limit",
+        description="A log stops growing at this size, bytes.",
+    )
+
+
+class FtpConfig(_Model):
+    """What the vehicles' MAVLink FTP servers do beyond PX4's."""
+
+    ardupilot_extensions: bool = Field(
+        False,
+        title="ArduPilot's FTP extensions",
+        description="Also serve the parameters as ArduPilot's packed file @PARAM/param.pck and "
+        "keep the session number the client chose, as ArduPilot does. MAVProxy 1.8 needs "
+        "both to download parameters over FTP: it numbers its sessions at random, while PX4 "
+        "answers every open with session 0 and has no param.pck (it answers FILE_NOT_FOUND, "
+        "as the emulator does by default, and MAVProxy falls back to PARAM_REQUEST_LIST). "
+        "MAVProxy then takes every parameter for a float, as with ArduPilot.",
     )
 
 
@@ -506,6 +575,65 @@ class TruthStreamConfig(_Model):
     )
 
 
+class SigningConfig(_Model):
+    """MAVLink 2 message signing (PX4 behaviour, see sitl/signing.py). Without a key a vehicle
+    accepts everything until a ground station provisions one with SETUP_SIGNING; with one it
+    signs what it sends and refuses unsigned packets except HEARTBEAT, RADIO_STATUS,
+    ADSB_VEHICLE and COLLISION.
+    """
+
+    passphrase: SecretStr | None = Field(
+        None,
+        title="Start-up passphrase",
+        description="Start every vehicle with signing on, the key being SHA-256 of this "
+        "passphrase (what MAVProxy's 'signing setup <passphrase>' sends). It replaces a key "
+        "stored in key_dir.",
+    )
+    key_hex: SecretStr | None = Field(
+        None,
+        title="Start-up key",
+        description="Start every vehicle with signing on with this key: 64 hex digits (32 "
+        "bytes). It replaces a key stored in key_dir. Give passphrase or key_hex, not both.",
+    )
+    key_dir: Path | None = Field(
+        None,
+        title="Key directory",
+        description="Keep each vehicle's key and timestamp across runs in "
+        "<key_dir>/vehicle_<sysid>/mavlink-signing-key.bin (PX4's 40-byte format, mode 0600); "
+        "a vehicle with a stored key starts with signing on. None: keys live in memory only.",
+    )
+
+    @field_validator("key_hex")
+    @classmethod
+    def _hex_key(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is None:
+            return None
+        text = value.get_secret_value()
+        try:
+            key = bytes.fromhex(text)
+        except ValueError:
+            raise ValueError("key_hex must be hexadecimal digits") from None
+        if len(key) != 32:
+            raise ValueError(f"key_hex must be 64 hex digits (32 bytes), got {len(text)}")
+        return value
+
+    @model_validator(mode="after")
+    def _one_key(self) -> SigningConfig:
+        if self.passphrase is not None and self.key_hex is not None:
+            raise ValueError("give signing.passphrase or signing.key_hex, not both")
+        if self.passphrase is not None and not self.passphrase.get_secret_value():
+            raise ValueError("signing.passphrase must not be empty")
+        return self
+
+    def initial_key(self) -> bytes | None:
+        """The key vehicles start with (None: the stored one, if any)."""
+        if self.key_hex is not None:
+            return bytes.fromhex(self.key_hex.get_secret_value())
+        if self.passphrase is not None:
+            return key_from_passphrase(self.passphrase.get_secret_value())
+        return None
+
+
 class KillFault(_Model):
     """The vehicle's autopilot dies: it stops sending and answering, motors stop."""
 
@@ -643,6 +771,21 @@ class EmulatorConfig(_Model):
         default_factory=TruthStreamConfig,
         title="Ground-truth stream",
         description="SIH's HIL_STATE_QUATERNION link (off by default).",
+    )
+    flight_logs: FlightLogConfig = Field(
+        default_factory=FlightLogConfig,
+        title="Flight logs",
+        description="ULog flight logs for the MAVLink log protocol and FTP.",
+    )
+    ftp: FtpConfig = Field(
+        default_factory=FtpConfig,
+        title="MAVLink FTP",
+        description="What the FTP servers do beyond PX4's.",
+    )
+    signing: SigningConfig = Field(
+        default_factory=SigningConfig,
+        title="Message signing",
+        description="MAVLink 2 signing: start-up key and where keys are kept.",
     )
     params: dict[str, float] = Field(
         default_factory=dict,

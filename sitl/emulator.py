@@ -19,6 +19,10 @@ at a simulated time).
 Like PX4 SITL, every vehicle can have a third link, SIH's ground-truth stream
 (``config.truth_stream``), and its own boot clock (``config.boot_clock``); everything inside the
 emulator runs on the one simulated time.
+
+Every vehicle speaks MAVLink 2 signing as PX4 does (:mod:`sitl.signing`): off until a ground
+station sends SETUP_SIGNING or ``config.signing`` gives a start-up key; keys are kept in a
+:class:`sitl.signing.KeyStore` (``config.signing.key_dir`` or memory, or one passed in).
 """
 
 from __future__ import annotations
@@ -59,6 +63,7 @@ from sitl.gnss import GnssError
 from sitl.link import VehicleLink
 from sitl.modes import FlightMode
 from sitl.odometry import Odometry
+from sitl.signing import FileKeyStore, KeyStore, MemoryKeyStore, VehicleSigning
 from sitl.tlog import TlogWriter
 
 logger = logging.getLogger(__name__)
@@ -127,6 +132,8 @@ class EmulatorStats:
     rx_bad: int
     tx_packets: int
     handler_errors: int
+    rx_rejected: int = 0
+    """Valid packets refused by message signing (unsigned, badly signed, replayed)."""
 
 
 class Truth:
@@ -236,6 +243,9 @@ class Emulator:
 
     ``clock`` defaults to one built from ``config.clock``; pass a shared one to run other
     participants in lockstep with the vehicles. ``tlog_dir`` overrides ``config.tlog_dir``.
+    ``key_store`` keeps the vehicles' signing keys (default: files in ``config.signing.key_dir``,
+    or memory); pass the same :class:`sitl.signing.MemoryKeyStore` to a later emulator to
+    restart vehicles with the keys they had.
     """
 
     def __init__(
@@ -244,6 +254,7 @@ class Emulator:
         *,
         clock: Clock | None = None,
         tlog_dir: Path | None = None,
+        key_store: KeyStore | None = None,
     ) -> None:
         self.config = config if config is not None else EmulatorConfig()
         self.clock = clock if clock is not None else Clock.from_config(self.config.clock)
@@ -259,6 +270,11 @@ class Emulator:
         self._boot_offsets_s: npt.NDArray[np.float64] = np.zeros(0)
         self._snapshot = Snapshot()
         self._autopilots: list[Px4Autopilot] = []
+        self._signing: list[VehicleSigning] = []
+        if key_store is None:
+            key_dir = self.config.signing.key_dir
+            key_store = FileKeyStore(key_dir) if key_dir is not None else MemoryKeyStore()
+        self.key_store: KeyStore = key_store
         self._links: list[list[VehicleLink]] = []
         self._all_links: list[VehicleLink] = []
         self._tlogs: list[TlogWriter] = []
@@ -318,6 +334,8 @@ class Emulator:
             logger.info("SITL stopped at %.2f s simulated", self.time_s)
 
     async def _close_io(self) -> None:
+        for signing in self._signing:
+            signing.checkpoint()
         for link in self._all_links:
             link.close()
         for tlog in self._tlogs:
@@ -400,12 +418,25 @@ class Emulator:
                 unix_epoch_start_us=int(time.time() * 1e6),
                 unix_time_us=unix_time_us,
                 boot_offset_s=float(self._boot_offsets_s[i]),
+                ftp_ardupilot_extensions=config.ftp.ardupilot_extensions,
+                flight_logs=config.flight_logs,
             )
             for i in range(n)
         ]
         for ap in self._autopilots:
             ap.on_statustext = self._statustext_observer(ap.index)
             ap.telemetry.truth_fields = config.truth_stream.fields
+        initial_key = config.signing.initial_key()
+        self._signing = [
+            VehicleSigning(
+                ap.sysid,
+                compid=ap.compid,
+                store=self.key_store,
+                initial_key=initial_key,
+                is_armed=_armed_flag(ap),
+            )
+            for ap in self._autopilots
+        ]
         for fault in config.faults:
             self._schedule_fault(fault)
 
@@ -519,6 +550,7 @@ class Emulator:
                     # 25 Hz of ground truth would swamp the tlogs; PX4 logs none of it either.
                     tlog=tlog if name != "truth" else None,
                     now_us=self._tlog_time_us,
+                    signing=self._signing[i],
                 )
                 try:
                     await loop.create_datagram_endpoint(
@@ -703,6 +735,11 @@ class Emulator:
         """The state machine of vehicle ``index`` (for inspection; drive it over MAVLink)."""
         return self._autopilot(index)
 
+    def signing(self, index: int) -> VehicleSigning:
+        """The message-signing state of vehicle ``index`` (key on or off, counters)."""
+        self._autopilot(index)
+        return self._signing[index]
+
     def stats(self) -> EmulatorStats:
         links = self._all_links
         return EmulatorStats(
@@ -716,6 +753,7 @@ class Emulator:
             sum(link.rx_bad for link in links),
             sum(link.tx_packets for link in links),
             sum(link.handler_errors for link in links),
+            sum(link.rx_rejected for link in links),
         )
 
     def _autopilot(self, index: int) -> Px4Autopilot:
@@ -887,6 +925,11 @@ class Emulator:
             action()
 
         heapq.heappush(self._schedule, (at_s, next(self._schedule_ids), what, logged))
+
+
+def _armed_flag(ap: Px4Autopilot) -> Callable[[], bool]:
+    """Whether ``ap`` is armed, asked when it matters (signing keys change only disarmed)."""
+    return lambda: ap.armed
 
 
 def _protocol(link: VehicleLink) -> VehicleLink:

@@ -8,6 +8,12 @@ and answers that sender from then on.
 
 Malformed input is counted and dropped (a decoder failure on it is also logged); an exception in
 the vehicle's handler is logged and counted (``handler_errors``) but never stops the link.
+
+With a :class:`sitl.signing.VehicleSigning` the link signs what it sends once the vehicle has a
+key, refuses what the signing check refuses (counted in ``rx_rejected``; such packets neither
+reach the vehicle nor the tlog nor make their sender the link's partner) and handles
+SETUP_SIGNING itself, as PX4's MAVLink module does; SETUP_SIGNING carries the key in clear, so
+it is not written to the tlog.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from collections.abc import Callable
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.config import StreamRates
+from sitl.signing import LINK_IDS, VehicleSigning
 from sitl.telemetry import StreamScheduler
 from sitl.tlog import TlogWriter
 
@@ -34,7 +41,8 @@ class VehicleLink(asyncio.DatagramProtocol):
     """A vehicle's UDP endpoint: ``name`` is ``"api"`` or ``"gcs"``.
 
     ``deliver(msg, link)`` receives every valid decoded message; ``now_us()`` gives the tlog
-    timestamp. ``streams`` holds this link's telemetry schedule.
+    timestamp. ``streams`` holds this link's telemetry schedule. ``signing`` is the vehicle's
+    signing state (shared by its links); the link signs with its PX4 link id.
     """
 
     def __init__(
@@ -49,6 +57,7 @@ class VehicleLink(asyncio.DatagramProtocol):
         stream_phase_s: float = 0.0,
         tlog: TlogWriter | None = None,
         now_us: Callable[[], int] = lambda: 0,
+        signing: VehicleSigning | None = None,
     ) -> None:
         self.name = name
         self.sysid = sysid
@@ -59,6 +68,8 @@ class VehicleLink(asyncio.DatagramProtocol):
         self._deliver = deliver
         self._tlog = tlog
         self._now_us = now_us
+        self.signing = signing
+        self._link_id = LINK_IDS.get(name, 0)
         self._encoder = mavlink.MAVLink(self, srcSystem=sysid, srcComponent=1)
         self._parser = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=1)
         self._parser.robust_parsing = True
@@ -75,6 +86,8 @@ class VehicleLink(asyncio.DatagramProtocol):
         self.decoder_errors = 0
         self.tx_packets = 0
         self.handler_errors = 0
+        #: Valid packets the signing check refused.
+        self.rx_rejected = 0
 
     # ------------------------------------------------------------ receiving
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -119,9 +132,13 @@ class VehicleLink(asyncio.DatagramProtocol):
         parser.buf = bytearray()
         parser.buf_index = 0
         parser.expected_length = mavlink.HEADER_LEN_V1 + 2
+        signing = self.signing
         for msg in messages:
             if msg.get_msgId() < 0:  # BAD_DATA
                 self.rx_bad += 1
+                continue
+            if signing is not None and not signing.check(msg).accepted:
+                self.rx_rejected += 1
                 continue
             self.rx_packets += 1
             if self.partner is None:
@@ -129,6 +146,9 @@ class VehicleLink(asyncio.DatagramProtocol):
                 logger.info(
                     "vehicle %d %s link: client at %s:%d", self.sysid, self.name, *self.partner
                 )
+            if signing is not None and msg.get_msgId() == mavlink.MAVLINK_MSG_ID_SETUP_SIGNING:
+                signing.setup(msg)
+                continue
             if self._tlog is not None:
                 self._tlog.write(self._now_us(), msg.get_msgbuf())
             try:
@@ -148,7 +168,10 @@ class VehicleLink(asyncio.DatagramProtocol):
     def send(self, msg: mavlink.MAVLink_message) -> None:
         """Queue ``msg`` for the next :meth:`flush` (encoded with this link's sequence)."""
         if self.up and self.alive:
-            self._encoder.send(msg)
+            if self.signing is None:
+                self._encoder.send(msg)
+            else:
+                self.signing.send(self._encoder, msg, self._link_id)
 
     def write(self, packet: bytes) -> None:
         """pymavlink's encoder writes packed messages here."""

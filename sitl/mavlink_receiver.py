@@ -5,10 +5,12 @@ takes every decoded message a link delivers and routes it by type: heartbeats an
 the commander (:mod:`sitl.commander`), setpoints to offboard (:mod:`sitl.offboard`), mission
 protocol to the navigator's mission store (:mod:`sitl.mission`), commands to the
 :class:`sitl.commands.CommandDispatcher`. It answers the protocol-level requests itself:
-parameters (PARAM_REQUEST_LIST / READ / SET), PING, TIMESYNC, and the commands that ask for
+parameters (PARAM_REQUEST_LIST / READ / SET), PING, TIMESYNC, MAVLink FTP (:mod:`sitl.ftp`) and
+the log protocol (:mod:`sitl.log_handler`), one server of each per link as on PX4, and the
+commands that ask for
 messages (REQUEST_MESSAGE, SET/GET_MESSAGE_INTERVAL, GET_HOME_POSITION,
-REQUEST_AUTOPILOT_CAPABILITIES). Replies go to the link a request came on; parameter changes to
-every link. Messages that do not make sense are ignored, as PX4 does.
+REQUEST_AUTOPILOT_CAPABILITIES, REQUEST_PROTOCOL_VERSION). Replies go to the link a request came
+on; parameter changes to every link. Messages that do not make sense are ignored, as PX4 does.
 """
 
 from __future__ import annotations
@@ -21,9 +23,14 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.commander import COMMANDER_COMMANDS, Commander
 from sitl.commands import Command, CommandDispatcher, CommandTable, bind
+from sitl.flight_log import FlightLogStore
+from sitl.ftp import FileSystem, FtpServer
+from sitl.log_handler import LogHandler
 from sitl.navigator import NAVIGATOR_COMMANDS, Navigator
 from sitl.offboard import Offboard
-from sitl.telemetry import BUILDABLE, TelemetryBuilder
+from sitl.params import PARAM_NAMES
+from sitl.shell import MavlinkShell, Pxh
+from sitl.telemetry import BUILDABLE, MSG_PROTOCOL_VERSION, TelemetryBuilder
 from sitl.vehicle_state import Link, VehicleContext
 
 logger = logging.getLogger(__name__)
@@ -61,8 +68,16 @@ class MavlinkReceiver:
         offboard: Offboard,
         telemetry: TelemetryBuilder,
         boot_time_s: Callable[[float], float],
+        files: FileSystem | None = None,
+        ftp_echo_session: bool = False,
+        flight_logs: FlightLogStore | None = None,
     ) -> None:
         self._vehicle = vehicle
+        self._files = files if files is not None else FileSystem()
+        self._ftp: dict[Link, FtpServer] = {}
+        self._ftp_echo_session = ftp_echo_session
+        self._flight_logs = flight_logs if flight_logs is not None else FlightLogStore()
+        self._log_handlers: dict[Link, LogHandler] = {}
         self._telemetry = telemetry
         self._boot_time_s = boot_time_s
         self._commands = CommandDispatcher(
@@ -87,9 +102,20 @@ class MavlinkReceiver:
             "PARAM_SET": self._on_param_set,
             "PING": self._on_ping,
             "TIMESYNC": self._on_timesync,
+            "FILE_TRANSFER_PROTOCOL": self._on_file_transfer,
+            "LOG_REQUEST_LIST": self._on_log_message,
+            "LOG_REQUEST_DATA": self._on_log_message,
+            "LOG_REQUEST_END": self._on_log_message,
+            "LOG_ERASE": self._on_log_message,
         }
         for kind in _MISSION_MESSAGES:
             self._handlers[kind] = self._on_mission_message
+        # SERIAL_CONTROL: PX4's MAVLink shell (sitl.shell); a parameter changed there is
+        # announced like one set over MAVLink.
+        self.shell = MavlinkShell(
+            vehicle, Pxh(vehicle, lambda name: vehicle.broadcast(self._param_value(name)))
+        )
+        self._handlers["SERIAL_CONTROL"] = self.shell.on_serial_control
 
     def handle(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         """React to one decoded message received on ``link``."""
@@ -100,6 +126,34 @@ class MavlinkReceiver:
     # ------------------------------------------------------------------ misc
     def _on_mission_message(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         self._mission.handle(msg, link, self._vehicle.state.now_s)
+
+    def _on_file_transfer(self, msg: mavlink.MAVLink_message, link: Link) -> None:
+        # One server, with its own session, per link: PX4 runs one per MAVLink instance.
+        server = self._ftp.get(link)
+        if server is None:
+            vehicle = self._vehicle
+            server = FtpServer(
+                self._files,
+                sysid=vehicle.sysid,
+                compid=vehicle.compid,
+                now_s=lambda: vehicle.state.now_s,
+                echo_session=self._ftp_echo_session,
+            )
+            self._ftp[link] = server
+        server.handle(msg, link)
+
+    def _on_log_message(self, msg: mavlink.MAVLink_message, link: Link) -> None:
+        handler = self._log_handlers.get(link)
+        if handler is None:
+            handler = LogHandler(self._flight_logs, sysid=self._vehicle.sysid)
+            self._log_handlers[link] = handler
+        handler.handle(msg, link)
+
+    def pump(self) -> None:
+        """Go on with transfers that take more than one reply (log downloads)."""
+        for handler in self._log_handlers.values():
+            if handler.sending:
+                handler.pump()
 
     def _on_ping(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         if msg.target_system == 0 and msg.target_component == 0:
@@ -128,7 +182,7 @@ class MavlinkReceiver:
         if msg.param_index >= 0:
             if msg.param_index >= len(names):
                 return
-            name = list(names)[msg.param_index]
+            name = PARAM_NAMES[msg.param_index]
         else:
             name = _param_name(msg.param_id)
             if name not in names:
@@ -181,8 +235,11 @@ class MavlinkReceiver:
         msg_id, interval_us = cmd.params[0], cmd.params[1]
         if not (math.isfinite(msg_id) and 0 <= msg_id < _MAX_MESSAGE_ID):
             return mavlink.MAV_RESULT_DENIED
+        if int(msg_id) == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            return mavlink.MAV_RESULT_FAILED  # PX4 keeps its heartbeat at 1 Hz
         ok = link.streams.set_interval(int(msg_id), interval_us, self._vehicle.state.now_s)
-        return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
+        # PX4 answers FAILED for a message it has no stream of (e.g. RAW_IMU).
+        return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_FAILED
 
     def _cmd_request_message(self, cmd: Command, link: Link) -> int:
         msg_id = cmd.params[0]
@@ -200,6 +257,10 @@ class MavlinkReceiver:
         )
         return mavlink.MAV_RESULT_ACCEPTED
 
+    def _cmd_request_protocol_version(self, cmd: Command, link: Link) -> int:
+        self._commands.then(lambda: self._send_built(MSG_PROTOCOL_VERSION, link))
+        return mavlink.MAV_RESULT_ACCEPTED
+
     def _send_built(self, msg_id: int, link: Link) -> None:
         msg = self._telemetry.build(msg_id, self._vehicle.state.now_s)
         if msg is not None:
@@ -215,6 +276,7 @@ RECEIVER_COMMANDS: CommandTable[MavlinkReceiver] = {
     mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: (
         MavlinkReceiver._cmd_request_autopilot_capabilities
     ),
+    mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION: MavlinkReceiver._cmd_request_protocol_version,
 }
 
 

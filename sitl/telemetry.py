@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, Literal
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from sitl import imu
+from sitl.messages import MAVLINK_MSG_ID_PROTOCOL_VERSION, MAVLinkProtocolVersionMessage
 from sitl.modes import base_mode
 
 if TYPE_CHECKING:
@@ -24,6 +26,7 @@ MSG_HEARTBEAT = 0
 MSG_SYS_STATUS = 1
 MSG_SYSTEM_TIME = 2
 MSG_GPS_RAW_INT = 24
+MSG_SCALED_IMU = 26
 MSG_ATTITUDE = 30
 MSG_ATTITUDE_QUATERNION = 31
 MSG_LOCAL_POSITION_NED = 32
@@ -31,11 +34,13 @@ MSG_GLOBAL_POSITION_INT = 33
 MSG_MISSION_CURRENT = 42
 MSG_GPS_GLOBAL_ORIGIN = 49
 MSG_VFR_HUD = 74
+MSG_HIGHRES_IMU = 105
 MSG_HIL_STATE_QUATERNION = 115
 MSG_ALTITUDE = 141
 MSG_BATTERY_STATUS = 147
 MSG_AUTOPILOT_VERSION = 148
 MSG_HOME_POSITION = 242
+MSG_PROTOCOL_VERSION = MAVLINK_MSG_ID_PROTOCOL_VERSION
 MSG_EXTENDED_SYS_STATE = 245
 
 #: Stream message id -> StreamRates field.
@@ -54,14 +59,22 @@ STREAM_RATE_FIELDS: dict[int, str] = {
     MSG_ALTITUDE: "altitude_hz",
     MSG_MISSION_CURRENT: "mission_current_hz",
     MSG_HIL_STATE_QUATERNION: "hil_state_quaternion_hz",
+    MSG_HIGHRES_IMU: "highres_imu_hz",
+    MSG_SCALED_IMU: "scaled_imu_hz",
 }
 
 #: Messages that can be requested once (REQUEST_MESSAGE) or streamed (SET_MESSAGE_INTERVAL).
 BUILDABLE: frozenset[int] = frozenset(
-    [*STREAM_RATE_FIELDS, MSG_SYSTEM_TIME, MSG_GPS_GLOBAL_ORIGIN, MSG_AUTOPILOT_VERSION]
+    [
+        *STREAM_RATE_FIELDS,
+        MSG_SYSTEM_TIME,
+        MSG_GPS_GLOBAL_ORIGIN,
+        MSG_AUTOPILOT_VERSION,
+        MSG_PROTOCOL_VERSION,
+    ]
 )
-#: Of those, the ones PX4 will not stream periodically.
-NOT_STREAMABLE: frozenset[int] = frozenset([MSG_AUTOPILOT_VERSION])
+#: Of those, the ones only sent on request here.
+NOT_STREAMABLE: frozenset[int] = frozenset([MSG_AUTOPILOT_VERSION, MSG_PROTOCOL_VERSION])
 
 # SYS_STATUS sensor bits (MAV_SYS_STATUS_SENSOR)
 _GYRO = 0x1
@@ -83,19 +96,30 @@ MAV_STATE_STANDBY = 3
 MAV_STATE_ACTIVE = 4
 MAV_STATE_CRITICAL = 5
 
-# MAV_PROTOCOL_CAPABILITY
+#: MAV_PROTOCOL_CAPABILITY bits of AUTOPILOT_VERSION: exactly the ones PX4 sets
+#: (Mavlink::send_autopilot_capabilities; PX4 SITL v1.15 answers 0xE8FF), each of which the
+#: emulator handles. PX4 handles SET_POSITION_TARGET_GLOBAL_INT without setting its bit, and so
+#: does the emulator: a client that decides by the bits decides as it would with PX4.
 CAPABILITIES = (
-    0x1  # MISSION_FLOAT
-    | 0x2  # PARAM_FLOAT
-    | 0x4  # MISSION_INT
-    | 0x8  # COMMAND_INT
-    | 0x40  # SET_ATTITUDE_TARGET
-    | 0x80  # SET_POSITION_TARGET_LOCAL_NED
-    | 0x100  # SET_POSITION_TARGET_GLOBAL_INT
-    | 0x1000  # PARAM_ENCODE_BYTEWISE
-    | 0x2000  # MAVLINK2
+    mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT  # MISSION_ITEM / MISSION_REQUEST
+    | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE  # INT32 params in the float's bytes
+    | mavlink.MAV_PROTOCOL_CAPABILITY_FTP  # sitl.ftp
+    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+    | mavlink.MAV_PROTOCOL_CAPABILITY_FLIGHT_TERMINATION  # MAV_CMD_DO_FLIGHTTERMINATION
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE  # fence items upload/download (not enforced)
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY  # rally items upload/download
 )
-GRAVITY_M_S2 = 9.80665
+GRAVITY_M_S2 = imu.GRAVITY_M_S2
+#: HIGHRES_IMU.fields_updated: accelerometer, gyroscope, magnetometer and barometer (absolute
+#: pressure, pressure altitude, temperature) - every field but the differential pressure.
+_HIGHRES_IMU_FIELDS = 0x1BFF
+#: PX4 SIH's ambient temperature, degC.
+_AIR_TEMPERATURE_DEGC = 15.0
 
 #: PX4 v1.15.0 release: major << 24 | minor << 16 | patch << 8 | FIRMWARE_VERSION_TYPE_OFFICIAL.
 FLIGHT_SW_VERSION = (1 << 24) | (15 << 16) | (0 << 8) | 255
@@ -190,9 +214,12 @@ class TelemetryBuilder:
             MSG_ALTITUDE: self.altitude,
             MSG_BATTERY_STATUS: self.battery_status,
             MSG_AUTOPILOT_VERSION: self.autopilot_version,
+            MSG_PROTOCOL_VERSION: self.protocol_version,
             MSG_HOME_POSITION: self.home_position,
             MSG_EXTENDED_SYS_STATE: self.extended_sys_state,
             MSG_HIL_STATE_QUATERNION: self.hil_state_quaternion,
+            MSG_HIGHRES_IMU: self.highres_imu,
+            MSG_SCALED_IMU: self.scaled_imu,
         }
 
     def build(self, msg_id: int, now_s: float) -> mavlink.MAVLink_message | None:
@@ -377,7 +404,16 @@ class TelemetryBuilder:
             0,
             0,
             0x5349544C00000000 + ap.sysid,  # "SITL" + system id: unique per vehicle
+            # PX4 SITL adds the instance (system id - 1) to the first byte of its GUID, which
+            # is MAVSDK's info.hardware_uid.
+            [(ap.sysid - 1) & 0xFF] + [0] * 17,
         )
+
+    def protocol_version(self, now_s: float) -> mavlink.MAVLink_message:
+        """As PX4's Mavlink::send_protocol_version on a MAVLink 2 link: speaks 2.0, accepts
+        1.0 to 2.3. PX4 puts its MAVLink library's git hash in library_version_hash; there is
+        no such library here, so both hashes are zero."""
+        return MAVLinkProtocolVersionMessage(200, 100, 203)
 
     def home_position(self, now_s: float) -> mavlink.MAVLink_message:
         ap = self.ap
@@ -399,6 +435,49 @@ class TelemetryBuilder:
 
     def extended_sys_state(self, now_s: float) -> mavlink.MAVLink_message:
         return mavlink.MAVLink_extended_sys_state_message(0, self.ap.landed_state)
+
+    def highres_imu(self, now_s: float) -> mavlink.MAVLink_message:
+        """IMU, magnetometer and barometer in SI units, body frame FRD, as PX4's HIGHRES_IMU
+        stream fills it (the air temperature of PX4 SIH, no differential pressure)."""
+        ap = self.ap
+        (fx, fy, fz), (p, q, r), (mx, my, mz) = ap.inertial_frd()
+        alt_m = ap.ground_amsl_m - ap.position_ned()[2]  # the barometer's true altitude
+        return mavlink.MAVLink_highres_imu_message(
+            ap.time_usec(now_s),
+            fx,
+            fy,
+            fz,
+            p,
+            q,
+            r,
+            mx,
+            my,
+            mz,
+            imu.static_pressure_hpa(alt_m),
+            0.0,
+            alt_m,
+            _AIR_TEMPERATURE_DEGC,
+            _HIGHRES_IMU_FIELDS,
+        )
+
+    def scaled_imu(self, now_s: float) -> mavlink.MAVLink_message:
+        """The first IMU in MAVLink's integer units: mG, mrad/s, mgauss, cdegC (FRD)."""
+        ap = self.ap
+        (fx, fy, fz), (p, q, r), (mx, my, mz) = ap.inertial_frd()
+        to_mg = 1000.0 / GRAVITY_M_S2
+        return mavlink.MAVLink_scaled_imu_message(
+            ap.time_boot_ms(now_s),
+            _clamp_i16(fx * to_mg),
+            _clamp_i16(fy * to_mg),
+            _clamp_i16(fz * to_mg),
+            _clamp_i16(p * 1000.0),
+            _clamp_i16(q * 1000.0),
+            _clamp_i16(r * 1000.0),
+            _clamp_i16(mx * 1000.0),
+            _clamp_i16(my * 1000.0),
+            _clamp_i16(mz * 1000.0),
+            round(_AIR_TEMPERATURE_DEGC * 100),
+        )
 
     def hil_state_quaternion(self, now_s: float) -> mavlink.MAVLink_message:
         """The true state, as PX4's HIL_STATE_QUATERNION stream sends SIH's ground truth.

@@ -61,6 +61,9 @@ class Snapshot:
     pitch_rad: list[float] = field(default_factory=list)
     yaw_rad: list[float] = field(default_factory=list)
     yaw_rate_rad_s: list[float] = field(default_factory=list)
+    roll_rate_rad_s: list[float] = field(default_factory=list)
+    pitch_rate_rad_s: list[float] = field(default_factory=list)
+    acceleration_ned_m_s2: list[list[float]] = field(default_factory=list)
     drift_ned_m: list[list[float]] = field(default_factory=list)
     gps_error_ned_m: list[list[float]] | None = None
     """Error of the reported global position (world NED m), None while there is none."""
@@ -78,6 +81,9 @@ class Snapshot:
         self.pitch_rad = physics.pitch_rad.tolist()
         self.yaw_rad = physics.yaw_rad.tolist()
         self.yaw_rate_rad_s = physics.yaw_rate_rad_s.tolist()
+        self.roll_rate_rad_s = physics.roll_rate_rad_s.tolist()
+        self.pitch_rate_rad_s = physics.pitch_rate_rad_s.tolist()
+        self.acceleration_ned_m_s2 = physics.acceleration_ned_m_s2.tolist()
         self.drift_ned_m = odometry.drift_ned_m.tolist()
         if gnss is not None and gnss.active:
             self.gps_error_ned_m = gnss.error_ned_m.tolist()

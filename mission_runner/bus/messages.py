@@ -30,13 +30,20 @@ from mission_runner.bus.topics import TARGET_PEER_ID, TopicKind
 
 
 class ControlCommand(enum.StrEnum):
-    """Commands of the mission control topic."""
+    """Commands of the mission control topic.
+
+    ``prepare``/``start`` run the handshake; during a mission ``hold`` (hover in place, still in
+    OFFBOARD) and ``resume`` pause and continue the law; ``land``, ``return`` (to launch) and
+    ``stop`` (leave OFFBOARD, the autopilot holds) end it.
+    """
 
     PREPARE = "prepare"
     START = "start"
     STOP = "stop"
     HOLD = "hold"
+    RESUME = "resume"
     LAND = "land"
+    RETURN = "return"
 
 
 def _reject_constant(name: str) -> float:
@@ -265,7 +272,7 @@ class TargetObservation(Message):
 
 @dataclass(frozen=True, slots=True)
 class MissionControl(Message):
-    """A mission command from the ground station: prepare, start, stop, hold or land.
+    """A mission command from the ground station (see :class:`ControlCommand`).
 
     ``mission_id`` names one mission (a ground station run): vehicles answer ``prepare`` with
     statuses carrying it, act only on commands carrying it, and a retained message of an earlier
@@ -280,8 +287,13 @@ class MissionControl(Message):
     mission_id: str | None = None
     clock_rate: float | None = None
     clock_reference_s: float | None = None
+    vehicle_id: int | None = None  # hold/resume/land/return/stop for one vehicle; None: all
 
     def _check(self) -> None:
+        _require(
+            self.vehicle_id is None or self.vehicle_id >= 1,
+            f"vehicle_id must be >= 1, got {self.vehicle_id}",
+        )
         _require(
             self.mission_id is None or 0 < len(self.mission_id) <= 64,
             "mission_id must have 1 to 64 characters",

@@ -39,6 +39,7 @@ from ..bus import (
 )
 from ..config import Scenario, VehicleConfig
 from ..enclosing import NeighbourReport, TargetReport, VehicleEnclosing
+from ..enclosing.separation import separation_guard
 from ..tasks import first_completed
 from ..wiring import (
     ShapeSchedule,
@@ -80,6 +81,8 @@ class ControllerSettings:
     tracking_gain_1_s: float = 0.0
     tracking_integral_gain_1_s2: float = 0.0
     tracking_max_correction_m_s: float = 2.0
+    min_separation_m: float | None = None
+    separation_gain_1_s: float = 4.0
 
 
 @dataclass
@@ -158,6 +161,10 @@ class VehicleController:
         # Where the law's commands so far would have taken the vehicle.
         self._reference: NDArray[np.float64] | None = None
         self._tracking_integral = np.zeros(2)
+        self._last_positions: dict[int, tuple[float, float]] = {}  # for the separation guard
+        #: The operator's hold (ground station ``hold`` until ``resume``): hover in place, keep
+        #: the oscillator on the grid, publish nothing of the law.
+        self.operator_hold = False
         self._missed_odometry = 0
         self._known_target_velocity: tuple[int, tuple[float, float]] | None = None
         self.skipped_steps = 0
@@ -301,9 +308,10 @@ class VehicleController:
         consensus: tuple[float, float]
         # Hold on stale data, and while the vehicle is not seen armed in OFFBOARD.
         stale_s = now - self._last_fresh_s
-        if odometry is None or stale_s > settings.silence_timeout_s or not self.link.in_control:
+        holding = stale_s > settings.silence_timeout_s or not self.link.in_control
+        if odometry is None or holding or self.operator_hold:
             velocity = (0.0, 0.0)
-            self.state = "holding"
+            self.state = "held" if self.operator_hold and not holding else "holding"
             # The vehicle holds: when it resumes, track afresh from where it is, and lead from
             # nothing (a command change over the whole hold is not a rate to lead).
             self._reference = None
@@ -325,9 +333,12 @@ class VehicleController:
                 shape_now=self.shape(k),
                 shape_next=self.shape(k + 1),
             )
-            velocity = self._clamp(
-                self._lead(command.velocity_m_s) + self._tracking(command.velocity_m_s, odometry)
+            wanted = self._lead(command.velocity_m_s) + self._tracking(
+                command.velocity_m_s, odometry
             )
+            if settings.min_separation_m is not None:
+                wanted = self._separated(wanted, command.estimates_m, data, odometry)
+            velocity = self._clamp(wanted)
             used, estimates = command.neighbours_used, command.estimates_m
             consensus = (float(command.consensus_m_s[0]), float(command.consensus_m_s[1]))
         vertical = self._altitude_hold(odometry)
@@ -349,6 +360,41 @@ class VehicleController:
         await self._publish_status(k, t_k)
         if self.on_step is not None:
             self.on_step(self.vehicle_id, record)
+
+    def _separated(
+        self,
+        velocity: NDArray[np.float64],
+        estimates_m: dict[int, NDArray[np.float64]],
+        data: StepData,
+        odometry: tuple[float, float, float],
+    ) -> NDArray[np.float64]:
+        """The command through the separation guard: directions from this step's estimates,
+        distances from the measured (horizontal) ranges, velocities from the own odometry and
+        the neighbours' step messages over the last step (never truth)."""
+        step_s = self.settings.step_s
+        ranges = self._horizontal_ranges(data, odometry)
+        now = {peer: (m.odometry_north_m, m.odometry_east_m) for peer, m in data.neighbours.items()}
+        now[self.vehicle_id] = (odometry[0], odometry[1])
+
+        def velocity_of(peer: int) -> tuple[float, float]:
+            before, after = self._last_positions.get(peer), now.get(peer)
+            if before is None or after is None:
+                return (math.nan, math.nan)
+            return ((after[0] - before[0]) / step_s, (after[1] - before[1]) / step_s)
+
+        self._last_positions = now
+        peers = [peer for peer in estimates_m if peer != 0]
+        if not peers:
+            return velocity
+        return separation_guard(
+            np.asarray(velocity, dtype=float),
+            np.array([estimates_m[peer] for peer in peers], dtype=float),
+            np.array([ranges.get(peer, math.nan) for peer in peers], dtype=float),
+            np.array(velocity_of(self.vehicle_id)),
+            np.array([velocity_of(peer) for peer in peers]),
+            min_separation_m=self.settings.min_separation_m or 0.0,
+            gain_1_s=self.settings.separation_gain_1_s,
+        )
 
     def _turn_oscillator(self, k: int) -> None:
         """Advance the law through step k with no data: the oscillator keeps turning so the

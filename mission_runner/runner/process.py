@@ -239,14 +239,12 @@ async def _fly(  # noqa: PLR0917
         run.clock_rate, run.start_s = rate, command.time_s
         controller.mission_id = run.mission_id
         start.set_result(command.time_s)
-    # Whichever ends first: the controller's last step, or the ground station's land/stop (a
-    # controller failure propagates and lands the vehicle, see run_vehicle).
+    # Whichever ends first: the controller's last step, or the ground station's land, return or
+    # stop for this vehicle (a controller failure propagates and lands it, see run_vehicle).
     watch = f"vehicle-{run.vehicle_id}-watch"
     contenders: dict[str, Awaitable[object]] = {
         f"vehicle-{run.vehicle_id}-fly": controller.run(run.start_s, steps),
-        watch: next_command(
-            control, {ControlCommand.LAND, ControlCommand.STOP}, mission_id=run.mission_id
-        ),
+        watch: _operate(control, controller, run),
     }
     ended_by, ended_with = await first_completed(contenders)
     if ended_by == watch:
@@ -266,6 +264,36 @@ async def _fly(  # noqa: PLR0917
     await report("done", step=len(controller.records))
 
 
+#: What each mission-ending command makes the vehicle do.
+ENDING_ACTIONS = {
+    ControlCommand.LAND: "land",
+    ControlCommand.RETURN: "return",
+    ControlCommand.STOP: "hold",
+}
+
+
+async def _operate(
+    control: Subscription, controller: VehicleController, run: VehicleRun
+) -> MissionControl:
+    """The operator's commands for this vehicle (or all) during the mission: ``hold`` and
+    ``resume`` act on the controller from its next step; the first ``land``, ``return`` or
+    ``stop`` is returned (it ends this vehicle's mission)."""
+    wanted = {ControlCommand.HOLD, ControlCommand.RESUME, *ENDING_ACTIONS}
+    while True:
+        command = await next_command(control, wanted, mission_id=run.mission_id)
+        if command.vehicle_id not in (None, run.vehicle_id):
+            continue
+        if command.command in ENDING_ACTIONS:
+            return command
+        controller.operator_hold = command.command is ControlCommand.HOLD
+        logger.warning(
+            "vehicle %s: %s by the ground station%s",
+            run.vehicle_id,
+            "holding" if controller.operator_hold else "resuming",
+            f" ({command.reason})" if command.reason else "",
+        )
+
+
 async def _abort(
     vehicle: MavsdkVehicle,
     report: _Reporter,
@@ -276,7 +304,7 @@ async def _abort(
     detail = f"mission aborted by the ground station: {command.reason or command.command.value}"
     logger.warning("vehicle %s: %s", run.vehicle_id, detail)
     await report("aborted", detail=detail)
-    action = "land" if command.command is ControlCommand.LAND else scenario.flight.on_lost
+    action = ENDING_ACTIONS.get(command.command, scenario.flight.on_lost)
     await vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S)
 
 
@@ -287,18 +315,16 @@ async def _until_start(
     mapping: ClockMapping,
     scenario: Scenario,
 ) -> MissionControl:
-    """Report ready (again for every new prepare) until this mission's start, land or stop."""
-    wanted = {
-        ControlCommand.PREPARE,
-        ControlCommand.START,
-        ControlCommand.LAND,
-        ControlCommand.STOP,
-    }
+    """Report ready (again for every new prepare) until this mission's start, or a land, return
+    or stop for this vehicle."""
+    wanted = {ControlCommand.PREPARE, ControlCommand.START, *ENDING_ACTIONS}
     while True:
         await report("ready", clock_rate=mapping.fit.boot_rate)
         command = await next_command(control, wanted)
         if command.command is ControlCommand.PREPARE:
             run.mission_id = command.mission_id
+            continue
+        if command.vehicle_id not in (None, run.vehicle_id):
             continue
         if command.mission_id != run.mission_id:
             logger.warning(
@@ -424,11 +450,21 @@ async def run_ground(
             logger.info(
                 "ground: mission %s starts at %.3f (clock rate %.4f)", mission_id, start_s, rate
             )
-            await until(
-                lambda: ids <= states("done", *FINAL_STATES),
-                (start_delay_s + duration_s) / rate + 120.0,
-                "every vehicle done",
-            )
+            try:
+                await until(
+                    lambda: ids <= states("done", *FINAL_STATES),
+                    (start_delay_s + duration_s) / rate + 120.0,
+                    "every vehicle done",
+                )
+            except asyncio.CancelledError:
+                # Ctrl-C / SIGTERM at the ground station lands the swarm (a second one while
+                # this is sent leaves the vehicles to their offboard-loss failsafe).
+                with contextlib.suppress(BusError):
+                    await asyncio.shield(
+                        control(ControlCommand.LAND, time.time(), reason="ground station stopped")
+                    )
+                logger.warning("ground: interrupted; every vehicle told to land")
+                raise
         finally:
             # The prepare must not start the next vehicle process that connects.
             with contextlib.suppress(BusError):
@@ -469,3 +505,43 @@ async def wait_and_merge(
         landed = sum(status.state == "done" for status in outcome.statuses.values())
         result.extra_metrics["vehicles_disarmed_at_end"] = np.array([landed])
     return result
+
+
+async def send_control(
+    scenario: Scenario,
+    command: ControlCommand,
+    *,
+    vehicle_id: int | None = None,
+    reason: str | None = None,
+    timeout_s: float = 5.0,
+) -> str:
+    """Send an operator command (hold, resume, land, return, stop) to the running mission of
+    ``scenario`` (its id from the ground station's retained ``prepare``), for one vehicle or
+    all. Returns the mission id; raises :class:`RunnerError` if no mission is running."""
+    if command in (ControlCommand.PREPARE, ControlCommand.START):
+        raise RunnerError(
+            f"'{command.value}' is the ground station's; use hold, resume, land, return or stop"
+        )
+    if vehicle_id is not None and vehicle_id not in {v.id for v in scenario.vehicles}:
+        raise RunnerError(f"vehicle {vehicle_id} is not in the scenario")
+    topics = scenario.bus.topics(scenario.name)
+    async with (
+        open_bus(scenario.bus, client_id=f"{scenario.name}-operator-{uuid.uuid4().hex[:6]}") as bus,
+        bus.subscribe(topics.control()) as control,
+    ):
+        try:
+            prepare = await next_command(control, {ControlCommand.PREPARE}, timeout_s=timeout_s)
+        except RunnerTimeoutError:
+            raise RunnerError(
+                f"no mission of {scenario.name} is running (no ground station's prepare on "
+                f"{topics.control()} within {timeout_s:g} s)"
+            ) from None
+        message = MissionControl(
+            command,
+            time.time(),
+            reason=reason,
+            mission_id=prepare.mission_id,
+            vehicle_id=vehicle_id,
+        )
+        await bus.publish_message(topics.control(), message, timeout=timeout_s)
+    return prepare.mission_id or ""

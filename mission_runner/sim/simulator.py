@@ -17,7 +17,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..config import FLIGHT_ONLY_EVENTS, Scenario
-from ..enclosing import SwarmEnclosing, splay_spacing_error
+from ..enclosing import StepOutputs, SwarmEnclosing, splay_spacing_error
+from ..enclosing.separation import separation_guard
 from ..errors import SimulationError
 from ..scenario import shape_matrices, target_positions
 from ..sensors import odometry_drift, odometry_error_step, range_readings
@@ -150,6 +151,7 @@ def simulate(
     noise = _Noise(scenario.seed, runs)
     drift = odometry_drift(sensors, noise, (runs, n))
     odometry_error = np.zeros((runs, n, 2))
+    previous_odometry = np.full((runs, n, 2), np.nan)  # neighbours' velocities start unknown
 
     out = {
         "positions_m": np.empty((runs, steps + 1, n, 2)),
@@ -206,6 +208,10 @@ def simulate(
         out["consensus_speed_m_s"][:, k] = np.where(live, speed, 0.0).max(axis=-1)
 
         command = step.velocity_m_s
+        if scenario.safety.min_separation_m is not None:
+            velocity = (odometry[:, 1:] - previous_odometry) / step_s
+            command = _guarded(command, step, ranges, velocity, live, scenario)
+        previous_odometry = odometry[:, 1:]
         norm = np.sqrt(np.sum(command * command, axis=-1, keepdims=True))
         command = command * np.minimum(1.0, speed_limit / np.maximum(norm, 1e-300))
         command = np.where(live[..., None], command, 0.0)
@@ -225,6 +231,32 @@ def simulate(
         np.sqrt(np.sum(gaps * gaps, axis=-1)), out["live"][:, steps]
     )
     return score(scenario, times, target[: steps + 1], out)
+
+
+def _guarded(  # noqa: PLR0917 - the step's pieces, each named
+    command: NDArray[np.float64],
+    step: StepOutputs,
+    ranges: NDArray[np.float64],
+    velocity: NDArray[np.float64],
+    live: NDArray[np.bool_],
+    scenario: Scenario,
+) -> NDArray[np.float64]:
+    """The law's commands ``(B, N, 2)`` through the separation guard: each vehicle's estimates of
+    the live others (RLSE, p_i - p_j) for directions, its measured ranges for distances, the
+    others' velocities ``(B, N, 2)`` from their odometry over the last step (as their step
+    messages give them; NaN at k = 0)."""
+    others = live[:, None, :] & ~np.eye(live.shape[-1], dtype=bool)
+    relative = np.stack([step.estimate_north_m[..., 1:], step.estimate_east_m[..., 1:]], axis=-1)
+    relative = np.where(others[..., None], relative, np.nan)
+    return separation_guard(
+        command,
+        relative,
+        np.where(others, ranges[..., 1:], np.nan),
+        velocity,
+        np.broadcast_to(velocity[:, None, :, :], relative.shape),
+        min_separation_m=scenario.safety.min_separation_m or 0.0,
+        gain_1_s=scenario.safety.separation_gain_1_s,
+    )
 
 
 def score(

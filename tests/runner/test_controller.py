@@ -476,6 +476,24 @@ async def test_never_following_before_the_vehicle_is_seen_armed_in_offboard():
     assert all(setpoint[:2] == (0.0, 0.0) for setpoint in flight.link.setpoints[:3])
 
 
+@pytest.mark.asyncio
+async def test_the_operators_hold_hovers_in_place_until_resume():
+    async with rig() as flight:
+        feed = flight.clock.on_wake
+
+        async def on_wake(t):
+            flight.controller.operator_hold = t_(2) - 1e-9 <= t < t_(5) - 1e-9
+            await feed(t)
+
+        flight.clock.on_wake = on_wake
+        records = await flight.fly(7)
+        statuses = flight.statuses()
+
+    assert [r.state for r in records] == ["following"] * 2 + ["held"] * 3 + ["following"] * 2
+    assert all(setpoint[:2] == (0.0, 0.0) for setpoint in flight.link.setpoints[2:5])
+    assert [s.state for s in statuses][2:5] == ["held"] * 3
+
+
 # --- step alignment ------------------------------------------------------------------------------
 
 

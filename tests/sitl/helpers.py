@@ -22,7 +22,7 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.autopilot import Px4Autopilot, Snapshot
-from sitl.config import PortsConfig, StreamRates, TruthStreamConfig
+from sitl.config import FlightLogConfig, PortsConfig, StreamRates, TruthStreamConfig
 from sitl.geo import MapProjection
 from sitl.gnss import GnssError
 from sitl.odometry import Odometry
@@ -74,6 +74,7 @@ class Bench:
         boot_offsets_s: list[float] | None = None,
         unix_time_us: Callable[[float], int] | None = None,
         gnss: GnssError | None = None,
+        flight_logs: FlightLogConfig | None = None,
     ) -> None:
         start = [[0.0, spacing_m * i, 0.0] for i in range(n)]
         self.physics = MulticopterPhysics(start)
@@ -94,6 +95,7 @@ class Bench:
                 preflight_ready_after_s=ready_after_s,
                 unix_time_us=unix_time_us,
                 boot_offset_s=boot_offsets_s[i] if boot_offsets_s else 0.0,
+                flight_logs=flight_logs,
             )
             for i in range(n)
         ]

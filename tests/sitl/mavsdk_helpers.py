@@ -15,6 +15,10 @@ from mavsdk.asyncio.plugins.offboard import OffboardAsync
 from mavsdk.asyncio.plugins.param import ParamAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
+from sitl import Emulator, EmulatorConfig
+from sitl.config import ClockConfig
+from tests.sitl.helpers import free_port_config
+
 T = TypeVar("T")
 
 
@@ -82,6 +86,30 @@ async def mavsdk_connected(
             ) from None
         drones = sorted([await Drone.of(s) for s in with_autopilot], key=lambda d: d.sysid)
         yield mavsdk, drones, handles
+
+
+def api_config(vehicles: int = 1, speed: float = 2.0, **settings: Any) -> EmulatorConfig:
+    """An emulator for MAVSDK clients: API links on free ports, no GCS links, ``speed``."""
+    return EmulatorConfig(
+        vehicles=vehicles,
+        ports=free_port_config(vehicles, gcs=False),
+        clock=ClockConfig(speed=speed),
+        **settings,
+    )
+
+
+@contextlib.asynccontextmanager
+async def emulated_drones(config: EmulatorConfig) -> AsyncIterator[tuple[Emulator, list[Drone]]]:
+    """The emulator of ``config`` running, and MAVSDK connected to all its vehicles."""
+    async with (
+        Emulator(config) as emulator,
+        mavsdk_connected([ep.mavsdk_url for ep in emulator.endpoints], config.vehicles) as (
+            _,
+            drones,
+            _,
+        ),
+    ):
+        yield emulator, drones
 
 
 async def healthy(drone: Drone, timeout_s: float = 10.0) -> None:

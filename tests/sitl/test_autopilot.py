@@ -277,6 +277,9 @@ def test_set_message_interval_changes_the_stream_of_that_link() -> None:
     assert bench.command(510, 33) == ACCEPTED
     assert bench.link.sent[-1].get_type() == "MESSAGE_INTERVAL"
     assert bench.link.sent[-1].interval_us == 100_000
+    # PX4 answers FAILED for messages it has no stream of, and for its 1 Hz heartbeat.
+    assert bench.command(511, 12345, 50_000) == mavlink.MAV_RESULT_FAILED
+    assert bench.command(511, 0, 50_000) == mavlink.MAV_RESULT_FAILED
 
 
 def test_ping_and_timesync_are_answered() -> None:
