@@ -13,9 +13,22 @@
     mission-runner emulate CONFIG [sitl options]         emulated vehicles + the scenario's world
     mission-runner control CONFIG hold|resume|land|return|stop [--vehicle N]   operator command
 
-Exit codes: 0 success (and every ``expect:`` bound met), 1 an expectation failed, 2 bad input
-(the message names the problem and, for configs, the YAML path), 3 a runtime failure (a vehicle
-refused, was lost or the mission was aborted; the message says which and why), 130 interrupted.
+Exit codes:
+
+- 0: success (and every ``expect:`` bound met);
+- 1: an ``expect:`` bound failed;
+- 2: bad input, before any work: the scenario (the message names the YAML path), an option
+  (``--speed 0``), ``--out`` (a file, not writable), a batch too large for memory;
+- 3: a runtime failure: a vehicle refused, was lost or the mission was aborted, a port is taken
+  (the message names the setting that moves it), results could not be written; also an
+  unexpected error (its traceback is printed, to be reported);
+- 130: interrupted by SIGINT (Ctrl-C), 143: by SIGTERM. Both stop the same way: a flight lands
+  first, and ``summary.json`` is written with ``status: interrupted``.
+
+``--out``: a run first removes the earlier run's own files from the folder (summary.json,
+timeseries.csv, batch.csv, the figures, tlogs/vehicle_*.tlog: ``outputs.RUN_FILES``), so results
+of two runs never mix; any other file there is left alone. ``summary.json`` always says how the run
+ended (``status``: running, passed, failed, interrupted or error).
 """
 
 from __future__ import annotations
@@ -23,11 +36,15 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
+import signal
 import sys
+import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ParamSpec
+from types import FrameType
+from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 
 from .bus.errors import BusConnectionError, BusTimeoutError
 from .config import load_scenario
@@ -46,11 +63,14 @@ if TYPE_CHECKING:
     from .runner.mission import Progress
 
 P = ParamSpec("P")
+T = TypeVar("T")
 
 #: A subcommand: parsed arguments in, exit code out.
 Handler = Callable[[argparse.Namespace], int]
 
 EXIT_OK, EXIT_EXPECTATION_FAILED, EXIT_BAD_INPUT, EXIT_RUNTIME_FAILURE = 0, 1, 2, 3
+#: 128 + the signal's number, as a shell reports a process that signal ended.
+EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -60,8 +80,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.WARNING if getattr(arguments, "quiet", False) else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    _signals.received = "SIGINT"
     try:
-        return _unwrapped(arguments.handler, arguments)
+        with _terminate_as_interrupt():
+            return _unwrapped(arguments.handler, arguments)
     except (RunnerError, BusConnectionError, BusTimeoutError) as error:  # link, broker, vehicle
         print(f"error: {error}", file=sys.stderr)
         return EXIT_RUNTIME_FAILURE
@@ -72,8 +94,83 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+        print(f"interrupted ({_signals.received})", file=sys.stderr)
+        return EXIT_TERMINATED if _signals.received == "SIGTERM" else EXIT_INTERRUPTED
+    except OSError as error:  # e.g. the disk filled up while writing results
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_RUNTIME_FAILURE
+    except Exception:  # a bug: its traceback, but not exit code 1, which means "failed"
+        logging.getLogger(__name__).exception("unexpected error; please report it")
+        return EXIT_RUNTIME_FAILURE
+
+
+class _StopSignals:
+    """Process-wide, as signal handlers are: which stop signal arrived, and how to stop the
+    asyncio main task that runs (see :func:`_run_async`)."""
+
+    def __init__(self) -> None:
+        self.received = "SIGINT"
+        self.cancel_main: Callable[[], None] | None = None
+
+
+_signals = _StopSignals()
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM stops a command as Ctrl-C does: a KeyboardInterrupt, or inside :func:`_run_async`
+    the cancellation of its main task first (a flight lands), noted so that the exit code tells
+    the two signals apart."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal handlers can only be set (and only run) in the main thread
+        return
+
+    def on_terminate(number: int, frame: FrameType | None) -> None:
+        _signals.received = "SIGTERM"
+        if _signals.cancel_main is not None:
+            _signals.cancel_main()
+        else:
+            raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
+def _run_async(coroutine: Coroutine[Any, Any, T]) -> T:
+    """``asyncio.run(coroutine)``; SIGTERM cancels its main task as asyncio does on Ctrl-C (so a
+    flight lands), then raises KeyboardInterrupt. Also when SIGINT is ignored, as in a
+    background job, where asyncio does not install its own handler."""
+    import asyncio  # noqa: PLC0415 - simulate does without
+
+    cancelled = False
+
+    async def main() -> T:
+        task, loop = asyncio.current_task(), asyncio.get_running_loop()
+
+        def cancel() -> None:
+            nonlocal cancelled
+            cancelled = True
+            if task is not None:
+                loop.call_soon_threadsafe(task.cancel)  # wakes the loop, as asyncio's handler
+
+        _signals.cancel_main = cancel
+        try:
+            return await coroutine
+        finally:
+            _signals.cancel_main = None
+
+    try:
+        result = asyncio.run(main())
+    except asyncio.CancelledError:
+        if cancelled:
+            raise KeyboardInterrupt from None
+        raise
+    if cancelled:  # the coroutine ended on its own terms, but the user asked it to stop
+        raise KeyboardInterrupt
+    return result
 
 
 def _emulator_errors() -> tuple[type[Exception], ...]:
@@ -139,7 +236,9 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--realtime", action="store_true", help="real-time clock instead of the scenario's"
     )
-    run.add_argument("--speed", type=float, default=None, help="real-time speed factor")
+    run.add_argument(
+        "--speed", type=_positive_float, default=None, help="real-time speed factor (> 0)"
+    )
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress view, no summary")
     _replay_flag(run)
@@ -189,7 +288,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     ground.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
     ground.add_argument(
-        "--start-delay", type=float, default=2.0, help="seconds from ready to k = 0"
+        "--start-delay", type=_non_negative_float, default=2.0, help="seconds from ready to k = 0"
     )
     ground.add_argument(
         "--out",
@@ -349,7 +448,6 @@ def _every(callbacks: Sequence[Callable[P, None]]) -> Callable[P, None]:
 
 
 def _view(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
 
     from .live import LiveLog, LiveServer, serve_bus  # noqa: PLC0415
 
@@ -369,7 +467,7 @@ def _view(arguments: argparse.Namespace) -> int:
         print(f"view: {server.url} (Foxglove: Open connection); Ctrl-C to stop", flush=True)
         live_log = LiveLog(server.channels)
         with live_log.attached():
-            asyncio.run(
+            _run_async(
                 serve_bus(
                     scenario,
                     server.channels,
@@ -433,34 +531,60 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _positive_float(text: str) -> float:
+    value = _float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    value = _float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
+def _float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+    return value
+
+
 def _simulate(arguments: argparse.Namespace) -> int:
-    from .outputs import write_results  # noqa: PLC0415 - keep `--help` fast
-    from .sim.simulator import simulate  # noqa: PLC0415
+    from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415 - fast `--help`
+    from .sim.simulator import check_memory, simulate  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
-    out_dir = arguments.out or Path("out") / scenario.name
+    check_memory(scenario, arguments.runs, str(arguments.config))
+    out_dir = prepare_out_dir(arguments.out or Path("out") / scenario.name, RUN_FILES)
     progress = _progress(scenario.timing.steps, arguments.quiet, f"{scenario.name}")
     capture = LogCapture()
+    with (
+        RunSummary(out_dir, scenario, config_path=arguments.config, runs=arguments.runs) as record,
+        capture.attached(),
+    ):
 
-    def on_step(done: int, total: int) -> None:
-        capture.stamp(done * scenario.timing.step_s)
-        progress.update_to(done, total)
+        def on_step(done: int, total: int) -> None:
+            record.steps_done = done
+            capture.stamp(done * scenario.timing.step_s)
+            progress.update_to(done, total)
 
-    started = time.perf_counter()
-    try:
-        with capture.attached():
+        started = time.perf_counter()
+        try:
             result = simulate(scenario, runs=arguments.runs, on_step=on_step)
-    finally:
-        progress.close()
-    wall = time.perf_counter() - started
-    document = write_results(
-        result,
-        out_dir,
-        config_path=arguments.config,
-        wall_time_s=wall,
-        figures=not arguments.no_figures,
-        logs=capture.lines,
-    )
+        finally:
+            progress.close()
+        document = record.write_results(
+            result,
+            wall_time_s=time.perf_counter() - started,
+            figures=not arguments.no_figures,
+            logs=capture.lines,
+        )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
     _maybe_replay(arguments, out_dir)
@@ -478,60 +602,64 @@ def _maybe_replay(arguments: argparse.Namespace, out_dir: Path) -> None:
 
 
 def _run(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
-
     from .config import validate_scenario  # noqa: PLC0415
-    from .outputs import write_results  # noqa: PLC0415
+    from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from .runner.mission import fly  # noqa: PLC0415
+    from .sim.simulator import check_memory  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
     if arguments.realtime or arguments.speed is not None:
         data = scenario.model_dump(mode="json")
         data["flight"]["clock"] = "realtime"
-        data["flight"]["speed"] = arguments.speed or 1.0
+        data["flight"]["speed"] = 1.0 if arguments.speed is None else arguments.speed
         scenario = validate_scenario(data, str(arguments.config))
-    out_dir = arguments.out or Path("out") / f"{scenario.name}-run"
+    check_memory(scenario, 1, str(arguments.config))  # the flight's scored result
+    out_dir = prepare_out_dir(arguments.out or Path("out") / f"{scenario.name}-run", RUN_FILES)
     tlogs = out_dir / "tlogs"
-    tlogs.mkdir(parents=True, exist_ok=True)
+    tlogs.mkdir(exist_ok=True)
     view = None if arguments.quiet else _FlightView(scenario)
     capture = LogCapture()
-    step_callbacks: list[Callable[[int, StepRecord], None]] = [
-        lambda _, record: capture.stamp(record.time_s)
-    ]
-    progress_callbacks: list[Callable[[Progress], None]] = [view] if view is not None else []
-    with contextlib.ExitStack() as stack:
-        stack.enter_context(capture.attached())
-        server = _live_server(arguments, scenario)
-        if server is not None:
-            from .live import FlightFeed, LiveLog  # noqa: PLC0415
+    with RunSummary(out_dir, scenario, config_path=arguments.config) as record:
 
-            stack.enter_context(server)
-            print(f"live: {server.url} (Foxglove: Open connection)", flush=True)
-            feed = FlightFeed(scenario, server.channels)
-            live_log = stack.enter_context(LiveLog(server.channels).attached())
-            step_callbacks += [feed.on_step, lambda _, record: live_log.stamp(record.time_s)]
-            progress_callbacks.append(feed.on_progress)
-        outcome = asyncio.run(
-            fly(
-                scenario,
-                emulator_overrides={"tlog_dir": str(tlogs)},
-                on_step=_every(step_callbacks),
-                on_progress=_every(progress_callbacks),
-            )
+        def on_step(vehicle_id: int, step: StepRecord) -> None:
+            record.steps_done = max(record.steps_done, step.step + 1)
+            capture.stamp(step.time_s)
+
+        step_callbacks: list[Callable[[int, StepRecord], None]] = [on_step]
+        progress_callbacks: list[Callable[[Progress], None]] = [view] if view is not None else []
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(capture.attached())
+            server = _live_server(arguments, scenario)
+            if server is not None:
+                from .live import FlightFeed, LiveLog  # noqa: PLC0415
+
+                stack.enter_context(server)
+                print(f"live: {server.url} (Foxglove: Open connection)", flush=True)
+                feed = FlightFeed(scenario, server.channels)
+                live_log = stack.enter_context(LiveLog(server.channels).attached())
+                step_callbacks += [feed.on_step, lambda _, step: live_log.stamp(step.time_s)]
+                progress_callbacks.append(feed.on_progress)
+            try:
+                outcome = _run_async(
+                    fly(
+                        scenario,
+                        emulator_overrides={"tlog_dir": str(tlogs)},
+                        on_step=_every(step_callbacks),
+                        on_progress=_every(progress_callbacks),
+                    )
+                )
+            finally:
+                if view is not None:
+                    view.close()
+        document = record.write_results(
+            outcome.result,
+            wall_time_s=outcome.wall_time_s,
+            figures=not arguments.no_figures,
+            vehicles=outcome.vehicles,
+            records=outcome.records,
+            start_s=outcome.start_s,
+            logs=capture.lines,
         )
-    if view is not None:
-        view.close()
-    document = write_results(
-        outcome.result,
-        out_dir,
-        config_path=arguments.config,
-        wall_time_s=outcome.wall_time_s,
-        figures=not arguments.no_figures,
-        vehicles=outcome.vehicles,
-        records=outcome.records,
-        start_s=outcome.start_s,
-        logs=capture.lines,
-    )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
         mission_s = scenario.timing.steps * scenario.timing.step_s
@@ -544,18 +672,20 @@ def _run(arguments: argparse.Namespace) -> int:
 
 
 def _vehicle(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
-
-    from .outputs import write_vehicle_run  # noqa: PLC0415
+    from .outputs import VEHICLE_FILES, Status, prepare_out_dir, write_vehicle_run  # noqa: PLC0415
     from .runner.process import VehicleRun, run_vehicle  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
-    out_dir = arguments.out or _mission_dir(scenario) / f"vehicle_{arguments.id}"
+    # No summary.json until the end: the ground station takes one as "this vehicle is done".
+    out_dir = prepare_out_dir(
+        arguments.out or _mission_dir(scenario) / f"vehicle_{arguments.id}", VEHICLE_FILES
+    )
     run = VehicleRun(arguments.id)
     capture = LogCapture()
+    status: Status = "error"
     try:
         with capture.attached():
-            asyncio.run(
+            _run_async(
                 run_vehicle(
                     scenario,
                     arguments.id,
@@ -564,9 +694,18 @@ def _vehicle(arguments: argparse.Namespace) -> int:
                     on_step=lambda _, record: capture.stamp(record.time_s),
                 )
             )
+        status = "passed" if run.state == "done" else "error"
+    except KeyboardInterrupt:
+        status = "interrupted"
+        raise
     finally:
         write_vehicle_run(
-            run, out_dir, config_path=arguments.config, scenario=scenario, logs=capture.lines
+            run,
+            out_dir,
+            config_path=arguments.config,
+            status=status,
+            scenario=scenario,
+            logs=capture.lines,
         )
     following = sum(record.state == "following" for record in run.records)
     print(
@@ -579,13 +718,12 @@ def _vehicle(arguments: argparse.Namespace) -> int:
 
 
 def _ground(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
-
-    from .outputs import write_results  # noqa: PLC0415
+    from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from .runner.process import run_ground, wait_and_merge  # noqa: PLC0415
     from .runner.scoring import mission_records  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
+    mission_dir = prepare_out_dir(arguments.out or _mission_dir(scenario), RUN_FILES)
 
     last_state: dict[int, str] = {}
 
@@ -605,19 +743,22 @@ def _ground(arguments: argparse.Namespace) -> int:
         capture.stamp(status.time_s)
         show(status)
 
-    with contextlib.ExitStack() as stack:
-        stack.enter_context(capture.attached())
+    with (
+        RunSummary(mission_dir, scenario, config_path=arguments.config) as record,
+        capture.attached(),
+        contextlib.ExitStack() as stack,
+    ):
         ground = run_ground(scenario, start_delay_s=arguments.start_delay, on_status=on_status)
         server = _live_server(arguments, scenario)
         if server is None:
-            outcome = asyncio.run(ground)
+            outcome = _run_async(ground)
         else:
             from .live import LiveLog, alongside  # noqa: PLC0415
 
             stack.enter_context(server)
             print(f"live: {server.url} (Foxglove: Open connection)", flush=True)
             live_log = stack.enter_context(LiveLog(server.channels).attached())
-            outcome = asyncio.run(
+            outcome = _run_async(
                 alongside(
                     ground,
                     scenario,
@@ -626,36 +767,35 @@ def _ground(arguments: argparse.Namespace) -> int:
                     on_time=live_log.stamp,
                 )
             )
-    done = len(outcome.statuses) - len(outcome.lost)
-    lost = ", ".join(
-        f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
-    )
-    print(
-        f"ground: mission {outcome.mission_id} over; {done} vehicle(s) done, lost: {lost or 'none'}"
-        f"; mission clock {outcome.clock_rate:.4f}x",
-        flush=True,
-    )
-    mission_dir = arguments.out or _mission_dir(scenario)
-    result = asyncio.run(wait_and_merge(scenario, mission_dir, outcome))
-    if result is None:
-        print(
-            f"ground: no truth in {mission_dir}/truth/ (no simulator): tracking and estimate "
-            "errors unavailable; per-vehicle results in the vehicles' folders"
+            stack.close()  # the live view ends with the mission, before the merge
+        done = len(outcome.statuses) - len(outcome.lost)
+        lost = ", ".join(
+            f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
         )
-        return EXIT_OK
-    document = write_results(
-        result,
-        mission_dir,
-        config_path=arguments.config,
-        figures=not arguments.no_figures,
-        vehicles={
-            i: {"state": status.state, "detail": status.detail}
-            for i, status in outcome.statuses.items()
-        },
-        records=mission_records(mission_dir, (v.id for v in scenario.vehicles)),
-        start_s=outcome.start_s or 0.0,
-        logs=capture.lines,
-    )
+        print(
+            f"ground: mission {outcome.mission_id} over; {done} vehicle(s) done, lost: "
+            f"{lost or 'none'}; mission clock {outcome.clock_rate:.4f}x",
+            flush=True,
+        )
+        result = _run_async(wait_and_merge(scenario, mission_dir, outcome))
+        if result is None:
+            record.finish("passed", "no truth (no simulator): expectations not checked")
+            print(
+                f"ground: no truth in {mission_dir}/truth/ (no simulator): tracking and estimate "
+                "errors unavailable; per-vehicle results in the vehicles' folders"
+            )
+            return EXIT_OK
+        document = record.write_results(
+            result,
+            figures=not arguments.no_figures,
+            vehicles={
+                i: {"state": status.state, "detail": status.detail}
+                for i, status in outcome.statuses.items()
+            },
+            records=mission_records(mission_dir, (v.id for v in scenario.vehicles)),
+            start_s=outcome.start_s or 0.0,
+            logs=capture.lines,
+        )
     print(_summary_text(document, mission_dir))
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
 
@@ -682,18 +822,18 @@ def _mission_dir(scenario: Scenario) -> Path:
 
 
 def _ranges(arguments: argparse.Namespace) -> int:
-    import asyncio  # noqa: PLC0415
-
+    from .outputs import TRUTH_FILES, prepare_out_dir  # noqa: PLC0415
     from .runner.ranges import run_range_provider  # noqa: PLC0415
     from .runner.scoring import write_truth_csv  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
+    out_dir = prepare_out_dir(arguments.out or _mission_dir(scenario) / "truth", TRUTH_FILES)
     print(
         f"ranges: SIMULATION AID - ranges are synthesised from {arguments.source.upper()} "
         "positions, not measured",
         flush=True,
     )
-    stats = asyncio.run(
+    stats = _run_async(
         run_range_provider(
             scenario,
             source=arguments.source,
@@ -702,8 +842,6 @@ def _ranges(arguments: argparse.Namespace) -> int:
             seed=scenario.seed,
         )
     )
-    out_dir = arguments.out or _mission_dir(scenario) / "truth"
-    out_dir.mkdir(parents=True, exist_ok=True)
     write_truth_csv(stats.truth, [v.id for v in scenario.vehicles], out_dir / "truth.csv")
     lateness = ", ".join(f"{k} {v:.1f} ms" for k, v in stats.lateness_percentiles_ms().items())
     print(

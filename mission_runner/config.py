@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import itertools
 import math
+import sys
 from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, get_args
 
 import numpy as np
 import yaml
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from .bus.settings import BusSettings
@@ -33,6 +35,13 @@ Problem = tuple[str, str]
 Pair = Annotated[list[float], Field(min_length=2, max_length=2)]
 PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegativeFloat = Annotated[float, Field(ge=0)]
+
+#: Planar coordinates stay within this of the origin [m]: the frame is a local north-east plane,
+#: and far beyond it squared ranges lose the precision the estimator works with.
+MAX_COORDINATE_M = 1e6
+#: Nothing the runner flies is smaller (a Crazyflie is 92 mm across): vehicles closer than this at
+#: the start, or as neighbours on the enclosing circle, would touch.
+MIN_SPACING_M = 0.1
 
 
 class Model(BaseModel):
@@ -204,7 +213,11 @@ class AlgorithmConfig(Model):
     coupling_gain_last: float = Field(
         -1.0, lt=0, title="K_n", description="K_n (< 0, small in magnitude)."
     )
-    radius_m: PositiveFloat = Field(title="rho", description="Circle radius [m].")
+    radius_m: PositiveFloat = Field(
+        le=MAX_COORDINATE_M,
+        title="rho",
+        description="Circle radius [m]; neighbours on it must be at least 0.1 m apart.",
+    )
     initial_gain: PositiveFloat = Field(1.0, title="Gamma(0)", description="Gamma(0) = value * I.")
     shape: ShapeConfig = Field(ShapeConfig(), title="Shape", description="Affine shaping.")
 
@@ -310,7 +323,8 @@ class EventConfig(Model):
         if self.at_s is None:
             # Scenario validation reports this at the event's YAML path before anything asks.
             raise ValueError(f"event {self.kind} of vehicle {self.vehicle}: no at_step or at_s")
-        return math.ceil(self.at_s / step_s - 1e-9)
+        steps = self.at_s / step_s - 1e-9
+        return math.ceil(steps) if math.isfinite(steps) else sys.maxsize
 
 
 class BatchConfig(Model):
@@ -534,20 +548,46 @@ def scenario_json_schema() -> dict[str, Any]:
     }
 
 
+#: A scenario file is a few kilobytes; the cap makes ``/dev/zero`` or a wrong, huge file end at
+#: once instead of being read (and parsed) into memory.
+MAX_FILE_BYTES = 1 << 20
+#: The deepest a scenario nests is about six levels (``flight.emulator.physics.wind...``); beyond
+#: this the YAML composer would recurse out of the stack.
+MAX_DEPTH = 32
+#: Values after YAML aliases are expanded: a few aliases to aliases (the "billion laughs") would
+#: otherwise make validation walk billions of values.
+MAX_NODES = 1_000_000
+
+
 def load_scenario(path: PathName) -> Scenario:
     """Read and validate a scenario file. Raises :class:`ConfigError` listing every problem."""
     file = Path(path)
     try:
-        text = file.read_text(encoding="utf-8")
+        with file.open("rb") as handle:
+            raw = handle.read(MAX_FILE_BYTES + 1)
     except OSError as error:
-        raise ConfigError(str(file), [("", f"cannot read file: {error.strerror}")]) from None
+        reason = error.strerror or str(error)
+        raise ConfigError(str(file), [("", f"cannot read file: {reason}")]) from None
+    if len(raw) > MAX_FILE_BYTES:
+        raise ConfigError(str(file), [("", _too_large())])
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        line = raw[: error.start].count(b"\n") + 1
+        byte = raw[error.start]
+        problem = f"not UTF-8 text: byte 0x{byte:02x} on line {line} (save the file as UTF-8)"
+        raise ConfigError(str(file), [("", problem)]) from None
     return parse_scenario(text, source=str(file))
 
 
 def parse_scenario(text: str, source: str = "<string>") -> Scenario:
     """Validate scenario YAML text; see :func:`load_scenario`."""
+    if len(text) > MAX_FILE_BYTES:
+        raise ConfigError(source, [("", _too_large())])
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_BoundedLoader)  # a SafeLoader with limits
+    except _StructureError as error:
+        raise ConfigError(source, [(error.path, error.problem)]) from None
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
@@ -555,7 +595,98 @@ def parse_scenario(text: str, source: str = "<string>") -> Scenario:
         raise ConfigError(source, [("", f"{where}not valid YAML: {problem}")]) from None
     if not isinstance(data, dict):
         raise ConfigError(source, [("", "must be a mapping of keys to values")])
+    problems = list(_non_finite(data, ()))
+    if problems:  # before the model, which would report them again, less precisely
+        raise ConfigError(source, problems)
     return validate_scenario(data, source)
+
+
+def _too_large() -> str:
+    return f"larger than {MAX_FILE_BYTES >> 10} KiB: not a scenario file"
+
+
+class _StructureError(Exception):
+    """A YAML document the scenario loader refuses before building it (``path``: where)."""
+
+    def __init__(self, path: str, problem: str) -> None:
+        super().__init__(f"{path}: {problem}")
+        self.path = path
+        self.problem = problem
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with bounds: nesting depth, values after aliases expand, no alias
+    cycles, and no duplicate keys (PyYAML keeps the last one silently)."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._path: list[int | str] = []
+        self._depth = 0
+        self._nodes = 0
+        self._sizes: dict[int, int] = {}  # id(node) -> values in it, once composed
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
+        if self.check_event(yaml.AliasEvent):
+            anchored = self.anchors.get(self.peek_event().anchor)
+            if anchored is not None and id(anchored) not in self._sizes:
+                raise _StructureError(self._where(), "an alias refers to a value containing it")
+            node = super().compose_node(parent, index)
+            self._count(self._sizes.get(id(node), 1))
+            return node
+        # ``index``: an int in a sequence, the key's node for a mapping value, None for a key.
+        part = index if isinstance(index, int) else getattr(index, "value", None)
+        if part is not None:
+            self._path.append(part if isinstance(part, int) else str(part))
+        self._depth += 1
+        if self._depth > MAX_DEPTH:
+            raise _StructureError(self._where(), f"nested deeper than {MAX_DEPTH} levels")
+        before = self._nodes
+        try:
+            node = super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+            if part is not None:
+                self._path.pop()
+        self._count(1)
+        self._sizes[id(node)] = self._nodes - before
+        return node
+
+    def compose_mapping_node(self, anchor: Any) -> yaml.MappingNode:
+        node = super().compose_mapping_node(anchor)
+        seen: set[tuple[str, str]] = set()
+        for key, _ in node.value:
+            if isinstance(key, yaml.ScalarNode) and key.tag != "tag:yaml.org,2002:merge":
+                if (key.tag, key.value) in seen:
+                    line = key.start_mark.line + 1
+                    raise _StructureError(
+                        yaml_path([*self._path, key.value]),
+                        f"duplicate key (again on line {line}); give each key once",
+                    )
+                seen.add((key.tag, key.value))
+        return node
+
+    def _count(self, nodes: int) -> None:
+        self._nodes += nodes
+        if self._nodes > MAX_NODES:
+            raise _StructureError(self._where(), f"more than {MAX_NODES} values (with aliases)")
+
+    def _where(self) -> str:
+        """The YAML path being composed, shortened past a few levels (deep nesting)."""
+        shown = yaml_path(self._path[:4])
+        return shown + "..." if len(self._path) > 4 else shown
+
+
+def _non_finite(data: object, location: tuple[int | str, ...]) -> Iterable[Problem]:
+    """NaN or an infinity anywhere in the parsed YAML (``.nan``, ``.inf``, ``1e999``), also where
+    the model passes values on unchecked (``flight.emulator``)."""
+    if isinstance(data, float) and not math.isfinite(data):
+        yield yaml_path(location), f"must be a finite number (got {data})"
+    elif isinstance(data, dict):
+        for key, value in data.items():
+            yield from _non_finite(value, (*location, str(key)))
+    elif isinstance(data, list):
+        for index, value in enumerate(data):
+            yield from _non_finite(value, (*location, index))
 
 
 def validate_scenario(data: dict[str, Any], source: str = "<data>") -> Scenario:
@@ -666,7 +797,8 @@ def _rule_problems(scenario: Scenario) -> list[Problem]:
     ]
     if ids and any(v.senses_target for v in scenario.vehicles) and not sensing_from_start:
         problems.append(("vehicles", "a vehicle sensing the target must be present from k = 0"))
-    problems += _shape_problems(scenario)
+    problems += _time_problems(scenario)
+    problems += _start_problems(scenario)
     problems += _emulator_problems(scenario)
     problems += _separation_problems(scenario)
     return problems
@@ -710,16 +842,150 @@ def _emulator_problems(scenario: Scenario) -> list[Problem]:
     return []
 
 
-def _shape_problems(scenario: Scenario) -> list[Problem]:
+def _time_problems(scenario: Scenario) -> list[Problem]:
+    """The target's path and the shape's signals over the run's times t_k (and one step beyond,
+    which the law's feed-forward reads): finite, inside the frame, scales > 0, and a circle on
+    which the vehicles fit."""
     from .scenario import signal_values  # noqa: PLC0415 - scenario imports this module
 
     step_s, steps = scenario.timing.step_s, scenario.timing.steps
-    times = np.arange(steps + 1) * step_s
+    times = np.arange(steps + 2, dtype=np.float64) * step_s
+    if not np.isfinite(times[-1]):
+        return [("timing.step_s", "timing.steps x timing.step_s must be a finite duration")]
     problems: list[Problem] = []
-    for name in ("scale_north", "scale_east"):
-        values = signal_values(getattr(scenario.algorithm.shape, name), times)
-        if not np.all(np.isfinite(values)) or np.min(values) <= 0:
+    values: dict[str, NDArray[np.float64]] = {}
+    for name in ShapeConfig.model_fields:
+        signal = getattr(scenario.algorithm.shape, name)
+        where = f"algorithm.shape.{name}"
+        with np.errstate(all="ignore"):
+            value = signal_values(signal, times)
+        unfinished = _not_finite(value, times)
+        if unfinished:
+            expression = isinstance(signal, ExpressionSignal)
+            problems.append((where + (".expression" if expression else ""), unfinished))
+        elif name.startswith("scale") and np.min(value) <= 0:
+            k = int(np.argmin(value))
             problems.append(
-                (f"algorithm.shape.{name}", "must stay finite and > 0 over the whole run")
+                (
+                    where,
+                    f"must stay finite and > 0 over the whole run ({value[k]:.3g} at "
+                    f"t = {times[k]:g} s)",
+                )
+            )
+        else:
+            values[name] = value
+    if len(values) == len(ShapeConfig.model_fields):
+        problems += _circle_problems(scenario, values, times)
+    return problems + _target_problems(scenario, times)
+
+
+def _not_finite(values: NDArray[np.float64], times: NDArray[np.float64]) -> str | None:
+    """What is wrong if ``values`` ``(K,)`` at ``times`` ``(K,)`` are not all finite."""
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return None
+    k = int(np.argmax(bad))
+    return f"is not finite at t = {times[k]:g} s (evaluates to {values[k]})"
+
+
+def _circle_problems(
+    scenario: Scenario, values: dict[str, NDArray[np.float64]], times: NDArray[np.float64]
+) -> list[Problem]:
+    """The shaped circle (A [rho cos, rho sin, 1] around the target) stays inside the frame, and
+    neighbours on it stay ``MIN_SPACING_M`` apart. ``values``: every shape signal ``(K,)``."""
+    radius_m, n = scenario.algorithm.radius_m, len(scenario.vehicles)
+    # The linear part [[S_x, H_a S_y], [H_b S_x, S_y]] (enclosing.affine_matrix) stretches a
+    # chord by between its smallest and largest singular values (closed form for 2 x 2).
+    a, d = values["scale_north"], values["scale_east"]
+    b, c = values["shear_a"] * d, values["shear_b"] * a
+    with np.errstate(all="ignore"):
+        first, second = np.hypot(a + d, c - b), np.hypot(a - d, b + c)
+        largest, smallest = (first + second) / 2, np.abs(first - second) / 2
+        reach_m = np.hypot(values["translate_north_m"], values["translate_east_m"])
+        reach_m = reach_m + radius_m * largest
+    problems: list[Problem] = []
+    if not np.all(reach_m <= MAX_COORDINATE_M):
+        k = int(np.argmax(~(reach_m <= MAX_COORDINATE_M)))
+        problems.append(
+            (
+                "algorithm.shape",
+                f"takes the circle {reach_m[k]:.3g} m from the target at t = {times[k]:g} s; "
+                f"it must stay within {MAX_COORDINATE_M:g} m",
+            )
+        )
+    if n < 2:
+        return problems
+    chord_m = 2 * radius_m * math.sin(math.pi / n)
+    k = int(np.argmin(smallest))
+    if chord_m < MIN_SPACING_M:
+        needed = MIN_SPACING_M / (2 * math.sin(math.pi / n))
+        problems.append(
+            (
+                "algorithm.radius_m",
+                f"too small for {n} vehicles: neighbours on the circle would be {chord_m:.3g} m "
+                f"apart, less than {MIN_SPACING_M:g} m (radius must be >= {needed:.3g} m)",
+            )
+        )
+    elif chord_m * smallest[k] < MIN_SPACING_M:
+        problems.append(
+            (
+                "algorithm.shape",
+                f"squeezes the circle so that neighbours may come {chord_m * smallest[k]:.3g} m "
+                f"close at t = {times[k]:g} s, less than {MIN_SPACING_M:g} m",
+            )
+        )
+    return problems
+
+
+def _target_problems(scenario: Scenario, times: NDArray[np.float64]) -> list[Problem]:
+    """The target's path is finite and inside the frame at every t_k."""
+    from .scenario import target_positions  # noqa: PLC0415 - scenario imports this module
+
+    path = scenario.target.path
+    with np.errstate(all="ignore"):
+        if isinstance(path, ExpressionPath):
+            axes = [
+                ("target.path.north", compile_expression(path.north)(times)),
+                ("target.path.east", compile_expression(path.east)(times)),
+            ]
+        else:
+            positions = target_positions(path, times)
+            axes = [("target.path", positions[:, 0]), ("target.path", positions[:, 1])]
+    problems: list[Problem] = []
+    for where, values in axes:
+        problem = _not_finite(values, times)
+        if problem is None and np.max(np.abs(values)) > MAX_COORDINATE_M:
+            k = int(np.argmax(np.abs(values) > MAX_COORDINATE_M))
+            problem = (
+                f"leaves the frame at t = {times[k]:g} s ({values[k]:.3g} m; coordinates must "
+                f"stay within {MAX_COORDINATE_M:g} m)"
+            )
+        if problem is not None and all(where != known for known, _ in problems):
+            problems.append((where, problem))
+    return problems
+
+
+def _start_problems(scenario: Scenario) -> list[Problem]:
+    """Vehicles start inside the frame and apart from each other."""
+    positions = np.array([vehicle.initial_position_m for vehicle in scenario.vehicles])
+    problems: list[Problem] = []
+    for index, position in enumerate(positions):
+        where = f"vehicles[{index}].initial_position_m"
+        if np.max(np.abs(position)) > MAX_COORDINATE_M:
+            problems.append((where, f"must be within {MAX_COORDINATE_M:g} m of the origin"))
+            continue
+        if index == 0:
+            continue
+        with np.errstate(all="ignore"):
+            gaps_m = np.hypot(*(positions[:index] - position).T)
+        other = int(np.argmin(gaps_m))
+        if gaps_m[other] < MIN_SPACING_M:
+            problems.append(
+                (
+                    where,
+                    f"{gaps_m[other]:.3g} m from vehicles[{other}] (id "
+                    f"{scenario.vehicles[other].id}): vehicles must start at least "
+                    f"{MIN_SPACING_M:g} m apart",
+                )
             )
     return problems

@@ -4,6 +4,7 @@ Exception tree::
 
     MissionRunnerError
     ├── ConfigError          a scenario file is unreadable or invalid (names the YAML path)
+    ├── OutputError          an output folder cannot be used (a file, not writable)
     ├── SimulationError      the numeric simulator cannot run a valid scenario (e.g. all
     │                        target-sensing vehicles lost)
     └── ReplayError          a folder cannot be replayed (no recording, or no truth to draw)
@@ -27,6 +28,10 @@ class ConfigError(MissionRunnerError):
         lines = [f"{source}: invalid scenario ({len(problems)} problem(s))"]
         lines += [f"  {path or '<root>'}: {message}" for path, message in problems]
         super().__init__("\n".join(lines))
+
+
+class OutputError(MissionRunnerError):
+    """An output folder cannot take a run's results; the message names the folder and why."""
 
 
 class SimulationError(MissionRunnerError):

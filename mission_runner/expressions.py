@@ -3,6 +3,11 @@
 A config never runs Python: an expression is parsed with :mod:`ast` and only numbers, the variable
 ``t`` (seconds), the constants ``pi`` and ``e``, arithmetic operators and a fixed set of numpy
 functions are accepted. The result evaluates element-wise on numpy arrays of times.
+
+Every number is a float64 and every operation numpy's, so arithmetic never raises and never runs
+long: ``1/0`` is inf, ``10**10**10`` overflows to inf at once (Python's integers would compute a
+ten-billion-digit number). Whether the values are finite where they are used (over a run's
+times) is for the caller to check: see ``config``.
 """
 
 import ast
@@ -77,20 +82,26 @@ def compile_expression(text: str) -> Callable[[ArrayLike], NDArray[np.float64]]:
         with np.errstate(all="ignore"):
             return np.broadcast_to(np.asarray(evaluate(times), dtype=float), times.shape).copy()
 
-    function(np.linspace(0.0, 1.0, 3))  # catches wrong arities and the like at load time
+    try:
+        function(np.linspace(0.0, 1.0, 3))  # catches wrong arities and the like at load time
+    except (ValueError, TypeError, ArithmeticError) as error:
+        raise ExpressionError(f"cannot be evaluated: {error}") from None
     return function
 
 
 def _compile(node: ast.expr) -> Evaluator:
     constant = node.value if isinstance(node, ast.Constant) else None
     if isinstance(constant, int | float) and not isinstance(constant, bool):
-        value = float(constant)
-        return lambda t: value
+        try:
+            number = np.float64(constant)  # numpy's, so that its arithmetic cannot raise
+        except OverflowError:
+            raise ExpressionError(f"number too large: {str(constant)[:20]}...") from None
+        return lambda t: number
     if isinstance(node, ast.Name):
         if node.id == "t":
             return lambda t: t
         if node.id in CONSTANTS:
-            value = CONSTANTS[node.id]
+            value = np.float64(CONSTANTS[node.id])
             return lambda t: value
         raise ExpressionError(f"unknown name {node.id!r}; allowed: t, {', '.join(CONSTANTS)}")
     if isinstance(node, ast.BinOp) and type(node.op) in BINARY:

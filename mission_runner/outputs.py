@@ -2,7 +2,11 @@
 :mod:`.recording`) and the figures.
 
 Every file is written to a temporary name and renamed into place, so a crash or Ctrl-C never leaves
-a half-written result that looks complete.
+a half-written result that looks complete. The folder is made ready before any work
+(:func:`prepare_out_dir`: it takes files, and an earlier run's results are gone from it), and
+``summary.json`` always says how the run ended (:class:`RunSummary`): ``status`` is ``running``
+while it runs (all a SIGKILL leaves), then ``passed``, ``failed`` (an ``expect:`` bound),
+``interrupted`` (SIGINT or SIGTERM) or ``error``.
 """
 
 from __future__ import annotations
@@ -10,16 +14,20 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import os
 import platform
 import sys
+import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from . import __version__
+from .errors import OutputError
 from .sim.metrics import MetricValue, check_expectations, distribution, run_metrics
 
 if TYPE_CHECKING:
@@ -29,8 +37,58 @@ if TYPE_CHECKING:
     from .runner.process import VehicleRun
     from .sim.simulator import SimulationResult
 
+logger = logging.getLogger(__name__)
+
 #: A file or folder name as callers hold it.
 PathName = str | os.PathLike[str]
+
+#: How a run ended, as ``summary.json`` says (``running`` until it ends).
+Status = Literal["running", "passed", "failed", "interrupted", "error"]
+
+#: What ``simulate``, ``run`` and ``ground`` write into their folder (fnmatch patterns relative to
+#: it). A new run removes these first, so its results never sit beside an earlier run's (the
+#: batch.csv of another batch, the figures of a run that had them); nothing else there is touched.
+RUN_FILES = (
+    "summary.json",
+    "timeseries.csv",
+    "batch.csv",
+    "xy.png",
+    "phases.png",
+    "localization_error.png",
+    "tracking_error.png",
+    "batch_tracking_error.png",
+    "tlogs/vehicle_*.tlog",
+    "recording.mcap",
+    "replay.gif",
+    "replay.mp4",
+)
+#: What a vehicle process writes into its folder.
+VEHICLE_FILES = ("summary.json", "steps.csv", "recording.mcap")
+#: What the range aid writes into its folder.
+TRUTH_FILES = ("truth.csv",)
+
+
+def prepare_out_dir(out_dir: PathName, files: Sequence[str]) -> Path:
+    """Make ``out_dir`` ready for a run, before any work: create it, check that it takes files,
+    and remove an earlier run's ``files`` (patterns as in :data:`RUN_FILES`, with their
+    temporary twins). Raises :class:`OutputError` naming the folder and the reason."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise OutputError(f"output folder {out_dir} is a file, not a folder")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        handle, probe = tempfile.mkstemp(dir=out_dir, prefix=".write-check-")
+        os.close(handle)
+        os.unlink(probe)
+        for pattern in files:
+            folder, _, name = pattern.rpartition("/")
+            for path in [*out_dir.glob(pattern), *(out_dir / folder).glob(f".{name}.partial")]:
+                if not path.is_dir():
+                    path.unlink()
+    except OSError as error:
+        reason = error.strerror or str(error)
+        raise OutputError(f"output folder {out_dir} cannot be written: {reason}") from None
+    return out_dir
 
 
 def write_atomic(path: PathName, data: str | bytes) -> None:
@@ -124,29 +182,24 @@ def summary(
     scenario = result.scenario
     metrics = run_metrics(result)
     first = {name: _plain(values[0]) for name, values in metrics.items()}
-    failures = check_expectations(scenario.expect, first)
+    # Raw values, so that a diverged metric fails as "inf", not as "not measured".
+    failures = check_expectations(scenario.expect, {name: v[0] for name, v in metrics.items()})
     document: dict[str, Any] = {
-        "scenario": scenario.name,
-        "description": scenario.description,
-        "config": None if config_path is None else str(config_path),
-        "seed": scenario.seed,
-        "runs": result.runs,
-        "steps": scenario.timing.steps,
-        "step_s": scenario.timing.step_s,
+        "status": "failed" if failures else "passed",
+        **_about(scenario, config_path, result.runs),
         "metrics": first,
         "expectations": {
             "checked": sorted(name for name in scenario.expect if name in first),
             "passed": not failures,
             "failures": failures,
         },
-        "parameters": scenario.model_dump(mode="json", exclude={"expect"}),
-        "versions": versions(),
+        **_provenance(scenario),
     }
     if result.runs > 1:
         document["batch"] = {name: distribution(values, name) for name, values in metrics.items()}
         per_run = [
             not check_expectations(
-                scenario.expect, {name: _plain(values[run]) for name, values in metrics.items()}
+                scenario.expect, {name: values[run] for name, values in metrics.items()}
             )
             for run in range(result.runs)
         ]
@@ -156,6 +209,27 @@ def summary(
     if wall_time_s is not None:
         document["wall_time_s"] = round(wall_time_s, 4)
     return document
+
+
+def _about(scenario: Scenario, config_path: PathName | None, runs: int) -> dict[str, Any]:
+    """What every summary starts with: which scenario, from which file, how long."""
+    return {
+        "scenario": scenario.name,
+        "description": scenario.description,
+        "config": None if config_path is None else str(config_path),
+        "seed": scenario.seed,
+        "runs": runs,
+        "steps": scenario.timing.steps,
+        "step_s": scenario.timing.step_s,
+    }
+
+
+def _provenance(scenario: Scenario) -> dict[str, Any]:
+    """What every summary ends with, to reproduce it: every parameter and the versions."""
+    return {
+        "parameters": scenario.model_dump(mode="json", exclude={"expect"}),
+        "versions": versions(),
+    }
 
 
 def _plain(value: MetricValue) -> float | int | None:
@@ -225,13 +299,14 @@ def write_vehicle_run(
     out_dir: PathName,
     *,
     config_path: PathName | None = None,
+    status: Status | None = None,
     scenario: Scenario | None = None,
     logs: Sequence[LogLine] = (),
 ) -> dict[str, Any]:
     """One vehicle process's outputs: ``steps.csv`` (per step: state, phase, command, consensus,
     neighbours used, lateness of the setpoint, every estimate), ``recording.mcap`` (the same and
-    ``logs``, see :mod:`.recording`) and ``summary.json`` (final state, counts, the autopilot's
-    clock fit, parameters applied). Written atomically."""
+    ``logs``, see :mod:`.recording`) and ``summary.json`` (how the process ended, final state,
+    counts, the autopilot's clock fit, parameters applied). Written atomically."""
     from .recording import RECORDING, write_vehicle_recording  # noqa: PLC0415
 
     out_dir = Path(out_dir)
@@ -286,6 +361,7 @@ def write_vehicle_run(
         states[record.state] = states.get(record.state, 0) + 1
     lateness = [r.setpoint_sent_s - r.time_s for r in run.records if np.isfinite(r.setpoint_sent_s)]
     document = {
+        "status": status,
         "vehicle_id": run.vehicle_id,
         "mission_id": run.mission_id,
         "state": run.state,
@@ -312,3 +388,90 @@ def write_vehicle_run(
     }
     write_atomic(out_dir / "summary.json", json.dumps(document, indent=2) + "\n")
     return document
+
+
+class RunSummary:
+    """``summary.json`` of one run in ``out_dir``, however the run ends.
+
+    Entering writes ``status: running``; :meth:`write_results` writes the results (``passed`` or
+    ``failed``); leaving without them writes ``interrupted`` (KeyboardInterrupt: SIGINT, or
+    SIGTERM as the command line turns it) or ``error`` (with the error's message), with what is
+    known: the scenario, every parameter and ``steps_done`` (set it as the run goes)::
+
+        with RunSummary(out_dir, scenario, config_path=path) as record:
+            result = simulate(scenario)
+            record.write_results(result)
+    """
+
+    def __init__(
+        self, out_dir: Path, scenario: Scenario, *, config_path: PathName | None, runs: int = 1
+    ) -> None:
+        self.out_dir = out_dir
+        self.steps_done = 0
+        self.document: dict[str, Any] | None = None
+        self._scenario = scenario
+        self._config_path = config_path
+        self._runs = runs
+
+    def __enter__(self) -> RunSummary:
+        self._write("running", "")
+        return self
+
+    def __exit__(
+        self,
+        kind: type[BaseException] | None,
+        error: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        if self.document is not None:
+            return
+        if kind is not None and issubclass(kind, KeyboardInterrupt):
+            status: Status = "interrupted"
+            detail = "stopped by SIGINT or SIGTERM"
+        else:
+            status = "error"
+            detail = "ended without results" if error is None else str(error) or repr(error)
+        try:
+            self.finish(status, detail)
+        except OSError as failure:  # the run's own error is the one to report
+            logger.error("could not write %s/summary.json: %s", self.out_dir, failure)
+
+    def write_results(
+        self,
+        result: SimulationResult,
+        *,
+        wall_time_s: float | None = None,
+        figures: bool = True,
+        vehicles: Mapping[int, Mapping[str, str]] | None = None,
+        records: Mapping[int, Sequence[StepRecord]] | None = None,
+        start_s: float = 0.0,
+        logs: Sequence[LogLine] = (),
+    ) -> dict[str, Any]:
+        """:func:`write_results` into this run's folder; returns the summary dict."""
+        self.document = write_results(
+            result,
+            self.out_dir,
+            config_path=self._config_path,
+            wall_time_s=wall_time_s,
+            figures=figures,
+            vehicles=vehicles,
+            records=records,
+            start_s=start_s,
+            logs=logs,
+        )
+        return self.document
+
+    def finish(self, status: Status, detail: str = "") -> None:
+        """Write a summary without results: ``status``, ``detail`` and what is known."""
+        self.document = self._write(status, detail)
+
+    def _write(self, status: Status, detail: str) -> dict[str, Any]:
+        document = {
+            "status": status,
+            "detail": detail,
+            **_about(self._scenario, self._config_path, self._runs),
+            "steps_done": self.steps_done,
+            **_provenance(self._scenario),
+        }
+        write_atomic(self.out_dir / "summary.json", json.dumps(document, indent=2) + "\n")
+        return document

@@ -7,8 +7,7 @@ protocol to the navigator's mission store (:mod:`sitl.mission`), commands to the
 :class:`sitl.commands.CommandDispatcher`. It answers the protocol-level requests itself:
 parameters (PARAM_REQUEST_LIST / READ / SET), PING, TIMESYNC, MAVLink FTP (:mod:`sitl.ftp`) and
 the log protocol (:mod:`sitl.log_handler`), one server of each per link as on PX4, and the
-commands that ask for
-messages (REQUEST_MESSAGE, SET/GET_MESSAGE_INTERVAL, GET_HOME_POSITION,
+commands that ask for messages (REQUEST_MESSAGE, SET/GET_MESSAGE_INTERVAL, GET_HOME_POSITION,
 REQUEST_AUTOPILOT_CAPABILITIES, REQUEST_PROTOCOL_VERSION). Replies go to the link a request came
 on; parameter changes to every link. Messages that do not make sense are ignored, as PX4 does.
 """

@@ -1,12 +1,29 @@
 """``mission-runner simulate`` end to end, in-process."""
 
 import csv
+import fnmatch
 import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
 from pathlib import Path
 
+import pytest
 import yaml
 
-from mission_runner.cli import EXIT_BAD_INPUT, EXIT_EXPECTATION_FAILED, EXIT_OK, main
+from mission_runner.cli import (
+    EXIT_BAD_INPUT,
+    EXIT_EXPECTATION_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_RUNTIME_FAILURE,
+    EXIT_TERMINATED,
+    main,
+)
+from mission_runner.outputs import RUN_FILES
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -15,6 +32,7 @@ def test_simulate_writes_summary_timeseries_and_figures(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["simulate", str(CONFIGS / "paper_tracking.yaml"), "--out", str(out)]) == EXIT_OK
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "passed"
     assert summary["expectations"]["passed"] is True
     assert summary["metrics"]["final_tracking_error_m"] < 0.05
     assert summary["parameters"]["algorithm"]["beta"] == 7.0
@@ -58,7 +76,9 @@ def test_failed_expectation_exits_1(tmp_path):
     out = tmp_path / "out"
     code = main(["simulate", str(config), "--out", str(out), "--no-figures", "--quiet"])
     assert code == EXIT_EXPECTATION_FAILED
-    assert json.loads((out / "summary.json").read_text())["expectations"]["passed"] is False
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed"
+    assert summary["expectations"]["passed"] is False
 
 
 def test_bad_config_writes_nothing_and_names_the_path(tmp_path, capsys):
@@ -70,3 +90,380 @@ def test_bad_config_writes_nothing_and_names_the_path(tmp_path, capsys):
     assert main(["simulate", str(config), "--out", str(out)]) == EXIT_BAD_INPUT
     assert not out.exists()
     assert "algorithm.forgetting_factor" in capsys.readouterr().err
+
+
+# --- Bad input: exit 2, one message naming the YAML path, nothing written ------------------------
+
+
+def scenario_file(tmp_path, change=None, name="bad.yaml"):
+    data = yaml.safe_load((CONFIGS / "paper_tracking.yaml").read_text())
+    if change is not None:
+        change(data)
+    config = tmp_path / name
+    config.write_text(yaml.safe_dump(data))
+    return config
+
+
+def shape_expression(name, text):
+    def change(data):
+        data["algorithm"]["shape"] = {name: {"kind": "expression", "expression": text}}
+
+    return change
+
+
+def set_value(*path_and_value):
+    *path, last, value = path_and_value
+
+    def change(data):
+        node = data
+        for key in path:
+            node = node[key]
+        node[last] = value
+
+    return change
+
+
+def all_vehicles_at(*positions):
+    def change(data):
+        for vehicle, position in zip(data["vehicles"], positions, strict=False):
+            vehicle["initial_position_m"] = list(position)
+
+    return change
+
+
+def write_bytes(content):
+    def make(tmp_path):
+        config = tmp_path / "bad.yaml"
+        config.write_bytes(content)
+        return config
+
+    return make
+
+
+def write_change(change):
+    return lambda tmp_path: scenario_file(tmp_path, change)
+
+
+BAD_INPUTS = {
+    "not_utf8": (write_bytes(b"name: caf\xe9\n"), "<root>: not UTF-8 text: byte 0xe9 on line 1"),
+    "too_large": (write_bytes(b"#" * (2 << 20)), "<root>: larger than 1024 KiB"),
+    "endless": (lambda tmp_path: Path("/dev/zero"), "<root>: larger than 1024 KiB"),
+    "deep_nesting": (
+        write_bytes(b"name: x\ndescription: " + b"[" * 10_000 + b"]" * 10_000 + b"\n"),
+        "description[0][0][0]...: nested deeper than 32 levels",
+    ),
+    "yaml_syntax": (write_bytes(b"name: x\ntiming: {step_s: 0.1\n"), "not valid YAML"),
+    "division_by_zero": (
+        write_change(shape_expression("scale_north", "1/0")),
+        "algorithm.shape.scale_north.expression: is not finite at t = 0 s (evaluates to inf)",
+    ),
+    "huge_power": (
+        write_change(shape_expression("translate_north_m", "10**10**10")),
+        "algorithm.shape.translate_north_m.expression: is not finite at t = 0 s",
+    ),
+    "t_over_zero": (
+        write_change(shape_expression("shear_a", "t/0")),
+        "algorithm.shape.shear_a.expression: is not finite at t = 0 s (evaluates to nan)",
+    ),
+    "log_of_negative": (
+        write_change(
+            set_value("target", "path", {"kind": "expression", "north": "log(t-1)", "east": "0"})
+        ),
+        "target.path.north: is not finite at t = 0 s (evaluates to nan)",
+    ),
+    "nan": (
+        write_change(set_value("algorithm", "beta", float("nan"))),
+        "algorithm.beta: must be a finite number (got nan)",
+    ),
+    "tiny_radius": (
+        write_change(set_value("algorithm", "radius_m", 1e-9)),
+        "algorithm.radius_m: too small for 4 vehicles",
+    ),
+    "coincident_starts": (
+        write_change(all_vehicles_at(*[(1.0, 1.0)] * 4)),
+        "vehicles[1].initial_position_m: 0 m from vehicles[0] (id 1)",
+    ),
+    "overlapping_starts": (
+        write_change(all_vehicles_at((0.0, 0.0), (0.0, 0.05))),
+        "vehicles[1].initial_position_m: 0.05 m from vehicles[0] (id 1)",
+    ),
+    "target_leaves_the_frame": (
+        write_change(set_value("target", "path", "velocity_m_s", [1e300, 0.0])),
+        "target.path: leaves the frame at t = 0.125 s",
+    ),
+    "duplicate_key": (
+        write_bytes(
+            (CONFIGS / "paper_tracking.yaml")
+            .read_bytes()
+            .replace(b"  beta: 7.0\n", b"  beta: 7.0\n  beta: 70.0\n")
+        ),
+        "algorithm.beta: duplicate key",
+    ),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD_INPUTS))
+def test_bad_input_exits_2_naming_the_yaml_path(name, tmp_path, capsys):
+    make, expected = BAD_INPUTS[name]
+    if name == "endless" and not Path("/dev/zero").exists():
+        pytest.skip("no /dev/zero")
+    out = tmp_path / "never"
+    assert main(["simulate", str(make(tmp_path)), "--out", str(out), "--quiet"]) == EXIT_BAD_INPUT
+    error = capsys.readouterr().err
+    assert expected in error, error
+    assert "Traceback" not in error
+    assert not out.exists()
+
+
+def test_a_batch_too_large_for_memory_is_refused_before_any_work(tmp_path, capsys):
+    config = scenario_file(tmp_path, set_value("timing", "steps", 1_000_000))
+    out = tmp_path / "never"
+    code = main(["simulate", str(config), "--runs", "1000", "--out", str(out), "--quiet"])
+    assert code == EXIT_BAD_INPUT
+    error = capsys.readouterr().err
+    assert "timing.steps: 1000000 steps x 4 vehicles x 1000 run(s) need about" in error
+    assert "lower timing.steps, the number of vehicles or --runs" in error
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("speed", ["0", "-1", "nan", "inf", "fast"])
+def test_a_speed_that_is_not_a_positive_number_exits_2(speed, capsys):
+    with pytest.raises(SystemExit) as stopped:
+        main(["run", str(CONFIGS / "paper_tracking_flyable.yaml"), "--speed", speed])
+    assert stopped.value.code == EXIT_BAD_INPUT
+    assert "argument --speed" in capsys.readouterr().err
+
+
+def test_an_error_during_the_run_leaves_a_summary_saying_so(tmp_path, capsys):
+    # Losing the only vehicle that senses the target is found when the simulator gets there.
+    config = scenario_file(
+        tmp_path, set_value("events", [{"kind": "vehicle_lost", "vehicle": 1, "at_step": 10}])
+    )
+    out = tmp_path / "out"
+    assert main(["simulate", str(config), "--out", str(out), "--quiet"]) == EXIT_BAD_INPUT
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "error"
+    assert "no live vehicle senses the target" in summary["detail"]
+    assert summary["steps_done"] == 10
+    assert summary["parameters"]["events"][0]["vehicle"] == 1
+
+
+@pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning", "ignore:invalid:RuntimeWarning")
+def test_estimates_that_diverge_fail_instead_of_reading_as_zero_error(tmp_path, capsys):
+    # An absurd (but finite) initial gain makes every estimate NaN; the localization error once
+    # skipped NaN edges and read 0, so this bound passed.
+    def absurd_gain(data):
+        data["algorithm"]["initial_gain"] = 1e300
+        data["expect"] = {"final_localization_error_m": {"max": 1e-6}}
+
+    config = scenario_file(tmp_path, absurd_gain)
+    out = tmp_path / "out"
+    code = main(["simulate", str(config), "--out", str(out), "--no-figures", "--quiet"])
+    assert code == EXIT_EXPECTATION_FAILED
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed"
+    assert summary["metrics"]["final_localization_error_m"] is None
+    assert summary["expectations"]["failures"] == [
+        "final_localization_error_m = inf: no value to compare"
+    ]
+
+
+# --- --out: checked before any work; a run never mixes with an earlier one -----------------------
+
+
+def test_out_that_is_a_file_exits_2_with_one_line(tmp_path, capsys):
+    taken = tmp_path / "taken"
+    taken.write_text("mine")
+    config = str(CONFIGS / "paper_tracking.yaml")
+    assert main(["simulate", config, "--out", str(taken), "--quiet"]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err == f"error: output folder {taken} is a file, not a folder\n"
+    assert main(["simulate", config, "--out", str(taken / "sub"), "--quiet"]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err == (
+        f"error: output folder {taken / 'sub'} cannot be written: Not a directory\n"
+    )
+    assert taken.read_text() == "mine"
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_out_that_is_not_writable_exits_2(tmp_path, capsys):
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o555)
+    code = main(["simulate", str(CONFIGS / "paper_tracking.yaml"), "--out", str(locked)])
+    assert code == EXIT_BAD_INPUT
+    assert "cannot be written: Permission denied" in capsys.readouterr().err
+
+
+def test_a_second_run_removes_the_first_runs_files_and_nothing_else(tmp_path):
+    config = str(CONFIGS / "paper_tracking.yaml")
+    out = tmp_path / "out"
+    assert main(["simulate", config, "--out", str(out), "--runs", "3", "--quiet"]) == EXIT_OK
+    (out / "notes.txt").write_text("mine")
+    (out / "tlogs").mkdir()
+    (out / "tlogs" / "vehicle_1.tlog").write_bytes(b"old flight")
+    first = {path.name for path in out.iterdir()}
+    assert {"batch.csv", "batch_tracking_error.png", "xy.png"} <= first
+    assert main(["simulate", config, "--out", str(out), "--no-figures", "--quiet"]) == EXIT_OK
+    assert {path.name for path in out.iterdir()} == {
+        "notes.txt",
+        "tlogs",
+        "summary.json",
+        "timeseries.csv",
+        "recording.mcap",  # written by every run, as the summary
+    }
+    assert not list((out / "tlogs").iterdir())
+    assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_every_file_a_run_writes_is_one_the_next_run_removes(tmp_path):
+    out = tmp_path / "out"
+    config = str(CONFIGS / "paper_tracking.yaml")
+    assert main(["simulate", config, "--out", str(out), "--runs", "2", "--quiet"]) == EXIT_OK
+    written = [path.relative_to(out).as_posix() for path in out.rglob("*") if path.is_file()]
+    assert written
+    for name in written:
+        assert any(fnmatch.fnmatch(name, pattern) for pattern in RUN_FILES), name
+
+
+# --- Signals: SIGTERM stops like Ctrl-C, exit 128 + signal, summary.json says interrupted ---------
+
+
+@pytest.mark.parametrize(
+    ("stop", "code"), [(signal.SIGTERM, EXIT_TERMINATED), (signal.SIGINT, EXIT_INTERRUPTED)]
+)
+def test_a_signal_stops_simulate_with_its_exit_code_and_an_interrupted_summary(
+    stop, code, tmp_path
+):
+    config = scenario_file(tmp_path, set_value("timing", "steps", 1_000_000), name="long.yaml")
+    out = tmp_path / "out"
+    root = Path(__file__).resolve().parents[1]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "mission_runner.cli", "simulate", str(config), "--out", str(out)],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(root)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        summary = out / "summary.json"
+        # Written once the handlers are in place and the run starts; the run then takes minutes.
+        while process.poll() is None and not summary.exists():
+            time.sleep(0.05)
+        assert json.loads(summary.read_text())["status"] == "running"
+        process.send_signal(stop)
+        _, error = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert process.returncode == code, error
+    assert error.strip().endswith(f"interrupted ({stop.name})")
+    assert "Traceback" not in error
+    document = json.loads(summary.read_text())
+    assert document["status"] == "interrupted"
+    assert document["scenario"] == "paper_tracking"
+    assert 0 <= document["steps_done"] < 1_000_000
+    assert not (out / "timeseries.csv").exists()
+
+
+ASYNC_STOP = """
+import asyncio, signal, sys
+from mission_runner import cli
+
+signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job: asyncio adds no handler then
+
+
+async def fly():
+    try:
+        print("flying", flush=True)
+        await asyncio.sleep(3600)
+    except asyncio.CancelledError:
+        print("cancelled: landing", flush=True)
+        raise
+
+
+with cli._terminate_as_interrupt():
+    try:
+        cli._run_async(fly())
+    except KeyboardInterrupt:
+        print("KeyboardInterrupt", flush=True)
+"""
+
+
+def test_sigterm_cancels_the_asyncio_main_task_even_where_sigint_is_ignored(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    process = subprocess.Popen(
+        [sys.executable, "-c", ASYNC_STOP],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(root)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        assert process.stdout.readline() == "flying\n"
+        process.send_signal(signal.SIGTERM)
+        output, _ = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    # The coroutine sees a cancellation (where the flight code lands), the caller an interrupt.
+    assert output == "cancelled: landing\nKeyboardInterrupt\n"
+    assert process.returncode == 0
+
+
+@pytest.mark.mavsdk
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_sigterm_stops_a_flight_with_exit_143_and_an_interrupted_summary(tmp_path):
+    from tests.sitl.helpers import free_port_config
+
+    data = yaml.safe_load((CONFIGS / "paper_tracking_flyable.yaml").read_text())
+    data["flight"]["emulator"] = {"ports": free_port_config(4, gcs=False).model_dump()}
+    config = tmp_path / "flight.yaml"
+    config.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    root = Path(__file__).resolve().parents[1]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "mission_runner.cli", "run", str(config), "--out", str(out)],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(root), "PYTHONUNBUFFERED": "1"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        for line in process.stdout:  # the view prints a line per second of mission
+            if line.startswith("k="):
+                break
+        process.send_signal(signal.SIGTERM)
+        output, _ = process.communicate(timeout=120)
+    finally:
+        process.kill()
+    assert process.returncode == EXIT_TERMINATED, output
+    assert output.strip().endswith("interrupted (SIGTERM)")
+    assert "Traceback" not in output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "interrupted"
+    assert 0 < summary["steps_done"] < data["timing"]["steps"]
+
+
+# --- Runtime failures: exit 3, one line ----------------------------------------------------------
+
+
+def test_a_taken_port_is_one_line_naming_the_setting(tmp_path, capsys):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("0.0.0.0", 0))
+        port = taken.getsockname()[1]
+
+        def gcs_port(data):
+            data["flight"]["emulator"] = {"ports": {"gcs_local_base": port}}
+
+        config = tmp_path / "flyable.yaml"
+        data = yaml.safe_load((CONFIGS / "paper_tracking_flyable.yaml").read_text())
+        gcs_port(data)
+        config.write_text(yaml.safe_dump(data))
+        out = tmp_path / "out"
+        assert main(["run", str(config), "--out", str(out), "--quiet"]) == EXIT_RUNTIME_FAILURE
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1
+    assert f"UDP port {port} for vehicle 0 is already in use" in error
+    assert "ports.gcs_local_base" in error
+    assert json.loads((out / "summary.json").read_text())["status"] == "error"

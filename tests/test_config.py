@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from mission_runner.config import load_scenario, parse_scenario
+from mission_runner.config import MAX_FILE_BYTES, load_scenario, parse_scenario
 from mission_runner.errors import ConfigError
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -209,3 +209,178 @@ def test_the_bundled_schema_file_is_what_the_command_prints(capsys):
         "configs/scenario.schema.json is stale: mission-runner schema --out "
         "configs/scenario.schema.json"
     )
+
+
+# --- Inputs that once gave a traceback, a hang or a silent wrong result --------------------------
+
+
+def problems_in_file(tmp_path, content: bytes):
+    config = tmp_path / "scenario.yaml"
+    config.write_bytes(content)
+    with pytest.raises(ConfigError) as caught:
+        load_scenario(config)
+    assert str(caught.value).startswith(f"{config}: invalid scenario")
+    return caught.value.problems
+
+
+def test_a_file_that_is_not_utf8_is_refused_with_its_line(tmp_path):
+    [(where, message)] = problems_in_file(tmp_path, b"name: x\ndescription: caf\xe9\n")
+    assert where == "" and "not UTF-8 text: byte 0xe9 on line 2" in message
+
+
+def test_a_huge_file_is_refused_without_reading_it_all(tmp_path):
+    [(where, message)] = problems_in_file(tmp_path, b"#" * (MAX_FILE_BYTES + 1))
+    assert where == "" and "larger than 1024 KiB" in message
+
+
+@pytest.mark.skipif(not Path("/dev/zero").exists(), reason="no /dev/zero")
+def test_an_endless_file_ends_at_once():
+    with pytest.raises(ConfigError, match="larger than 1024 KiB"):
+        load_scenario("/dev/zero")
+
+
+def test_deep_nesting_is_refused_at_its_path():
+    [(where, message)] = problems_of_text("name: x\ndescription: " + "[" * 10_000 + "]" * 10_000)
+    assert where == "description[0][0][0]..." and "nested deeper than 32 levels" in message
+
+
+def test_a_duplicate_key_is_refused_instead_of_keeping_the_last():
+    text = yaml.safe_dump(base()).replace("beta: 7.0\n", "beta: 7.0\n  beta: 1.0\n")
+    [(where, message)] = problems_of_text(text)
+    assert where == "algorithm.beta" and "duplicate key" in message
+
+
+def test_aliases_that_expand_to_billions_of_values_are_refused():
+    text = "name: x\na: &a [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]\n"
+    for level in "bcdefg":
+        previous = chr(ord(level) - 1)
+        text += f"{level}: &{level} [{', '.join([f'*{previous}'] * 10)}]\n"
+    [(where, message)] = problems_of_text(text)
+    assert where == "f" and "more than 1000000 values" in message
+
+
+def test_an_alias_inside_its_own_value_is_refused():
+    [(where, message)] = problems_of_text("name: x\nloop: &a [1, *a]\n")
+    assert where == "loop" and "alias refers to a value containing it" in message
+
+
+def problems_of_text(text):
+    with pytest.raises(ConfigError) as caught:
+        parse_scenario(text, source="test.yaml")
+    return caught.value.problems
+
+
+def expression_signal(text):
+    return {"kind": "expression", "expression": text}
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "where", "rule"),
+    [
+        (
+            ("algorithm", "shape"),
+            {"scale_north": expression_signal("1/0")},
+            "algorithm.shape.scale_north.expression",
+            "is not finite at t = 0 s (evaluates to inf)",
+        ),
+        (
+            ("algorithm", "shape"),
+            {"translate_east_m": expression_signal("10**10**10")},
+            "algorithm.shape.translate_east_m.expression",
+            "is not finite at t = 0 s (evaluates to inf)",
+        ),
+        (
+            ("algorithm", "shape"),
+            {"shear_a": expression_signal("t/0")},
+            "algorithm.shape.shear_a.expression",
+            "is not finite at t = 0 s (evaluates to nan)",
+        ),
+        (
+            ("algorithm", "shape"),
+            {"shear_b": expression_signal("1 / (t - 2)")},
+            "algorithm.shape.shear_b.expression",
+            "is not finite at t = 2 s",
+        ),
+        (
+            ("target", "path"),
+            {"kind": "expression", "north": "log(t - 1)", "east": "0"},
+            "target.path.north",
+            "is not finite at t = 0 s (evaluates to nan)",
+        ),
+        (
+            ("target", "path"),
+            {"kind": "expression", "north": "0", "east": "exp(t)"},
+            "target.path.east",
+            "leaves the frame at t = 13.875 s",
+        ),
+        (
+            ("target", "path"),
+            {"kind": "line", "velocity_m_s": [1e300, 0.0]},
+            "target.path",
+            "leaves the frame at t = 0.125 s",
+        ),
+        (
+            ("flight",),
+            {"emulator": {"physics": {"dt_s": float("nan")}}},
+            "flight.emulator.physics.dt_s",
+            "must be a finite number (got nan)",
+        ),
+        (
+            ("expect",),
+            {"final_tracking_error_m": {"max": float("inf")}},
+            "expect.final_tracking_error_m.max",
+            "must be a finite number (got inf)",
+        ),
+        (
+            ("algorithm", "radius_m"),
+            1e-9,
+            "algorithm.radius_m",
+            "too small for 4 vehicles: neighbours on the circle would be 1.41e-09 m apart",
+        ),
+        (("algorithm", "radius_m"), 1e7, "algorithm.radius_m", "less than or equal to 1000000"),
+        (
+            ("algorithm", "shape"),
+            {"scale_east": 1e-3, "scale_north": 1e-3},
+            "algorithm.shape",
+            "squeezes the circle so that neighbours may come 0.00566 m close",
+        ),
+        (
+            ("algorithm", "shape"),
+            {"translate_north_m": 2e6},
+            "algorithm.shape",
+            "takes the circle 2e+06 m from the target",
+        ),
+        (
+            ("vehicles", 2, "initial_position_m"),
+            [2.0, -3.95],
+            "vehicles[2].initial_position_m",
+            "0.05 m from vehicles[1] (id 2): vehicles must start at least 0.1 m apart",
+        ),
+        (
+            ("vehicles", 0, "initial_position_m"),
+            [1e300, 0.0],
+            "vehicles[0].initial_position_m",
+            "must be within 1e+06 m of the origin",
+        ),
+        (
+            ("events",),
+            [{"kind": "vehicle_lost", "vehicle": 2, "at_s": 1e308}],
+            "events[0]",
+            "after the last step",
+        ),
+    ],
+)
+def test_values_that_would_run_wrong_are_refused_at_their_path(path, value, where, rule):
+    problems = problems_of(edit(path, value))
+    assert any(location == where and rule in message for location, message in problems), problems
+
+
+def test_vehicles_all_starting_at_one_point_are_each_named():
+    data = base()
+    for vehicle in data["vehicles"]:
+        vehicle["initial_position_m"] = [1.0, 1.0]
+    problems = problems_of(data)
+    assert [where for where, _ in problems] == [
+        f"vehicles[{index}].initial_position_m" for index in (1, 2, 3)
+    ]
+    assert all("0 m from vehicles[0] (id 1)" in message for _, message in problems)

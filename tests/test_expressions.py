@@ -30,3 +30,23 @@ def test_expression_evaluates_on_arrays():
 def test_anything_but_arithmetic_is_refused(text, message):
     with pytest.raises(ExpressionError, match=message.replace("(", r"\(").replace(")", r"\)")):
         compile_expression(text)
+
+
+@pytest.mark.parametrize(
+    ("text", "value"),
+    [("1/0", np.inf), ("10**10**10", np.inf), ("-1/0", -np.inf), ("1 % 0", np.nan)],
+)
+def test_arithmetic_gives_floats_and_never_raises(text, value):
+    # Floats throughout: a huge power overflows to inf at once instead of computing an integer
+    # with ten billion digits; whether a value may be infinite is the scenario's check.
+    np.testing.assert_array_equal(compile_expression(text)(np.zeros(2)), [value, value])
+
+
+def test_non_finite_values_come_out_as_they_are():
+    values = compile_expression("log(t - 1)")(np.array([0.0, 1.0, 2.0]))
+    assert np.isnan(values[0]) and values[1] == -np.inf and values[2] == 0.0
+
+
+def test_a_number_too_large_for_a_float_is_refused():
+    with pytest.raises(ExpressionError, match="number too large"):
+        compile_expression("9" * 400)
