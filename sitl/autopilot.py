@@ -17,6 +17,13 @@ parts split the way PX4 splits its modules, which share one
 - :mod:`sitl.commander`: arming, mode switching, failsafes, auto-disarm;
 - :mod:`sitl.navigator`: TAKEOFF, HOLD/reposition, LAND, RTL, MISSION;
 - :mod:`sitl.offboard`: offboard setpoints and their timeout;
+- :mod:`sitl.flight_mode_manager`: the flight tasks of the modes the navigator does not fly:
+  the stick modes (:mod:`sitl.manual_control`, MANUAL_CONTROL input), ORBIT
+  (:mod:`sitl.orbit`, MAV_CMD_DO_ORBIT), FOLLOW_TARGET (:mod:`sitl.follow_target`,
+  FOLLOW_TARGET input);
+- :mod:`sitl.failure_injection`: SYS_FAILURE_EN and MAV_CMD_INJECT_FAILURE, and the same
+  failures for the emulator's fault API;
+- :mod:`sitl.calibration`: MAV_CMD_PREFLIGHT_CALIBRATION and its "[cal]" progress texts;
 - :mod:`sitl.land_detector`: landed / in air.
 
 The parts steer the vehicle only by writing setpoints and limits into its row of the shared
@@ -37,18 +44,25 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from sitl import imu
 from sitl import physics as ph
+from sitl.calibration import CALIBRATION_COMMANDS, Calibration
 from sitl.commander import Commander
+from sitl.commands import bind
 from sitl.config import FlightLogConfig
+from sitl.failure_injection import FAILURE_COMMANDS, FailureInjector, LinkSwitch
 from sitl.flight_log import FlightLogger, FlightLogStore
+from sitl.flight_mode_manager import FlightModeManager
+from sitl.follow_target import FollowTarget
 from sitl.ftp import FileSystem, static_directory
 from sitl.geo import MapProjection
 from sitl.land_detector import LandDetector
+from sitl.manual_control import ManualControl, StickFlight
 from sitl.mavlink_receiver import MavlinkReceiver
 from sitl.mission import MissionTransfer
 from sitl.modes import FlightMode
 from sitl.navigator import Navigator
 from sitl.odometry import Odometry
 from sitl.offboard import Offboard
+from sitl.orbit import ORBIT_COMMANDS, Orbit
 from sitl.params import ParamStore, pack_param_pck
 from sitl.telemetry import TelemetryBuilder
 from sitl.vehicle_state import Link, Snapshot, VehicleContext, VehicleState
@@ -114,7 +128,7 @@ class Px4Autopilot:
         self.telemetry = TelemetryBuilder(self)
         home_latitude_deg, _ = projection.to_global(*self._state.home_ned_m[:2])
         self._earth_field_ned_gauss = imu.earth_field_ned_gauss(home_latitude_deg)
-        self.battery_remaining_pct = 100.0
+        self._battery_pct = 100.0
         self._last_update_s = 0.0
         self._cache_step = -1
         self._cache_global: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -124,13 +138,37 @@ class Px4Autopilot:
         self._land_detector = LandDetector(vehicle)
         self._navigator = Navigator(vehicle, set_mode=self._set_mode)
         self.mission: MissionTransfer = self._navigator.mission
+        self._manual_control = ManualControl(vehicle)
+        stick_flight = StickFlight(vehicle, self._manual_control)
+        self.orbit = Orbit(vehicle, set_mode=self._set_mode)
+        self.follow_target = FollowTarget(vehicle)
+        self._flight_tasks = FlightModeManager(
+            vehicle,
+            {
+                FlightMode.POSCTL: stick_flight,
+                FlightMode.ALTCTL: stick_flight,
+                FlightMode.STABILIZED: stick_flight,
+                FlightMode.MANUAL: stick_flight,
+                FlightMode.ORBIT: self.orbit,
+                FlightMode.FOLLOW_TARGET: self.follow_target,
+            },
+        )
         self._commander = Commander(
             vehicle,
             navigator=self._navigator,
             offboard=self._offboard,
+            manual_control=self._manual_control,
+            flight_tasks=self._flight_tasks,
             land_detector=self._land_detector,
             preflight_ready_after_s=preflight_ready_after_s,
             on_home_changed=self._announce_home,
+        )
+        self._calibration = Calibration(vehicle)
+        self._failures = FailureInjector(
+            vehicle,
+            set_sensor=self.set_sensor,
+            manual_control=self._manual_control,
+            on_motors=self._motors_changed,
         )
         self.flight_logs = FlightLogStore(flight_logs.max_logs if flight_logs else 1)
         self._flight_logger = (
@@ -156,7 +194,17 @@ class Px4Autopilot:
             files=self._file_system(ftp_ardupilot_extensions),
             ftp_echo_session=ftp_ardupilot_extensions,
             flight_logs=self.flight_logs,
+            handlers={
+                "MANUAL_CONTROL": self._manual_control.on_manual_control,
+                "FOLLOW_TARGET": self.follow_target.on_follow_target,
+            },
+            command_tables=[
+                bind(self.orbit, ORBIT_COMMANDS),
+                bind(self._failures, FAILURE_COMMANDS),
+                bind(self._calibration, CALIBRATION_COMMANDS),
+            ],
         )
+        self._receiver.shell.pxh.commands["failure"] = self._failures.shell_command
         self._navigator.apply_limits()
         self._commander.command_physics()
 
@@ -181,6 +229,25 @@ class Px4Autopilot:
     def landed_state(self) -> int:
         """MAV_LANDED_STATE as of the last :meth:`update`."""
         return self._state.landed_state
+
+    @property
+    def battery_remaining_pct(self) -> float:
+        """State of charge, %: 0 while an injected battery failure lasts (PX4 SITL's battery
+        simulator reads empty then)."""
+        return 0.0 if self._state.battery_failed else self._battery_pct
+
+    @battery_remaining_pct.setter
+    def battery_remaining_pct(self, percent: float) -> None:
+        self._battery_pct = percent
+
+    @property
+    def calibrating(self) -> bool:
+        """A calibration runs (PX4: MAV_STATE_CALIBRATING, arming denied)."""
+        return self._state.calibrating
+
+    @property
+    def motors_failed(self) -> bool:
+        return self._state.motors_failed
 
     @property
     def failsafe_active(self) -> bool:
@@ -392,6 +459,27 @@ class Px4Autopilot:
         else:
             raise ValueError(f"unknown sensor {sensor!r}; use 'flow' or 'gps'")
 
+    def inject_failure(self, unit: int, failure_type: int, instance: int = 0) -> bool:
+        """Inject a PX4 failure (FAILURE_UNIT_*, FAILURE_TYPE_*; type OK ends it) as
+        MAV_CMD_INJECT_FAILURE would, whatever SYS_FAILURE_EN; False if unsupported (see
+        :mod:`sitl.failure_injection`)."""
+        if not self._state.alive:
+            return False
+        return self._failures.inject(unit, failure_type, instance)
+
+    def failure_supported(self, unit: int, failure_type: int, instance: int = 0) -> bool:
+        return self._failures.supported(unit, failure_type, instance)
+
+    @property
+    def link_switch(self) -> LinkSwitch | None:
+        """Turns every link of this vehicle on (True) or off, for the mavlink_signal failure;
+        set by whoever owns the links."""
+        return self._failures.link_switch
+
+    @link_switch.setter
+    def link_switch(self, switch: LinkSwitch | None) -> None:
+        self._failures.link_switch = switch
+
     def deny_arming(self, count: int, text: str, retry_window_s: float) -> None:
         """Refuse the next ``count`` arm attempts with STATUSTEXT ``text`` (added to any
         refusals still pending); see :class:`sitl.config.DenyArmingFault`."""
@@ -421,12 +509,14 @@ class Px4Autopilot:
         dt_s = max(now_s - self._last_update_s, 0.0)
         self._last_update_s = now_s
         if state.armed:
-            self.battery_remaining_pct = max(
-                0.0, self.battery_remaining_pct - self.battery_drain_percent_per_min * dt_s / 60.0
+            self._battery_pct = max(
+                0.0, self._battery_pct - self.battery_drain_percent_per_min * dt_s / 60.0
             )
             self._navigator.update(now_s)
+            self._flight_tasks.update(now_s)
             self._commander.update(now_s)
         self.mission.update(now_s)
+        self._calibration.update(now_s)
         if self._flight_logger is not None:
             self._flight_logger.update(now_s)
         self._receiver.pump()
@@ -454,6 +544,11 @@ class Px4Autopilot:
     def _set_mode(self, mode: FlightMode, failsafe: bool = False) -> None:
         """The navigator's way to the commander's mode switch."""
         self._commander.set_mode(mode, failsafe)
+
+    def _motors_changed(self) -> None:
+        vehicle = self._vehicle
+        vehicle.physics.motor_failure[vehicle.index] = self._state.motors_failed
+        self._commander.command_physics()
 
     def _param_changed(self, name: str, value: float) -> None:
         self._navigator.apply_limits()

@@ -9,12 +9,18 @@ shared :class:`sitl.vehicle_state.VehicleState`:
 - mode requests from clients (DO_SET_MODE, SET_MODE, NAV_TAKEOFF/LAND/RETURN_TO_LAUNCH,
   MISSION_START, DO_PAUSE_CONTINUE) with PX4's acceptance rules, and home (DO_SET_HOME);
 - once per step while armed: failsafes (offboard loss -> COM_OBL_RC_ACT, data-link loss ->
-  NAV_DLL_ACT, both position sources lost in flight -> LAND) and auto-disarm after landing
-  (COM_DISARM_LAND) or when never taking off (COM_DISARM_PRFLT).
+  NAV_DLL_ACT, manual-control loss -> NAV_RCL_ACT, empty battery -> COM_LOW_BAT_ACT, both
+  position sources lost in flight -> LAND) and auto-disarm after landing (COM_DISARM_LAND) or
+  when never taking off (COM_DISARM_PRFLT). Like PX4's failsafe framework, a Return or Land
+  action for manual-control loss or an empty battery first holds for COM_FAIL_ACT_T seconds
+  ("Failsafe activated: entering Hold for 5 seconds"); a mode the user picks meanwhile cancels
+  it.
 
 On every mode change it hands control to the part that flies the new mode: the navigator
-(:mod:`sitl.navigator`) for the AUTO modes, offboard (:mod:`sitl.offboard`) for OFFBOARD. The
-land detector (:mod:`sitl.land_detector`) reports touchdowns and take-offs to it.
+(:mod:`sitl.navigator`) for the AUTO modes, offboard (:mod:`sitl.offboard`) for OFFBOARD, the
+flight mode manager (:mod:`sitl.flight_mode_manager`) for ORBIT, FOLLOW_TARGET and the stick
+modes, which need manual control input (:mod:`sitl.manual_control`) to be entered. The land
+detector (:mod:`sitl.land_detector`) reports touchdowns and take-offs to it.
 """
 
 from __future__ import annotations
@@ -27,7 +33,9 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.commands import Command, CommandTable
 from sitl.config import PX4_ARMING_DENIED_TEXT
+from sitl.flight_mode_manager import FlightModeManager
 from sitl.land_detector import LandDetector, LandEvent
+from sitl.manual_control import ManualControl
 from sitl.modes import FlightMode
 from sitl.navigator import Navigator
 from sitl.offboard import Offboard
@@ -54,7 +62,31 @@ _DATALINK_LOSS_ACTIONS: dict[int, FlightMode] = {
     2: FlightMode.RTL,
     3: FlightMode.LAND,
 }
-_MANUAL_MODES = frozenset([FlightMode.MANUAL, FlightMode.ALTCTL, FlightMode.POSCTL])
+# NAV_RCL_ACT shares NAV_DLL_ACT's values.
+_RC_LOSS_ACTIONS = _DATALINK_LOSS_ACTIONS
+# COM_RCL_EXCEPT bits (PX4 LinkLossExceptionBits) and the modes each one spares.
+_RCL_EXCEPT_MODES: dict[int, frozenset[FlightMode]] = {
+    1 << 0: frozenset([FlightMode.MISSION]),
+    1 << 1: frozenset(
+        [
+            FlightMode.HOLD,
+            FlightMode.TAKEOFF,
+            FlightMode.LAND,
+            FlightMode.RTL,
+            FlightMode.FOLLOW_TARGET,
+            FlightMode.ORBIT,
+        ]
+    ),
+    1 << 2: frozenset([FlightMode.OFFBOARD]),
+}
+# COM_LOW_BAT_ACT values that land when the battery is empty (2 Land, 3 Return then land).
+_LOW_BATTERY_LANDS = frozenset([2, 3])
+# Modes PX4 will not arm in (mode_req_prevent_arming); its health checks say so generically.
+_NO_ARMING_MODES = frozenset([FlightMode.ORBIT, FlightMode.FOLLOW_TARGET])
+# PX4's commander: throttle stick (zero-centred) above this is "above center" ...
+_THROTTLE_ABOVE_CENTER = 0.2
+# ... and below this "low".
+_THROTTLE_LOW = -0.8
 
 
 @dataclass(slots=True)
@@ -81,6 +113,8 @@ class Commander:
         *,
         navigator: Navigator,
         offboard: Offboard,
+        manual_control: ManualControl,
+        flight_tasks: FlightModeManager,
         land_detector: LandDetector,
         preflight_ready_after_s: float,
         on_home_changed: Callable[[], None],
@@ -90,6 +124,8 @@ class Commander:
         self._params = vehicle.params
         self._navigator = navigator
         self._offboard = offboard
+        self._manual = manual_control
+        self._flight_tasks = flight_tasks
         self._land_detector = land_detector
         self.preflight_ready_after_s = preflight_ready_after_s
         self._on_home_changed = on_home_changed
@@ -98,6 +134,10 @@ class Commander:
         self._flown_since_arm = False
         self._gcs_last_heartbeat_s: float | None = None
         self._gcs_lost = False
+        self._rc_lost = False
+        self._rc_lost_at_arming = True  # manual control absent when armed: its loss is no news
+        self._battery_empty = False
+        self._delayed_action: tuple[FlightMode | None, float] | None = None
 
     def ready(self, now_s: float) -> bool:
         """Preflight checks pass: estimator converged, a position source works, alive."""
@@ -159,12 +199,32 @@ class Commander:
         refusal.last_at_s = now_s
         return True
 
+    def _stick_arming_denial(self) -> str | None:
+        """PX4's arming checks that concern the mode and the sticks (texts as PX4's, tab
+        included); None when they pass."""
+        mode = self._state.mode
+        if mode in _NO_ARMING_MODES:
+            return PX4_ARMING_DENIED_TEXT + "\t"
+        if not (mode.stick_controlled and self._manual.signal_fresh()):
+            return None
+        throttle = self._manual.sticks.throttle
+        if mode in (FlightMode.POSCTL, FlightMode.ALTCTL):
+            if throttle > _THROTTLE_ABOVE_CENTER:
+                return "Arming denied: throttle above center\t"
+        elif throttle >= _THROTTLE_LOW:
+            return "Arming denied: high throttle\t"
+        return None
+
     def _arm(self, now_s: float) -> None:
         self._state.armed = True
         self._armed_at_s = now_s
         self._flown_since_arm = False
         self._state.failsafe_active = False
         self._gcs_lost = False
+        self._rc_lost_at_arming = not self._manual.signal_fresh()
+        self._rc_lost = self._rc_lost_at_arming
+        self._battery_empty = self._state.battery_failed
+        self._delayed_action = None
         self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Armed by external command")
         self.command_physics()
 
@@ -182,8 +242,11 @@ class Commander:
         if mode is state.mode:
             return mavlink.MAV_RESULT_ACCEPTED
         denial = None
-        if mode in _MANUAL_MODES:
-            denial = "Switching denied: no manual control input"
+        if mode.stick_controlled and not self._manual.signal_fresh():
+            # PX4's printRejectMode (the tab marks texts that PX4 also sends as events).
+            denial = f"Switching to {mode.display_name} is currently not available\t"
+        elif mode is FlightMode.FOLLOW_TARGET and not state.position_ok:
+            denial = f"Switching to {mode.display_name} is currently not available\t"
         elif mode is FlightMode.OFFBOARD and not self._offboard.signal_fresh():
             denial = "Switching to Offboard denied: no setpoints"
         elif mode is FlightMode.MISSION and not self._navigator.has_mission:
@@ -193,6 +256,7 @@ class Commander:
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         if mode is FlightMode.TAKEOFF:
             self._navigator.set_takeoff_altitude(self._params["MIS_TAKEOFF_ALT"])
+        self._delayed_action = None  # the user takes over from a failsafe's hold
         self.set_mode(mode)
         return mavlink.MAV_RESULT_ACCEPTED
 
@@ -209,7 +273,7 @@ class Commander:
         """Hand this vehicle's physics row to whatever flies the current state."""
         state = self._state
         vehicle = self._vehicle
-        if not state.alive:
+        if not state.alive or state.motors_failed:
             vehicle.motors_off()
             return
         if not state.armed:
@@ -218,6 +282,8 @@ class Commander:
             return
         if state.mode is FlightMode.OFFBOARD:
             self._offboard.apply()
+        elif self._flight_tasks.flies(state.mode):
+            self._flight_tasks.activate()
         else:
             self._navigator.enter_mode()
 
@@ -256,9 +322,70 @@ class Commander:
             action = int(p["NAV_DLL_ACT"])
             if action != _DATALINK_LOSS_NONE:
                 self._failsafe(_DATALINK_LOSS_ACTIONS.get(action))
+        self._check_manual_control_loss(now_s)
+        self._check_battery(now_s)
         if not state.position_ok and not state.landed and state.mode is not FlightMode.LAND:
             statustext(now_s, critical, "Failsafe activated: no position, landing")
             self._failsafe(FlightMode.LAND)
+        delayed = self._delayed_action
+        if delayed is not None and now_s >= delayed[1]:
+            self._delayed_action = None
+            statustext(now_s, critical, "Failsafe activated\t")
+            self._failsafe(delayed[0])
+
+    def _check_manual_control_loss(self, now_s: float) -> None:
+        """PX4: manual control lost for COM_RC_LOSS_T -> NAV_RCL_ACT, unless it was already
+        missing at arming (then only once it has come and gone again) or COM_RCL_EXCEPT
+        spares the mode."""
+        p = self._params
+        lost = not self._manual.signal_fresh()
+        if not lost:
+            self._rc_lost_at_arming = False
+        was_lost, self._rc_lost = self._rc_lost, lost
+        if not lost or was_lost or self._rc_lost_at_arming:
+            return
+        if int(p["COM_RC_IN_MODE"]) == 4:
+            return
+        exceptions = int(p["COM_RCL_EXCEPT"])
+        mode = self._state.mode
+        if any(exceptions & bit and mode in modes for bit, modes in _RCL_EXCEPT_MODES.items()):
+            return
+        action = int(p["NAV_RCL_ACT"])
+        if action == _DATALINK_LOSS_NONE:
+            return
+        self._failsafe_after_hold(_RC_LOSS_ACTIONS.get(action), now_s)
+
+    def _check_battery(self, now_s: float) -> None:
+        """An empty battery (PX4 SITL: an injected battery failure) in flight lands, per
+        COM_LOW_BAT_ACT, after PX4's warnings."""
+        state = self._state
+        if not state.battery_failed:
+            self._battery_empty = False
+            return
+        if self._battery_empty or state.landed:
+            return
+        self._battery_empty = True
+        statustext = self._vehicle.statustext
+        statustext(now_s, mavlink.MAV_SEVERITY_CRITICAL, "Low battery\t")
+        if int(self._params["COM_LOW_BAT_ACT"]) in _LOW_BATTERY_LANDS:
+            self._failsafe_after_hold(FlightMode.LAND, now_s)
+        statustext(now_s, mavlink.MAV_SEVERITY_EMERGENCY, "Emergency battery level\t")
+
+    def _failsafe_after_hold(self, mode: FlightMode | None, now_s: float) -> None:
+        """PX4's failsafe framework: a Return or Land action first holds for COM_FAIL_ACT_T
+        seconds, in which the user may take over; Hold and Disarm act at once."""
+        delay = self._params["COM_FAIL_ACT_T"]
+        critical = mavlink.MAV_SEVERITY_CRITICAL
+        if mode in (FlightMode.RTL, FlightMode.LAND) and delay > 0.1 and not self._state.landed:
+            seconds = int(delay + 0.5)
+            self._vehicle.statustext(
+                now_s, critical, f"Failsafe activated: entering Hold for {seconds} seconds\t"
+            )
+            self._delayed_action = (mode, now_s + delay)
+            self._failsafe(FlightMode.HOLD)
+            return
+        self._vehicle.statustext(now_s, critical, "Failsafe activated\t")
+        self._failsafe(mode)
 
     def _failsafe(self, mode: FlightMode | None) -> None:
         """Switch to ``mode`` as a failsafe; None means terminate/disarm."""
@@ -294,6 +421,9 @@ class Commander:
         if p1 == _ARM:
             if state.armed:
                 return mavlink.MAV_RESULT_ACCEPTED
+            if state.calibrating:  # PX4 checks this before anything else, forced or not
+                statustext(now, critical, "Arming denied: calibrating\t")
+                return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
             if not force:
                 if not self.ready(now):
                     reason = "estimator not ready" if state.position_ok else "no position"
@@ -301,6 +431,10 @@ class Commander:
                     return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
                 if state.mode is FlightMode.OFFBOARD and not self._offboard.signal_fresh():
                     statustext(now, critical, "Arming denied: no offboard signal")
+                    return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+                denial = self._stick_arming_denial()
+                if denial is not None:
+                    statustext(now, critical, denial)
                     return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
             if self._injected_arm_refusal(cmd, link, now):
                 # PX4's commander: mavlink_log_critical(... "\t"), then TRANSITION_DENIED,

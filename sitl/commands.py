@@ -8,6 +8,7 @@ and acknowledges every copy it receives; commands nobody handles are acknowledge
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import TypeVar
@@ -22,6 +23,9 @@ Owner = TypeVar("Owner")
 CommandHandler = Callable[["Command", Link], int]
 #: MAV_CMD -> handler (an unbound method of the part that owns the command).
 CommandTable = Mapping[int, Callable[[Owner, "Command", Link], int]]
+
+# COMMAND_INT x/y: INT32_MAX means "not given" (MAVLink spec; pymavlink has no constant for it).
+_INT32_MAX = 2**31 - 1
 
 #: Commands PX4 also answers when they are sent to every system (target_system 0).
 _BROADCAST_COMMANDS = frozenset(
@@ -39,6 +43,16 @@ class Command:
     x_int: int = 0
     y_int: int = 0
     source: tuple[int, int] = (0, 0)  # sender's system and component id
+
+    def latitude_longitude(self) -> tuple[float, float] | None:
+        """(latitude, longitude) in degrees of params 5/6: COMMAND_INT's x/y in degE7,
+        COMMAND_LONG's floats; None when not given (INT32_MAX or NaN, as the spec says)."""
+        if self.frame is None:
+            lat, lon = self.params[4], self.params[5]
+            return (lat, lon) if math.isfinite(lat) and math.isfinite(lon) else None
+        if _INT32_MAX in (self.x_int, self.y_int):
+            return None
+        return self.x_int * 1e-7, self.y_int * 1e-7
 
 
 def bind(owner: Owner, table: CommandTable[Owner]) -> dict[int, CommandHandler]:

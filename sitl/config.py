@@ -670,6 +670,31 @@ class SensorFault(_Model):
     )
 
 
+class FailureFault(_Model):
+    """A PX4 failure, as MAV_CMD_INJECT_FAILURE (or PX4's ``failure`` shell command) injects it:
+    gps / optical_flow / battery / rc_signal / mavlink_signal off, motor off (instance 1-8, 0
+    all); see :mod:`sitl.failure_injection`."""
+
+    kind: Literal["failure"] = Field(title="Kind", description="Fault kind discriminator.")
+    vehicle_index: int = Field(ge=0, title="Vehicle", description="0-based index (sysid - 1).")
+    unit: Literal["gps", "optical_flow", "motor", "battery", "rc_signal", "mavlink_signal"] = Field(
+        title="Failure unit", description="PX4's name of the failing unit."
+    )
+    type: Literal["off", "stuck", "wrong", "ok"] = Field(
+        "off",
+        title="Failure type",
+        description="off: the unit stops; stuck/wrong: motors only (no effect without ESC "
+        "telemetry); ok: ends an earlier failure.",
+    )
+    instance: int = Field(
+        0, ge=0, le=8, title="Instance", description="Motor 1-8, 0 for all (others: 0)."
+    )
+    at_s: float = Field(ge=0.0, title="Start", description="Simulated start time, s.")
+    duration_s: float | None = Field(
+        None, gt=0.0, title="Duration", description="How long, s (None: for good)."
+    )
+
+
 PX4_ARMING_DENIED_TEXT = "Arming denied: Resolve system health failures first"
 """What PX4's commander says when its health and arming checks refuse an arm command."""
 
@@ -710,7 +735,8 @@ class DenyArmingFault(_Model):
 
 
 Fault = Annotated[
-    KillFault | LinkDropFault | SensorFault | DenyArmingFault, Field(discriminator="kind")
+    KillFault | LinkDropFault | SensorFault | DenyArmingFault | FailureFault,
+    Field(discriminator="kind"),
 ]
 
 

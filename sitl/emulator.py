@@ -13,8 +13,9 @@ updates, ``physics.step(dt)``, odometry drift, GPS error, step listeners, due te
 For a world module (ranging, moving target, sensor faults published on a bus) there are
 :meth:`Emulator.add_step_listener` - called after every step with ``(time_s, truth)`` - and the
 read-only :attr:`Emulator.truth`. Faults: :meth:`Emulator.kill_vehicle`,
-:meth:`Emulator.drop_link`, :meth:`Emulator.fail_sensor`, :meth:`Emulator.deny_arming` (now or
-at a simulated time).
+:meth:`Emulator.drop_link`, :meth:`Emulator.inject_failure` (PX4's failure units and types, the
+same failures MAV_CMD_INJECT_FAILURE injects; :meth:`Emulator.fail_sensor` is a short form),
+:meth:`Emulator.deny_arming` (now or at a simulated time).
 
 Like PX4 SITL, every vehicle can have a third link, SIH's ground-truth stream
 (``config.truth_stream``), and its own boot clock (``config.boot_clock``); everything inside the
@@ -52,12 +53,14 @@ from sitl.config import (
     PX4_ARMING_DENIED_TEXT,
     DenyArmingFault,
     EmulatorConfig,
+    FailureFault,
     KillFault,
     LinkDropFault,
     SensorFault,
     StreamRates,
 )
 from sitl.errors import EmulatorStateError, PortInUseError, SitlTimeoutError
+from sitl.failure_injection import SUPPORTED, TYPES, UNITS, describe
 from sitl.geo import MapProjection
 from sitl.gnss import GnssError
 from sitl.link import VehicleLink
@@ -70,6 +73,7 @@ logger = logging.getLogger(__name__)
 
 LinkName = Literal["api", "gcs", "all"]
 SensorName = Literal["flow", "gps"]
+_SENSOR_UNITS: dict[str, str] = {"flow": "optical_flow", "gps": "gps"}
 
 _LOCKSTEP_BATCH_STEPS = 10
 #: Steps run back to back before datagrams get a turn, when real time has run ahead.
@@ -564,6 +568,20 @@ class Emulator:
                 self._all_links.append(link)
             self._links.append(links)
             ap.links = list(links)
+            ap.link_switch = self._mavlink_signal_switch(i)
+
+    def _mavlink_signal_switch(self, index: int) -> Callable[[bool], None]:
+        """The mavlink_signal failure of vehicle ``index``: all of its links, from the next
+        step on (so the acknowledgement of the command that asked for it still goes out)."""
+
+        def switch(up: bool) -> None:
+            self._at(
+                self.time_s + 0.5 * self._dt_s,
+                lambda: self._set_links_up(index, "all", up),
+                f"{'restore' if up else 'drop'} every link of vehicle {index}",
+            )
+
+        return switch
 
     def _deliver_to(self, ap: Px4Autopilot) -> Callable[..., None]:
         def deliver(msg: object, link: VehicleLink) -> None:
@@ -826,20 +844,18 @@ class Emulator:
             raise ValueError(f"unknown link {link!r}; use 'api', 'gcs' or 'all'")
 
         def set_up(up: bool) -> Callable[[], None]:
-            def apply() -> None:
-                for vehicle_link in self._links[index]:
-                    if link in ("all", vehicle_link.name):
-                        vehicle_link.up = up
-                self.events.append(
-                    (self.time_s, index, f"{link} link {'restored' if up else 'dropped'}")
-                )
-
-            return apply
+            return lambda: self._set_links_up(index, link, up)
 
         start = self.time_s if at_s is None else at_s
         self._at(at_s, set_up(False), f"drop {link} link of vehicle {index}")
         if duration_s is not None:
             self._at(start + duration_s, set_up(True), f"restore {link} link of vehicle {index}")
+
+    def _set_links_up(self, index: int, link: LinkName, up: bool) -> None:
+        for vehicle_link in self._links[index] if self._links else []:
+            if link in ("all", vehicle_link.name):
+                vehicle_link.up = up
+        self.events.append((self.time_s, index, f"{link} link {'restored' if up else 'dropped'}"))
 
     def fail_sensor(
         self,
@@ -849,24 +865,57 @@ class Emulator:
         duration_s: float | None = None,
     ) -> None:
         """Sensor ``"flow"`` or ``"gps"`` of vehicle ``index`` stops from ``at_s`` (default now)
-        for ``duration_s`` (default: for good)."""
-        ap = self._autopilot(index)
-        if sensor not in ("flow", "gps"):
+        for ``duration_s`` (default: for good): the failure ``optical_flow`` or ``gps``
+        ``off`` of :meth:`inject_failure`."""
+        if sensor not in _SENSOR_UNITS:
             raise ValueError(f"unknown sensor {sensor!r}; use 'flow' or 'gps'")
+        self.inject_failure(index, _SENSOR_UNITS[sensor], "off", at_s=at_s, duration_s=duration_s)
 
-        def set_ok(ok: bool) -> Callable[[], None]:
+    def inject_failure(
+        self,
+        index: int,
+        unit: str,
+        failure_type: str = "off",
+        *,
+        instance: int = 0,
+        at_s: float | None = None,
+        duration_s: float | None = None,
+    ) -> None:
+        """Inject PX4's failure ``unit`` / ``failure_type`` (PX4's names, as its ``failure``
+        shell command takes them: ``gps off``, ``motor off`` with ``instance`` 1-8 or 0 for
+        all, ``battery off``, ``optical_flow``, ``rc_signal``, ``mavlink_signal``; ``ok`` ends
+        a failure) into vehicle ``index`` from ``at_s`` (default now), for ``duration_s``
+        (default: until an ``ok``). It is what MAV_CMD_INJECT_FAILURE does (see
+        :mod:`sitl.failure_injection`), without the SYS_FAILURE_EN check; a combination the
+        emulator cannot inject raises ``ValueError`` naming those it can.
+        """
+        ap = self._autopilot(index)
+        if unit not in UNITS:
+            raise ValueError(f"unknown failure unit {unit!r}; PX4's are {sorted(UNITS)}")
+        if failure_type not in TYPES:
+            raise ValueError(f"unknown failure type {failure_type!r}; PX4's are {sorted(TYPES)}")
+        unit_id, type_id = UNITS[unit], TYPES[failure_type]
+        if not ap.failure_supported(unit_id, type_id, instance):
+            supported = ", ".join(
+                describe(u, t) for u, types in SUPPORTED.items() for t in sorted(types)
+            )
+            raise ValueError(
+                f"the emulator cannot inject {unit} {failure_type} (instance {instance}); it "
+                f"can: {supported} (motor instances 0-8, battery instance 0)"
+            )
+
+        def inject(type_id: int) -> Callable[[], None]:
             def apply() -> None:
-                ap.set_sensor(sensor, ok, self.time_s)
-                self.events.append(
-                    (self.time_s, index, f"{sensor} {'restored' if ok else 'failed'}")
-                )
+                ap.inject_failure(unit_id, type_id, instance)
+                self.events.append((self.time_s, index, describe(unit_id, type_id)))
 
             return apply
 
+        what = f"{unit} {failure_type} on vehicle {index}"
         start = self.time_s if at_s is None else at_s
-        self._at(at_s, set_ok(False), f"fail {sensor} of vehicle {index}")
-        if duration_s is not None:
-            self._at(start + duration_s, set_ok(True), f"restore {sensor} of vehicle {index}")
+        self._at(at_s, inject(type_id), what)
+        if duration_s is not None and type_id != TYPES["ok"]:
+            self._at(start + duration_s, inject(TYPES["ok"]), f"{unit} ok on vehicle {index}")
 
     def deny_arming(
         self,
@@ -897,9 +946,12 @@ class Emulator:
         self._at(at_s, deny, f"deny arming of vehicle {index} x{count}")
 
     def _schedule_fault(
-        self, fault: KillFault | LinkDropFault | SensorFault | DenyArmingFault
+        self, fault: KillFault | LinkDropFault | SensorFault | DenyArmingFault | FailureFault
     ) -> None:
-        if isinstance(fault, KillFault):
+        if isinstance(fault, FailureFault):
+            when = fault.model_dump(include={"instance", "at_s", "duration_s"})
+            self.inject_failure(fault.vehicle_index, fault.unit, fault.type, **when)
+        elif isinstance(fault, KillFault):
             self.kill_vehicle(fault.vehicle_index, fault.at_s)
         elif isinstance(fault, LinkDropFault):
             self.drop_link(fault.vehicle_index, fault.link, fault.at_s, fault.duration_s)

@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.commander import COMMANDER_COMMANDS, Commander
-from sitl.commands import Command, CommandDispatcher, CommandTable, bind
+from sitl.commands import Command, CommandDispatcher, CommandHandler, CommandTable, bind
 from sitl.flight_log import FlightLogStore
 from sitl.ftp import FileSystem, FtpServer
 from sitl.log_handler import LogHandler
@@ -55,7 +55,9 @@ class MavlinkReceiver:
     """Routes one vehicle's incoming messages; answers parameters, pings and message requests.
 
     ``boot_time_s(now_s)`` is the autopilot's boot clock (for TIMESYNC); ``telemetry`` builds
-    the messages that commands ask for.
+    the messages that commands ask for. ``handlers`` (message type -> handler) and
+    ``command_tables`` (bound, see :func:`sitl.commands.bind`) route what the other parts of
+    the autopilot own.
     """
 
     def __init__(
@@ -70,6 +72,8 @@ class MavlinkReceiver:
         files: FileSystem | None = None,
         ftp_echo_session: bool = False,
         flight_logs: FlightLogStore | None = None,
+        handlers: Mapping[str, MessageHandler] | None = None,
+        command_tables: Iterable[Mapping[int, CommandHandler]] = (),
     ) -> None:
         self._vehicle = vehicle
         self._files = files if files is not None else FileSystem()
@@ -85,6 +89,7 @@ class MavlinkReceiver:
                 bind(commander, COMMANDER_COMMANDS),
                 bind(navigator, NAVIGATOR_COMMANDS),
                 bind(self, RECEIVER_COMMANDS),
+                *command_tables,
             ],
         )
         self._mission = navigator.mission
@@ -115,6 +120,7 @@ class MavlinkReceiver:
             vehicle, Pxh(vehicle, lambda name: vehicle.broadcast(self._param_value(name)))
         )
         self._handlers["SERIAL_CONTROL"] = self.shell.on_serial_control
+        self._handlers.update(handlers or {})
 
     def handle(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         """React to one decoded message received on ``link``."""

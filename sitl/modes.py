@@ -25,20 +25,39 @@ class AutoSubMode(enum.IntEnum):
     MISSION = 4
     RTL = 5
     LAND = 6
+    FOLLOW_TARGET = 8
+
+
+class PosctlSubMode(enum.IntEnum):
+    POSCTL = 0
+    ORBIT = 1
 
 
 class FlightMode(enum.Enum):
     """The PX4 modes the emulator flies, with their (main, sub) pair."""
 
     MANUAL = (MainMode.MANUAL, 0)
+    STABILIZED = (MainMode.STABILIZED, 0)
     ALTCTL = (MainMode.ALTCTL, 0)
-    POSCTL = (MainMode.POSCTL, 0)
+    POSCTL = (MainMode.POSCTL, PosctlSubMode.POSCTL)
+    ORBIT = (MainMode.POSCTL, PosctlSubMode.ORBIT)
     OFFBOARD = (MainMode.OFFBOARD, 0)
     TAKEOFF = (MainMode.AUTO, AutoSubMode.TAKEOFF)
     HOLD = (MainMode.AUTO, AutoSubMode.LOITER)
     MISSION = (MainMode.AUTO, AutoSubMode.MISSION)
     RTL = (MainMode.AUTO, AutoSubMode.RTL)
     LAND = (MainMode.AUTO, AutoSubMode.LAND)
+    FOLLOW_TARGET = (MainMode.AUTO, AutoSubMode.FOLLOW_TARGET)
+
+    @property
+    def display_name(self) -> str:
+        """The name PX4's commander uses in its texts (``mode_util::nav_state_names``)."""
+        return _DISPLAY_NAMES[self]
+
+    @property
+    def stick_controlled(self) -> bool:
+        """Flown by the pilot's sticks: PX4 needs manual control input to enter it."""
+        return self in _STICK_MODES
 
     @property
     def custom_mode(self) -> int:
@@ -49,7 +68,9 @@ class FlightMode(enum.Enum):
     def from_main_sub(cls, main: int, sub: int) -> FlightMode | None:
         """The mode DO_SET_MODE(main, sub) asks for, or None if PX4 has no such mode here.
 
-        AUTO without a sub mode, or AUTO READY, means HOLD in PX4.
+        AUTO without a sub mode, or AUTO READY, means HOLD in PX4. PX4's commander ignores the
+        sub mode of the other main modes: POSCTL with sub mode ORBIT is plain POSCTL (orbiting
+        takes MAV_CMD_DO_ORBIT).
         """
         if main == MainMode.AUTO and sub in (0, AutoSubMode.READY):
             return cls.HOLD
@@ -65,6 +86,24 @@ class FlightMode(enum.Enum):
         return cls.from_main_sub((custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF)
 
 
+_DISPLAY_NAMES = {
+    FlightMode.MANUAL: "Manual",
+    FlightMode.STABILIZED: "Stabilized",
+    FlightMode.ALTCTL: "Altitude",
+    FlightMode.POSCTL: "Position",
+    FlightMode.ORBIT: "Orbit",
+    FlightMode.OFFBOARD: "Offboard",
+    FlightMode.TAKEOFF: "Takeoff",
+    FlightMode.HOLD: "Hold",
+    FlightMode.MISSION: "Mission",
+    FlightMode.RTL: "Return",
+    FlightMode.LAND: "Land",
+    FlightMode.FOLLOW_TARGET: "Follow Target",
+}
+_STICK_MODES = frozenset(
+    [FlightMode.MANUAL, FlightMode.STABILIZED, FlightMode.ALTCTL, FlightMode.POSCTL]
+)
+
 #: HEARTBEAT.base_mode bits.
 MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
 MAV_MODE_FLAG_STABILIZE_ENABLED = 16
@@ -75,7 +114,11 @@ MAV_MODE_FLAG_SAFETY_ARMED = 128
 
 
 def base_mode(mode: FlightMode, armed: bool) -> int:
-    """HEARTBEAT.base_mode PX4 sends for ``mode`` (flags as set by PX4's commander)."""
+    """HEARTBEAT.base_mode PX4 sends for ``mode`` (flags as set by PX4's commander).
+
+    ORBIT and FOLLOW_TARGET are neither manual nor auto in PX4's control-mode flags (sticks
+    may adjust them): they carry the stabilize flag alone.
+    """
     flags = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | MAV_MODE_FLAG_STABILIZE_ENABLED
     if mode in (
         FlightMode.TAKEOFF,
@@ -86,7 +129,7 @@ def base_mode(mode: FlightMode, armed: bool) -> int:
         FlightMode.OFFBOARD,
     ):
         flags |= MAV_MODE_FLAG_AUTO_ENABLED | MAV_MODE_FLAG_GUIDED_ENABLED
-    else:
+    elif mode.stick_controlled:
         flags |= MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
     if armed:
         flags |= MAV_MODE_FLAG_SAFETY_ARMED

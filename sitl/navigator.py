@@ -17,15 +17,11 @@ from typing import Protocol
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl import physics as ph
 from sitl.commands import Command, CommandTable
 from sitl.mission import RELATIVE_ALT_FRAMES, MissionItem, MissionTransfer
 from sitl.modes import FlightMode
 from sitl.vehicle_state import Link, VehicleContext
 
-# COMMAND_INT x/y of DO_REPOSITION: INT32_MAX means "keep the current position" (MAVLink spec;
-# pymavlink has no constant for it).
-_INT32_MAX = 2**31 - 1
 # MISSION_CURRENT.mission_mode (a plain field, no MAVLink enum).
 _MISSION_MODE_ACTIVE = 1
 _MISSION_MODE_SUSPENDED = 2
@@ -200,13 +196,7 @@ class Navigator:
 
     # ============================================================== steering
     def _fly_to(self, target_ned_m: list[float], yaw_rad: float) -> None:
-        i = self._vehicle.index
-        phys = self._vehicle.physics
-        phys.control_mode[i] = ph.POSITION
-        phys.position_setpoint_ned_m[i] = target_ned_m
-        phys.velocity_feedforward_ned_m_s[i] = 0.0
-        phys.yaw_setpoint_rad[i] = yaw_rad
-        phys.yaw_rate_setpoint_rad_s[i] = math.nan
+        self._vehicle.fly_to(target_ned_m, yaw_rad=yaw_rad)
 
     def _hold_here(self) -> None:
         """Brake and hold: target the stopping point of the current motion."""
@@ -263,13 +253,9 @@ class Navigator:
         p = cmd.params
         pos = vehicle.position_ned()
         target = list(pos)
-        if cmd.frame is None:
-            lat, lon = p[4], p[5]
-            valid_xy = math.isfinite(lat) and math.isfinite(lon)
-        else:
-            valid_xy = _INT32_MAX not in (cmd.x_int, cmd.y_int)
-            lat, lon = cmd.x_int * 1e-7, cmd.y_int * 1e-7
-        if valid_xy:
+        given = cmd.latitude_longitude()  # not given: keep the current position
+        if given is not None:
+            lat, lon = given
             if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
                 return mavlink.MAV_RESULT_DENIED
             target[0], target[1] = vehicle.projection.to_local(lat, lon)

@@ -1,12 +1,14 @@
 """PX4 parameters the emulated vehicles know, and the parameter store each vehicle keeps.
 
 The table has two parts. ``_FLOWN`` holds the parameters that drive the emulator's behaviour:
-speed and acceleration limits (MPC_*), take-off / RTL altitudes, failsafe timeouts and actions;
-their defaults follow PX4 v1.14/v1.15 multicopter defaults, except where the emulator has no RC
-and PX4 SITL would refuse to fly without changing them (COM_RC_IN_MODE). ``_REPORTED`` holds the
-ones clients read or set in their common workflows (QGroundControl's setup pages, MAVSDK's
-plugins, MAVProxy), with PX4's types and ranges (from PX4's parameter metadata) and the values
-PX4 SITL (SIH quadrotor) reports, stored and echoed only.
+speed and acceleration limits (MPC_*), take-off / RTL altitudes, failsafe timeouts and actions,
+the stick modes (MPC_VEL_MANUAL, MPC_MAN_*, MAN_DEADZONE), orbit (MC_ORBIT_*), follow-me
+(FLW_TGT_*) and failure injection (SYS_FAILURE_EN); their defaults follow PX4 v1.14/v1.15
+multicopter defaults, and PX4 SITL's start script where it changes them (COM_RC_IN_MODE 1:
+sticks from MAVLink MANUAL_CONTROL only; SYS_FAILURE_EN 1; COM_LOW_BAT_ACT 3).
+``_REPORTED`` holds the ones clients read or set in their common workflows (QGroundControl's
+setup pages, MAVSDK's plugins, MAVProxy), with PX4's types and ranges (from PX4's parameter
+metadata) and the values PX4 SITL (SIH quadrotor) reports, stored and echoed only.
 
 Ranges are PX4's where PX4 gives them; PX4 lists no bounds for some of the parameters the
 emulator flies by, which it bounds itself (e.g. MIS_TAKEOFF_ALT <= 80 m). Unlike PX4, a value out
@@ -102,6 +104,8 @@ _FLOWN: list[ParamSpec] = [
         300,
         "Seconds without a GCS/API heartbeat before the data link counts as lost",
     ),
+    _p("COM_FAIL_ACT_T", "REAL32", 5.0, 0.0, 25.0, "Failsafe hold before return or land, s"),
+    _p("COM_LOW_BAT_ACT", "INT32", 3, 0, 3, "Empty battery: 0 warn only, 2 or 3 land"),
     _p(
         "COM_OBL_RC_ACT",
         "INT32",
@@ -118,9 +122,20 @@ _FLOWN: list[ParamSpec] = [
         60.0,
         "Seconds without offboard setpoints before offboard counts as lost",
     ),
-    _p("COM_RC_IN_MODE", "INT32", 4, 0, 4, "RC input mode (4: stick input disabled)"),
+    _p("COM_RCL_EXCEPT", "INT32", 0, 0, 31, "RC loss ignored in: 1 mission, 2 auto, 4 offboard"),
+    _p("COM_RC_IN_MODE", "INT32", 1, 0, 8, "Sticks: MANUAL_CONTROL unless 0 (RC only), 4 (none)"),
+    _p("COM_RC_LOSS_T", "REAL32", 0.5, 0.0, 35.0, "Manual control loss timeout, s"),
+    _p("FLW_TGT_ALT_M", "INT32", 0, 0, 2, "Follow-me height above: 0 home, 1 ground, 2 target"),
+    _p("FLW_TGT_DST", "REAL32", 8.0, 1.0, 100.0, "Follow-me distance to the target, m"),
+    _p("FLW_TGT_FA", "REAL32", 180.0, -180.0, 180.0, "Follow-me angle from the course, deg"),
+    _p("FLW_TGT_HT", "REAL32", 8.0, 8.0, 100.0, "Follow-me height, m"),
+    _p("FLW_TGT_MAX_VEL", "REAL32", 5.0, 0.0, 20.0, "Follow-me speed around the target, m/s"),
+    _p("FLW_TGT_RS", "REAL32", 0.1, 0.0, 1.0, "Follow-me target smoothing (lower: faster)"),
+    _p("MAN_DEADZONE", "REAL32", 0.1, 0.0, 1.0, "Stick deadzone, fraction of the travel"),
     _p("MAV_COMP_ID", "INT32", 1, 1, 250, "Autopilot component id"),
     _p("MAV_SYS_ID", "INT32", 1, 1, 250, "System id (set per vehicle, read only here)"),
+    _p("MC_ORBIT_RAD_MAX", "REAL32", 1000.0, 1.0, 10000.0, "Largest orbit radius, m"),
+    _p("MC_ORBIT_YAW_MOD", "INT32", 0, 0, 4, "Orbit yaw when not commanded (ORBIT_YAW_BEHAVIOUR)"),
     _p(
         "MIS_TAKEOFF_ALT",
         "REAL32",
@@ -140,7 +155,10 @@ _FLOWN: list[ParamSpec] = [
     ),
     _p("MPC_ACC_UP_MAX", "REAL32", 4.0, 2.0, 15.0, "Maximum upward accel, m/s^2"),
     _p("MPC_LAND_SPEED", "REAL32", 0.7, 0.6, 4.0, "Landing descent speed, m/s"),
+    _p("MPC_MAN_TILT_MAX", "REAL32", 35.0, 1.0, 70.0, "Full-stick tilt in Altitude mode, deg"),
+    _p("MPC_MAN_Y_MAX", "REAL32", 150.0, 0.0, 400.0, "Full-stick yaw rate, deg/s"),
     _p("MPC_TKO_SPEED", "REAL32", 1.5, 1.0, 5.0, "Take-off climb speed, m/s"),
+    _p("MPC_VEL_MANUAL", "REAL32", 10.0, 3.0, 20.0, "Full-stick speed in Position mode, m/s"),
     _p(
         "MPC_XY_CRUISE",
         "REAL32",
@@ -177,6 +195,7 @@ _FLOWN: list[ParamSpec] = [
         "Data link loss action: 0 off, 1 hold, 2 return, 3 land, 5-6 disarm",
     ),
     _p("NAV_MC_ALT_RAD", "REAL32", 0.8, 0.05, 200.0, "Waypoint altitude acceptance, m"),
+    _p("NAV_RCL_ACT", "INT32", 2, 1, 6, "Manual control loss: 1 hold, 2 return, 3 land, 6 disarm"),
     _p(
         "RTL_DESCEND_ALT",
         "REAL32",
@@ -202,6 +221,7 @@ _FLOWN: list[ParamSpec] = [
         "Return: minimum altitude above home while flying back, m",
     ),
     _p("SYS_AUTOSTART", "INT32", 10040, 0, 9999999, "Airframe (10040: SIH quadrotor)"),
+    _p("SYS_FAILURE_EN", "INT32", 1, 0, 1, "Accept MAV_CMD_INJECT_FAILURE (PX4 0, SITL 1)"),
 ]
 
 #: Parameters PX4 SITL reports that ground stations and SDKs read or set in their common
@@ -314,14 +334,6 @@ _REPORTED: list[ParamSpec] = [
     _p("COM_ARM_SWISBTN", "INT32", 0, 0, 1, "Arm switch is a momentary button"),
     _p("COM_ARM_WO_GPS", "INT32", 1, 0, 2, "Arming without GPS: 0 deny, 1 warn, 2 allow"),
     _p("COM_CPU_MAX", "REAL32", -1.0, -1.0, 100.0, "Maximum allowed CPU load to still arm, %"),
-    _p(
-        "COM_FAIL_ACT_T",
-        "REAL32",
-        5.0,
-        0.0,
-        25.0,
-        "Delay from failsafe condition to failsafe reaction, s",
-    ),
     _p("COM_FLTMODE1", "INT32", -1, -1, 107, "Mode slot 1"),
     _p("COM_FLTMODE2", "INT32", -1, -1, 107, "Mode slot 2"),
     _p("COM_FLTMODE3", "INT32", -1, -1, 107, "Mode slot 3"),
@@ -348,7 +360,6 @@ _REPORTED: list[ParamSpec] = [
         5.0,
         "Timeout for detecting a failure after takeoff, s",
     ),
-    _p("COM_LOW_BAT_ACT", "INT32", 3, 0, 3, "Battery failsafe mode"),
     _p(
         "COM_POS_LOW_EPH",
         "REAL32",
@@ -359,8 +370,6 @@ _REPORTED: list[ParamSpec] = [
     ),
     _p("COM_PREARM_MODE", "INT32", 0, 0, 2, "Condition to enter prearmed mode"),
     _p("COM_RAM_MAX", "REAL32", -1.0, -1.0, 100.0, "Maximum allowed RAM usage to pass checks, %"),
-    _p("COM_RCL_EXCEPT", "INT32", 0, 0, 31, "Manual control loss exceptions"),
-    _p("COM_RC_LOSS_T", "REAL32", 0.5, 0.0, 35.0, "Manual control loss timeout, s"),
     _p("COM_RC_OVERRIDE", "INT32", 1, 0, 3, "Enable manual control stick override"),
     _p("COM_RC_STICK_OV", "REAL32", 30.0, 5.0, 80.0, "Stick override threshold, %"),
     _p("COM_SPOOLUP_TIME", "REAL32", 1.0, 0.0, 30.0, "Delay between arming and navigation, s"),
@@ -436,22 +445,6 @@ _REPORTED: list[ParamSpec] = [
         122.0,
         "Altitude where slow landing's third step starts, m",
     ),
-    _p(
-        "MPC_MAN_TILT_MAX",
-        "REAL32",
-        35.0,
-        1.0,
-        70.0,
-        "Tilt limit in Stabilized, Altitude and Altitude Cruise mode, deg",
-    ),
-    _p(
-        "MPC_MAN_Y_MAX",
-        "REAL32",
-        150.0,
-        0.0,
-        400.0,
-        "Manual yaw rate limit in Stabilized, Altitude, Position mode, deg/s",
-    ),
     _p("MPC_POS_MODE", "INT32", 4, 0, 4, "Position/Altitude mode variant"),
     _p("MPC_THR_HOVER", "REAL32", 0.5, 0.1, 0.8, "Vertical thrust required to hover, norm"),
     _p(
@@ -473,7 +466,6 @@ _REPORTED: list[ParamSpec] = [
     _p("MPC_TILTMAX_AIR", "REAL32", 45.0, 20.0, 89.0, "Maximum tilt angle in air, deg"),
     _p("MPC_TILTMAX_LND", "REAL32", 12.0, 5.0, 89.0, "Tilt limit during the take-off ramp, deg"),
     _p("MPC_TKO_RAMP_T", "REAL32", 3.0, 0.0, 5.0, "Smooth takeoff ramp time constant, s"),
-    _p("MPC_VEL_MANUAL", "REAL32", 10.0, 3.0, 20.0, "Horizontal speed limit in Position mode, m/s"),
     _p("MPC_XY_P", "REAL32", 0.95, 0.0, 2.0, "Proportional gain for horizontal position error"),
     _p(
         "MPC_XY_TRAJ_P",
@@ -515,7 +507,6 @@ _REPORTED: list[ParamSpec] = [
         "Minimum height above ground in Mission and RTL, m",
     ),
     _p("NAV_MIN_LTR_ALT", "REAL32", -1.0, -1.0, FLT_MAX, "Minimum Loiter altitude, m"),
-    _p("NAV_RCL_ACT", "INT32", 2, 1, 6, "RC loss failsafe mode (no RC here)"),
     _p("NAV_TRAFF_AVOID", "INT32", 1, 0, 4, "Set traffic avoidance mode"),
     _p("RC_CHAN_CNT", "INT32", 0, 0, 18, "RC channel count"),
     _p("RC_MAP_ARM_SW", "INT32", 0, 0, 18, "Arm switch channel"),
@@ -554,7 +545,6 @@ _REPORTED: list[ParamSpec] = [
     _p("SENS_BOARD_X_OFF", "REAL32", 0.0, -45.0, 45.0, "Board rotation X (roll) offset, deg"),
     _p("SENS_BOARD_Y_OFF", "REAL32", 0.0, -45.0, 45.0, "Board rotation Y (pitch) offset, deg"),
     _p("SENS_BOARD_Z_OFF", "REAL32", 0.0, -45.0, 45.0, "Board rotation Z (yaw) offset, deg"),
-    _p("SYS_FAILURE_EN", "INT32", 1, 0, 1, "Enable failure injection"),
     _p("SYS_HAS_BARO", "INT32", 1, 0, 1, "Control if the vehicle has a barometer"),
     _p("SYS_HAS_GPS", "INT32", 1, 0, 1, "Control if the vehicle has a GPS"),
     _p("SYS_HAS_MAG", "INT32", 1, INT32_MIN, INT32_MAX, "Number of magnetometers expected"),

@@ -8,7 +8,8 @@ the autopilot state machine writes setpoints into the arrays and the emulator ca
 Control modes per vehicle (``control_mode``):
 
 ``MOTORS_OFF``
-    disarmed or dead: no thrust; in the air the vehicle falls, on the ground it stays.
+    disarmed or dead: no thrust; in the air the vehicle falls, on the ground it stays. A vehicle
+    whose ``motor_failure`` is set flies as if in this mode, whatever its setpoints.
 ``VELOCITY``
     tracks ``velocity_setpoint_ned_m_s``.
 ``POSITION``
@@ -87,6 +88,7 @@ class MulticopterPhysics:
     - ``position_ned_m`` (n, 3), ``velocity_ned_m_s`` (n, 3), ``acceleration_ned_m_s2`` (n, 3)
     - ``yaw_rad`` (n,), ``roll_rad`` (n,), ``pitch_rad`` (n,), ``yaw_rate_rad_s`` (n,),
       ``roll_rate_rad_s`` (n,), ``pitch_rate_rad_s`` (n,) (Euler angle rates)
+    - ``motor_failure`` (n,) bool: the motors give no thrust (an injected failure)
     - setpoints: ``control_mode`` (n,) int8, ``velocity_setpoint_ned_m_s`` (n, 3),
       ``position_setpoint_ned_m`` (n, 3), ``velocity_feedforward_ned_m_s`` (n, 3),
       ``acceleration_setpoint_ned_m_s2`` (n, 3), ``yaw_setpoint_rad`` (n,) NaN = keep,
@@ -127,6 +129,7 @@ class MulticopterPhysics:
         self.pitch_rate_rad_s: FloatArray = np.zeros(n)
 
         self.control_mode = np.full(n, MOTORS_OFF, dtype=np.int8)
+        self.motor_failure = np.zeros(n, dtype=bool)
         self.velocity_setpoint_ned_m_s: FloatArray = np.zeros((n, 3))
         self.position_setpoint_ned_m: FloatArray = pos.copy()
         self.velocity_feedforward_ned_m_s: FloatArray = np.zeros((n, 3))
@@ -168,6 +171,8 @@ class MulticopterPhysics:
         if dt <= 0:
             raise ValueError(f"dt must be > 0, got {dt!r}")
         mode = self.control_mode
+        if self.motor_failure.any():
+            mode = np.where(self.motor_failure, np.int8(MOTORS_OFF), mode)
         pos = self.position_ned_m
         vel = self.velocity_ned_m_s
 
@@ -237,7 +242,7 @@ class MulticopterPhysics:
             vel[grounded, 2] = np.minimum(vel[grounded, 2], 0.0)
         self.acceleration_ned_m_s2[:] = accel
 
-        self._attitude(accel, dt)
+        self._attitude(accel, dt, mode)
 
     # ---------------------------------------------------------------- internals
     def _position_controller(self, mask: npt.NDArray[np.bool_]) -> FloatArray:
@@ -273,7 +278,7 @@ class MulticopterPhysics:
         np.clip(a[:, 2], -self.max_up_accel_m_s2, self.max_down_accel_m_s2, out=a[:, 2])
         return a
 
-    def _attitude(self, accel: FloatArray, dt: float) -> None:
+    def _attitude(self, accel: FloatArray, dt: float, mode: npt.NDArray[np.int8]) -> None:
         yaw = self.yaw_rad
         rate_cmd = self.yaw_rate_setpoint_rad_s
         has_rate = np.isfinite(rate_cmd)
@@ -285,7 +290,7 @@ class MulticopterPhysics:
         rate = np.clip(rate, -max_rate, max_rate)
         # Do not overshoot the yaw setpoint within one step.
         rate = np.where(~has_rate & (np.abs(rate * dt) > np.abs(error)), error / dt, rate)
-        flying = self.control_mode != MOTORS_OFF
+        flying = mode != MOTORS_OFF
         rate *= flying & ~self.on_ground()
         # In place, so that references to these arrays stay valid.
         self.yaw_rate_rad_s[:] = rate

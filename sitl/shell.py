@@ -47,22 +47,6 @@ DATA_BYTES = 70
 _TARGET_OFFSET = 79
 """Payload offset of SERIAL_CONTROL's extension fields target_system, target_component."""
 _READ_ONLY_PARAMS = frozenset(["MAV_SYS_ID", "MAV_COMP_ID"])  # as for PARAM_SET: reboot only
-#: PX4's nav_state_names (src/lib/modes/ui.hpp) of the emulator's modes.
-_NAV_STATE_NAMES = {
-    "MANUAL": "Manual",
-    "ALTCTL": "Altitude",
-    "POSCTL": "Position",
-    "MISSION": "Mission",
-    "HOLD": "Hold",
-    "RTL": "Return",
-    "OFFBOARD": "Offboard",
-    "STABILIZED": "Stabilized",
-    "TAKEOFF": "Takeoff",
-    "LAND": "Land",
-    "FOLLOW_TARGET": "Follow Target",
-    "FOLLOW_ME": "Follow Target",
-    "ORBIT": "Orbit",
-}
 #: Subcommands PX4 has that the emulator does not run (``param``, ``commander``).
 _PARAM_ELSEWHERE = frozenset(
     [
@@ -167,21 +151,23 @@ def _os_version_number() -> int:
 class Pxh:
     """PX4's shell for one vehicle: :meth:`run` takes a command line, returns what PX4 prints.
 
-    ``announce_param(name)`` is called after ``param set`` changed a parameter.
+    ``announce_param(name)`` is called after ``param set`` changed a parameter. ``commands``
+    adds commands that other parts of the autopilot own (name -> handler(args) returning the
+    text and the exit status), such as ``failure``.
     """
 
     vehicle: VehicleContext
     announce_param: Callable[[str], None] = lambda name: None
     started: datetime = field(default_factory=lambda: datetime.now(UTC))
+    commands: dict[str, Callable[[list[str]], tuple[str, int]]] = field(default_factory=dict)
 
     def run(self, line: str) -> str:
         words = line.split()
         if not words or words[0].startswith("#"):
             return ""
         command, args = words[0], words[1:]
-        handler = {"param": self._param, "commander": self._commander, "ver": self._ver}.get(
-            command
-        )
+        own = {"param": self._param, "commander": self._commander, "ver": self._ver}
+        handler = {**own, **self.commands}.get(command)
         if handler is not None:
             text, status = handler(args)
             if status:
@@ -189,7 +175,7 @@ class Pxh:
             return text
         if command == "help":
             return "Builtin Commands:\n" + "".join(
-                f"  {name}\n" for name in ("commander", "param", "ver")
+                f"  {name}\n" for name in sorted(("commander", "param", "ver", *self.commands))
             )
         return f"Invalid command: {command}\ntype 'help' for a list of commands\n"
 
@@ -333,7 +319,7 @@ def _matches(pattern: str, name: str) -> bool:
 
 
 def _nav_state_name(mode: FlightMode) -> str:
-    return _NAV_STATE_NAMES.get(mode.name, mode.name.replace("_", " ").title())
+    return mode.display_name  # PX4's nav_state_names (src/lib/modes/ui.hpp)
 
 
 class SerialControl(mavlink.MAVLink_serial_control_message):
@@ -401,6 +387,11 @@ class MavlinkShell:
         self._vehicle = vehicle
         self._pxh = pxh
         self._sessions: dict[str, _Session] = {}
+
+    @property
+    def pxh(self) -> Pxh:
+        """The shell's command interpreter (to add commands to)."""
+        return self._pxh
 
     @property
     def open_sessions(self) -> list[str]:

@@ -92,12 +92,13 @@ _SENSORS_PRESENT = _GYRO | _ACCEL | _MAG | _BARO | _GPS | _FLOW | _MOTORS | _AHR
 MAV_TYPE_QUADROTOR = 2
 MAV_AUTOPILOT_PX4 = 12
 MAV_STATE_BOOT = 1
+MAV_STATE_CALIBRATING = 2
 MAV_STATE_STANDBY = 3
 MAV_STATE_ACTIVE = 4
 MAV_STATE_CRITICAL = 5
 
 #: MAV_PROTOCOL_CAPABILITY bits of AUTOPILOT_VERSION: exactly the ones PX4 sets
-#: (Mavlink::send_autopilot_capabilities; PX4 SITL v1.15 answers 0xE8FF), each of which the
+#: (Mavlink::send_autopilot_capabilities; a running PX4 SITL answers 0xE8FF), each of which the
 #: emulator handles. PX4 handles SET_POSITION_TARGET_GLOBAL_INT without setting its bit, and so
 #: does the emulator: a client that decides by the bits decides as it would with PX4.
 CAPABILITIES = (
@@ -231,7 +232,9 @@ class TelemetryBuilder:
     # ------------------------------------------------------------- messages
     def heartbeat(self, now_s: float) -> mavlink.MAVLink_message:
         ap = self.ap
-        if not ap.ready(now_s):
+        if ap.calibrating and not ap.armed:
+            state = MAV_STATE_CALIBRATING
+        elif not ap.ready(now_s):
             state = MAV_STATE_BOOT
         elif ap.failsafe_active:
             state = MAV_STATE_CRITICAL

@@ -17,6 +17,7 @@ position estimate. Here they share two objects per vehicle instead:
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -112,6 +113,12 @@ class VehicleState:
     landing: bool = False
     flow_ok: bool = True
     gps_ok: bool = True
+    motors_failed: bool = False
+    """An injected motor failure: the vehicle cannot fly."""
+    battery_failed: bool = False
+    """An injected battery failure: the battery reads empty."""
+    calibrating: bool = False
+    """A sensor or RC calibration is under way."""
 
     @property
     def position_ok(self) -> bool:
@@ -189,6 +196,35 @@ class VehicleContext:
     # ---------------------------------------------------------------- writing
     def motors_off(self) -> None:
         self.physics.control_mode[self.index] = ph.MOTORS_OFF
+
+    def fly_to(
+        self,
+        position_ned_m: list[float],
+        feedforward_ned_m_s: list[float] | None = None,
+        *,
+        yaw_rad: float = math.nan,
+    ) -> None:
+        """Position control towards ``position_ned_m`` (world NED m), plus a velocity
+        feed-forward; NaN ``yaw_rad`` keeps the heading."""
+        i = self.index
+        phys = self.physics
+        phys.control_mode[i] = ph.POSITION
+        phys.position_setpoint_ned_m[i] = position_ned_m
+        phys.velocity_feedforward_ned_m_s[i] = feedforward_ned_m_s or (0.0, 0.0, 0.0)
+        phys.yaw_setpoint_rad[i] = yaw_rad
+        phys.yaw_rate_setpoint_rad_s[i] = math.nan
+
+    def fly_at(
+        self, velocity_ned_m_s: list[float], *, yaw_rad: float = math.nan, yaw_rate_rad_s: float
+    ) -> None:
+        """Velocity control at ``velocity_ned_m_s`` (world NED m/s), turning at
+        ``yaw_rate_rad_s`` or, when that is NaN, towards ``yaw_rad`` (NaN: keep the heading)."""
+        i = self.index
+        phys = self.physics
+        phys.control_mode[i] = ph.VELOCITY
+        phys.velocity_setpoint_ned_m_s[i] = velocity_ned_m_s
+        phys.yaw_setpoint_rad[i] = yaw_rad
+        phys.yaw_rate_setpoint_rad_s[i] = yaw_rate_rad_s
 
     def statustext(self, now_s: float, severity: int, text: str) -> None:
         """Log ``text`` and send it; PX4 sends texts over 50 bytes in 50-byte chunks that share

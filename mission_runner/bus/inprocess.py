@@ -12,6 +12,7 @@ retained messages handed to new subscribers, per-subscription drop-oldest queues
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import heapq
 import itertools
@@ -24,6 +25,7 @@ from typing import Self
 
 from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
 from mission_runner.bus.errors import BusConnectionError
+from mission_runner.bus.messages import Message
 from mission_runner.bus.topics import topic_matches, validate_pattern, validate_topic
 from mission_runner.clock import Clock, MonotonicClock
 
@@ -38,10 +40,13 @@ class LinkModel:
 
     Each delivery of a message to a matching subscription is dropped with probability
     ``loss_probability``, otherwise delivered ``latency_s + U(0, jitter_s)`` seconds after
-    publishing, on the bus's clock. Draws come from ``random.Random(seed)`` in publish order,
-    so a run is reproducible. Unless ``reorder`` is True, a message never overtakes an
-    earlier one on the same topic to the same subscription (MQTT keeps a publisher's order
-    per topic); messages of different topics, i.e. of different vehicles, may overtake.
+    publishing, on the bus's clock. The draws for the n-th delivery on a topic to a
+    subscription depend only on ``seed``, the topic, n, the subscription's pattern and the
+    client it belongs to (:meth:`InProcessBus.client`), never on how the publishers' or
+    subscribers' tasks interleave, so a run is reproducible. Unless ``reorder`` is True, a
+    message never overtakes an earlier one on the same topic to the same subscription (MQTT
+    keeps a publisher's order per topic); messages of different topics, i.e. of different
+    vehicles, may overtake.
     """
 
     latency_s: float = 0.0
@@ -86,8 +91,11 @@ class InProcessBus(Bus):
         self.queue_size = queue_size
         self.published = 0
         self.lost = 0
-        self._rng = random.Random(link.seed if link is not None else 0)
         self._subscriptions: list[Subscription] = []
+        # Which client made each subscription, and how many deliveries each (client, pattern,
+        # topic) has had: the link model's draws are keyed on them.
+        self._clients: dict[Subscription, str] = {}
+        self._deliveries: collections.Counter[tuple[str, str, str]] = collections.Counter()
         self._retained: dict[str, bytes] = {}
         self._open = False
         self._closed = False
@@ -154,9 +162,12 @@ class InProcessBus(Bus):
         if link is None:
             subscription.offer(topic, payload)
             return
-        # Always draw both numbers so one delivery's outcome never shifts the next one's.
-        lost = self._rng.random() < link.loss_probability
-        jitter_s = self._rng.uniform(0.0, link.jitter_s)
+        client = self._clients.get(subscription, "")
+        n = self._deliveries[client, subscription.pattern, topic]
+        self._deliveries[client, subscription.pattern, topic] = n + 1
+        draws = random.Random(f"{link.seed}/{client}/{subscription.pattern}/{topic}/{n}")
+        lost = draws.random() < link.loss_probability
+        jitter_s = draws.uniform(0.0, link.jitter_s)
         if lost:
             self.lost += 1
             return
@@ -205,7 +216,7 @@ class InProcessBus(Bus):
 
     @contextlib.asynccontextmanager
     async def _subscription(
-        self, pattern: str, queue_size: int | None
+        self, pattern: str, queue_size: int | None, client_id: str = ""
     ) -> AsyncIterator[Subscription]:
         validate_pattern(pattern)
         self._check_open(f"subscribe to {pattern!r}")
@@ -216,12 +227,14 @@ class InProcessBus(Bus):
             if topic_matches(pattern, topic):
                 subscription.offer(topic, payload)
         self._subscriptions.append(subscription)
+        self._clients[subscription] = client_id
         try:
             yield subscription
         finally:
             subscription.close()
             with contextlib.suppress(ValueError):
                 self._subscriptions.remove(subscription)
+            self._clients.pop(subscription, None)
             for key in [key for key in self._last_due if key[0] is subscription]:
                 del self._last_due[key]
 
@@ -229,3 +242,27 @@ class InProcessBus(Bus):
         self, pattern: str, *, queue_size: int | None = None, timeout: float | None = None
     ) -> contextlib.AbstractAsyncContextManager[Subscription]:
         return self._subscription(pattern, queue_size)
+
+    def client(self, client_id: str) -> InProcessClient:
+        """One participant's view of this bus, as one MQTT client is of a broker."""
+        return InProcessClient(self, client_id)
+
+
+class InProcessClient:
+    """One participant of an :class:`InProcessBus` (a vehicle's controller, say): publishes on
+    the bus, and its subscriptions are its own to the link model, so each participant meets
+    its own losses and delays, drawn the same whatever order the participants subscribe in."""
+
+    def __init__(self, bus: InProcessBus, client_id: str) -> None:
+        self.bus = bus
+        self.client_id = client_id
+
+    def subscribe(
+        self, pattern: str, *, queue_size: int | None = None, timeout: float | None = None
+    ) -> contextlib.AbstractAsyncContextManager[Subscription]:
+        return self.bus._subscription(pattern, queue_size, self.client_id)
+
+    async def publish_message(
+        self, topic: str, message: Message, *, retain: bool = False, timeout: float
+    ) -> None:
+        await self.bus.publish_message(topic, message, retain=retain, timeout=timeout)

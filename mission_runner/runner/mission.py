@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..bus import lost_vehicle_will, open_bus
+from ..bus import InProcessBus, lost_vehicle_will, open_bus
 from ..sim.metrics import tracking_error
 from ..wiring import altitude_of, autopilot_params, emulator_config, shape_schedule
 from ..world import World
@@ -191,9 +191,12 @@ async def fly(
                 callback(vehicle_id, record)
 
         # Over MQTT every vehicle has its own client, as on a real swarm (one companion computer
-        # each, with its last will on its status topic); in-process they share the one bus.
+        # each, with its last will on its status topic); in-process each has its own view of
+        # the one bus (its own losses and delays under a link model).
         buses: list[ControllerBus] = [bus] * len(ids)
-        if scenario.bus.kind == "mqtt":
+        if isinstance(bus, InProcessBus):
+            buses = [bus.client(f"{scenario.name}-vehicle-{vehicle_id}") for vehicle_id in ids]
+        elif scenario.bus.kind == "mqtt":
             buses = [
                 await stack.enter_async_context(
                     open_bus(

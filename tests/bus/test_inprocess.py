@@ -242,8 +242,11 @@ class TestLinkModel:
                 await asyncio.sleep(1.0)  # the delivery loop's failure cancels this
 
     @staticmethod
-    async def run_lossy_exchange(seed: int) -> list[tuple[int, int, int]]:
-        """Four vehicles broadcast 40 steps over a lossy, jittery link.
+    async def run_lossy_exchange(
+        seed: int, order: tuple[int, ...] = (1, 2, 3, 4)
+    ) -> list[tuple[int, int, int]]:
+        """Four vehicles, each its own client of the bus, broadcast 40 steps over a lossy,
+        jittery link; they subscribe and publish in ``order``.
 
         Returns (receiver, sender, step) in arrival order.
         """
@@ -252,10 +255,10 @@ class TestLinkModel:
         vehicles = (1, 2, 3, 4)
         arrivals: list[tuple[int, int, int]] = []
         async with InProcessBus(link=link, clock=clock) as bus:
-            subs = {v: bus.subscribe(TOPICS.all_steps()) for v in vehicles}
-            entered = {v: await subs[v].__aenter__() for v in vehicles}
+            subs = {v: bus.client(f"vehicle-{v}").subscribe(TOPICS.all_steps()) for v in order}
+            entered = {v: await subs[v].__aenter__() for v in order}
             for k in range(40):
-                for v in vehicles:
+                for v in order:
                     await bus.publish_message(TOPICS.step(v), step(v, k), timeout=0.1)
                 await clock.advance(T_S)
                 for v in vehicles:
@@ -272,6 +275,12 @@ class TestLinkModel:
         first = await self.run_lossy_exchange(seed=7)
         assert first == await self.run_lossy_exchange(seed=7)
         assert first != await self.run_lossy_exchange(seed=8)
+
+    @pytest.mark.asyncio
+    async def test_the_network_does_not_depend_on_who_subscribes_or_publishes_first(self) -> None:
+        # Concurrent controllers subscribe and publish in whatever order their tasks run.
+        first = await self.run_lossy_exchange(seed=7)
+        assert sorted(first) == sorted(await self.run_lossy_exchange(seed=7, order=(3, 1, 4, 2)))
 
     @pytest.mark.asyncio
     async def test_lossy_link_loses_about_the_asked_fraction_and_never_duplicates(self) -> None:

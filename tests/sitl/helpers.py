@@ -25,6 +25,7 @@ from sitl.autopilot import Px4Autopilot, Snapshot
 from sitl.config import FlightLogConfig, PortsConfig, StreamRates, TruthStreamConfig
 from sitl.geo import MapProjection
 from sitl.gnss import GnssError
+from sitl.modes import FlightMode
 from sitl.odometry import Odometry
 from sitl.physics import MulticopterPhysics
 from sitl.telemetry import StreamScheduler
@@ -198,6 +199,23 @@ class Bench:
             ),
             vehicle,
         )
+
+    def sticks(self, seconds: float, *, x: int = 0, y: int = 0, z: int = 500, r: int = 0) -> None:
+        """Stream MANUAL_CONTROL to vehicle 0 (x pitch, y roll, r yaw in [-1000, 1000], z
+        throttle in [0, 1000]) at 20 Hz while stepping for ``seconds`` (one message first)."""
+        every = max(1, round(0.05 / self.dt))
+        msg = mavlink.MAVLink_manual_control_message(1, x, y, z, r, 0)
+        for k in range(round(seconds / self.dt)):
+            if k % every == 0:
+                self.deliver(msg)
+            self.step()
+
+    def airborne(self, vehicle: int = 0) -> None:
+        """Arm, take off to MIS_TAKEOFF_ALT and wait for HOLD."""
+        assert self.command(400, 1, vehicle=vehicle) == mavlink.MAV_RESULT_ACCEPTED
+        assert self.command(22, *[math.nan] * 7, vehicle=vehicle) == mavlink.MAV_RESULT_ACCEPTED
+        ap = self.autopilots[vehicle]
+        self.run_until(lambda: ap.mode is FlightMode.HOLD and not ap.landed, 20, "airborne")
 
     def position(self, vehicle: int = 0) -> list[float]:
         return [float(v) for v in self.physics.position_ned_m[vehicle]]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncGenerator, AsyncIterator, Callable
+from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -110,6 +110,28 @@ async def emulated_drones(config: EmulatorConfig) -> AsyncIterator[tuple[Emulato
         ),
     ):
         yield emulator, drones
+
+
+@contextlib.asynccontextmanager
+async def periodically(
+    action: Callable[[], Awaitable[object]], rate_hz: float, name: str
+) -> AsyncIterator[None]:
+    """Await ``action()`` now and then every 1 / ``rate_hz`` wall seconds until the block
+    ends, as MAVSDK asks of users of its manual_control and follow_me plugins (the task is
+    named ``name`` and owned by a task group)."""
+
+    async def repeat() -> None:
+        while True:
+            await asyncio.sleep(1.0 / rate_hz)
+            await action()
+
+    await action()  # before the block: MAVSDK refuses to start without one
+    async with asyncio.TaskGroup() as group:
+        task = group.create_task(repeat(), name=name)
+        try:
+            yield
+        finally:
+            task.cancel()
 
 
 async def healthy(drone: Drone, timeout_s: float = 10.0) -> None:

@@ -24,11 +24,7 @@ HOLD, MISSION, RTL = 3, 4, 5
 
 
 def airborne(bench: Bench, vehicle: int = 0) -> None:
-    """Arm, take off to MIS_TAKEOFF_ALT and wait for HOLD."""
-    assert bench.command(ARM, 1, vehicle=vehicle) == ACCEPTED
-    assert bench.command(TAKEOFF, *[math.nan] * 7, vehicle=vehicle) == ACCEPTED
-    ap = bench.autopilots[vehicle]
-    bench.run_until(lambda: ap.mode is FlightMode.HOLD and not ap.landed, 20, "airborne")
+    bench.airborne(vehicle)
 
 
 # ------------------------------------------------------------------------- arming

@@ -1,6 +1,6 @@
 """What a vehicle says it speaks: AUTOPILOT_VERSION's capability bits and identity, checked bit by
-bit against what PX4 SITL v1.15 answers, and as MAVSDK's info plugin reads them; PROTOCOL_VERSION
-byte for byte as PX4 sends it."""
+bit against what a running PX4 SITL answers, and as MAVSDK's info plugin reads them;
+PROTOCOL_VERSION byte for byte as PX4 sends it."""
 
 from __future__ import annotations
 

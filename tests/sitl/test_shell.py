@@ -195,7 +195,7 @@ def test_ver_prints_px4s_fields() -> None:
 
 def test_help_and_unknown_commands() -> None:
     bench = Bench()
-    assert run(bench, "help") == "Builtin Commands:\n  commander\n  param\n  ver\n"
+    assert run(bench, "help") == ("Builtin Commands:\n  commander\n  failure\n  param\n  ver\n")
     assert run(bench, "reboot") == "Invalid command: reboot\ntype 'help' for a list of commands\n"
 
 
@@ -337,6 +337,15 @@ class MavsdkShellReader:
             self.text += received.data
             self._changed.set()
 
+    async def wait_subscribed(self, timeout_s: float = 5.0) -> None:
+        """``ver hw`` until its prompt comes back: the gRPC subscription is set up some loop
+        iterations after ``collect`` starts, and output sent before it is lost (MAVSDK
+        sends no empty line)."""
+        async with asyncio.timeout(timeout_s):
+            while PROMPT not in self.text:
+                with contextlib.suppress(TimeoutError):
+                    await self.command("ver hw", timeout_s=0.2)
+
     async def command(self, line: str, timeout_s: float = 5.0) -> str:
         start = len(self.text)
         await self.shell.send(line, Device.SHELL)
@@ -357,7 +366,7 @@ async def mavsdk_shell(system: System) -> AsyncIterator[MavsdkShellReader]:
     reader = MavsdkShellReader(ShellAsync(system))
     async with asyncio.TaskGroup() as group:
         collector = group.create_task(reader.collect(), name="mavsdk-shell-receive")
-        await asyncio.sleep(0)  # let it subscribe before anything is sent
+        await reader.wait_subscribed()
         try:
             yield reader
         finally:
