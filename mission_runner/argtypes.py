@@ -35,6 +35,11 @@ def port(text: str) -> int:
     return value
 
 
+def port_or_zero(text: str) -> int:
+    """A UDP port, or 0 for any free one."""
+    return 0 if text == "0" else port(text)
+
+
 def finite_float(text: str) -> float:
     try:
         value = float(text)

@@ -1,7 +1,11 @@
 """``mission-runner``: the command line.
 
-    mission-runner simulate CONFIG [--out DIR] [--runs N] [--no-figures] [--quiet]
-    mission-runner run CONFIG [--out DIR] [--realtime [--speed F]] [--no-figures] [--quiet]
+    mission-runner simulate CONFIG [--out DIR] [--runs N] [--no-figures] [--replay] [--quiet]
+    mission-runner run CONFIG [--out DIR] [--realtime [--speed F]] [--no-figures] [--replay]
+    mission-runner replay OUT_DIR [--every N] [--fps F] [--width PX] [--gif FILE]  animate a run
+    mission-runner schema [--out FILE]                   the scenario's JSON Schema
+    mission-runner view CONFIG [--port N]                a running mission's bus, live in Foxglove
+    mission-runner layout CONFIG [--out FILE]            a Foxglove layout for the scenario's topics
     mission-runner vehicle CONFIG --id N [--url URL] [--out DIR]   one vehicle's controller (MQTT)
     mission-runner ground CONFIG [--start-delay S]       prepare, start and watch vehicle processes
     mission-runner ranges CONFIG [--source sih|gps]      synthesised UWB ranges (simulation aid)
@@ -39,12 +43,13 @@ import time
 from collections.abc import Callable, Coroutine, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import FrameType
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 
 from . import argtypes
 from .bus.errors import BusConnectionError, BusTimeoutError
 from .config import load_scenario
-from .errors import MissionRunnerError
+from .errors import ConfigError, MissionRunnerError
+from .recording import LogCapture
 from .runner.errors import RunnerError
 
 if TYPE_CHECKING:
@@ -52,9 +57,12 @@ if TYPE_CHECKING:
 
     from .bus import VehicleStatus
     from .config import Scenario
+    from .live import LiveServer
+    from .replay import ReplayFiles
     from .runner.controller import StepRecord
     from .runner.mission import Progress
 
+P = ParamSpec("P")
 T = TypeVar("T")
 
 #: A subcommand: parsed arguments in, exit code out.
@@ -218,6 +226,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     simulate.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     simulate.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+    _replay_flag(simulate)
     simulate.set_defaults(handler=_simulate)
 
     run = commands.add_parser(
@@ -235,7 +244,39 @@ def _parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress view, no summary")
+    _replay_flag(run)
+    _live_flags(run)
     run.set_defaults(handler=_run)
+
+    replay = commands.add_parser(
+        "replay",
+        help="animate a run (simulate, run or ground output folder) from its recording.mcap: "
+        "replay.gif, and replay.mp4 where ffmpeg is on the PATH",
+    )
+    replay.add_argument("out_dir", type=Path, help="the run's output folder")
+    replay.add_argument(
+        "--every", type=argtypes.positive_int, default=1, help="one frame every N steps (default 1)"
+    )
+    replay.add_argument(
+        "--fps", type=argtypes.positive_float, default=20.0, help="frames per second (default 20)"
+    )
+    replay.add_argument(
+        "--width",
+        type=argtypes.positive_int,
+        default=800,
+        help="frame width in pixels (default 800)",
+    )
+    replay.add_argument(
+        "--trail",
+        type=argtypes.positive_int,
+        default=None,
+        help="trail length in steps (default: all)",
+    )
+    replay.add_argument(
+        "--gif", type=Path, default=None, help="where the GIF goes (default OUT_DIR/replay.gif)"
+    )
+    replay.add_argument("--no-mp4", action="store_true", help="no MP4 even if ffmpeg is there")
+    replay.set_defaults(handler=_replay)
 
     vehicle = commands.add_parser(
         "vehicle", help="one vehicle's controller as its own process (talks over MQTT only)"
@@ -273,7 +314,27 @@ def _parser() -> argparse.ArgumentParser:
         "out/<name>-mission): the ground station merges them into summary.json and figures",
     )
     ground.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    _live_flags(ground)
     ground.set_defaults(handler=_ground)
+
+    view = commands.add_parser(
+        "view",
+        help="serve a running mission's bus (vehicle processes over MQTT) to Foxglove over its "
+        "WebSocket protocol, until Ctrl-C",
+    )
+    view.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
+    view.add_argument("--host", default="127.0.0.1", help="address to serve on")
+    view.add_argument(
+        "--port", type=argtypes.port_or_zero, default=8765, help="port (0: any free one)"
+    )
+    view.set_defaults(handler=_view)
+
+    layout = commands.add_parser(
+        "layout", help="print a Foxglove layout for the scenario's recording and live view"
+    )
+    layout.add_argument("config", type=Path, help="scenario YAML file (for its vehicle ids)")
+    layout.add_argument("--out", type=Path, default=None, help="write it there instead")
+    layout.set_defaults(handler=_layout)
 
     ranges = commands.add_parser(
         "ranges",
@@ -310,6 +371,13 @@ def _parser() -> argparse.ArgumentParser:
     )
     ranges.set_defaults(handler=_ranges)
 
+    schema = commands.add_parser(
+        "schema",
+        help="print the scenario file's JSON Schema (for an editor's YAML language server)",
+    )
+    schema.add_argument("--out", type=Path, default=None, help="write it there instead")
+    schema.set_defaults(handler=_schema)
+
     operate = commands.add_parser(
         "control",
         help="operator command to the running mission of vehicle processes: hold, resume, land, "
@@ -341,6 +409,130 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _schema(arguments: argparse.Namespace) -> int:
+    from .config import scenario_json_schema  # noqa: PLC0415
+
+    return _print_json(scenario_json_schema(), arguments.out)
+
+
+def _layout(arguments: argparse.Namespace) -> int:
+    import json  # noqa: PLC0415
+
+    from .layout import foxglove_layout  # noqa: PLC0415
+
+    scenario = load_scenario(arguments.config)
+    layout = foxglove_layout([vehicle.id for vehicle in scenario.vehicles])
+    return _print_json(json.loads(layout.to_json()), arguments.out)
+
+
+def _print_json(document: object, out: Path | None) -> int:
+    """``document`` as indented JSON on stdout, or written to ``out``."""
+    import json  # noqa: PLC0415
+
+    text = json.dumps(document, indent=2) + "\n"
+    if out is None:
+        sys.stdout.write(text)
+    else:
+        from .outputs import write_atomic  # noqa: PLC0415
+
+        write_atomic(out, text)
+    return EXIT_OK
+
+
+def _live_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--live",
+        action="store_true",
+        help="serve the mission to Foxglove over its WebSocket protocol while it flies",
+    )
+    parser.add_argument("--live-host", default="127.0.0.1", help="address to serve on")
+    parser.add_argument(
+        "--live-port", type=argtypes.port_or_zero, default=8765, help="port (0: any free one)"
+    )
+
+
+def _live_server(arguments: argparse.Namespace, scenario: Scenario) -> LiveServer | None:
+    """The ``--live`` server, not yet started (None without ``--live``)."""
+    if not getattr(arguments, "live", False):
+        return None
+    from .live import LiveServer  # noqa: PLC0415
+
+    return LiveServer(scenario, host=arguments.live_host, port=arguments.live_port)
+
+
+def _every(callbacks: Sequence[Callable[P, None]]) -> Callable[P, None]:
+    """One callback calling each of ``callbacks`` in turn."""
+
+    def call(*args: P.args, **kwargs: P.kwargs) -> None:
+        for callback in callbacks:
+            callback(*args, **kwargs)
+
+    return call
+
+
+def _view(arguments: argparse.Namespace) -> int:
+
+    from .live import LiveLog, LiveServer, serve_bus  # noqa: PLC0415
+
+    scenario = load_scenario(arguments.config)
+    if scenario.bus.kind != "mqtt":
+        raise ConfigError(
+            str(arguments.config),
+            [
+                (
+                    "bus.kind",
+                    "view watches a mission's MQTT bus: set mqtt (an in-process mission is "
+                    "watched with 'mission-runner run --live')",
+                )
+            ],
+        )
+    with LiveServer(scenario, host=arguments.host, port=arguments.port) as server:
+        print(f"view: {server.url} (Foxglove: Open connection); Ctrl-C to stop", flush=True)
+        live_log = LiveLog(server.channels)
+        with live_log.attached():
+            _run_async(
+                serve_bus(
+                    scenario,
+                    server.channels,
+                    client_id=f"{scenario.name}-view",
+                    on_time=live_log.stamp,
+                )
+            )
+    return EXIT_OK
+
+
+def _replay_flag(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--replay",
+        action="store_true",
+        help="also animate the run: replay.gif (and replay.mp4 where ffmpeg is on the PATH)",
+    )
+
+
+def _replay(arguments: argparse.Namespace) -> int:
+    from .replay import write_replay  # noqa: PLC0415 - matplotlib is slow to import
+
+    files = write_replay(
+        arguments.out_dir,
+        gif=arguments.gif,
+        every=arguments.every,
+        fps=arguments.fps,
+        width_px=arguments.width,
+        trail_steps=arguments.trail,
+        mp4=not arguments.no_mp4,
+    )
+    print(_replay_text(files))
+    return EXIT_OK
+
+
+def _replay_text(files: ReplayFiles) -> str:
+    width, height = files.size_px
+    written = f"{files.gif}" + (f" and {files.mp4}" if files.mp4 else " (no ffmpeg: no MP4)")
+    return (
+        f"replay: {files.frames} frames of {width}x{height} px in {files.render_s:.1f} s: {written}"
+    )
+
+
 def _simulate(arguments: argparse.Namespace) -> int:
     from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415 - fast `--help`
     from .sim.simulator import check_memory, simulate  # noqa: PLC0415
@@ -349,10 +541,15 @@ def _simulate(arguments: argparse.Namespace) -> int:
     check_memory(scenario, arguments.runs, str(arguments.config))
     out_dir = prepare_out_dir(arguments.out or Path("out") / scenario.name, RUN_FILES)
     progress = _progress(scenario.timing.steps, arguments.quiet, f"{scenario.name}")
-    with RunSummary(out_dir, scenario, config_path=arguments.config, runs=arguments.runs) as record:
+    capture = LogCapture()
+    with (
+        RunSummary(out_dir, scenario, config_path=arguments.config, runs=arguments.runs) as record,
+        capture.attached(),
+    ):
 
         def on_step(done: int, total: int) -> None:
             record.steps_done = done
+            capture.stamp(done * scenario.timing.step_s)
             progress.update_to(done, total)
 
         started = time.perf_counter()
@@ -361,11 +558,25 @@ def _simulate(arguments: argparse.Namespace) -> int:
         finally:
             progress.close()
         document = record.write_results(
-            result, wall_time_s=time.perf_counter() - started, figures=not arguments.no_figures
+            result,
+            wall_time_s=time.perf_counter() - started,
+            figures=not arguments.no_figures,
+            logs=capture.lines,
         )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
+    _maybe_replay(arguments, out_dir)
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
+
+
+def _maybe_replay(arguments: argparse.Namespace, out_dir: Path) -> None:
+    """``--replay``: animate what was just written."""
+    if arguments.replay:
+        from .replay import write_replay  # noqa: PLC0415
+
+        files = write_replay(out_dir)
+        if not arguments.quiet:
+            print(_replay_text(files))
 
 
 def _run(arguments: argparse.Namespace) -> int:
@@ -385,28 +596,47 @@ def _run(arguments: argparse.Namespace) -> int:
     tlogs = out_dir / "tlogs"
     tlogs.mkdir(exist_ok=True)
     view = None if arguments.quiet else _FlightView(scenario)
+    capture = LogCapture()
     with RunSummary(out_dir, scenario, config_path=arguments.config) as record:
 
         def on_step(vehicle_id: int, step: StepRecord) -> None:
             record.steps_done = max(record.steps_done, step.step + 1)
+            capture.stamp(step.time_s)
 
-        try:
-            outcome = _run_async(
-                fly(
-                    scenario,
-                    emulator_overrides={"tlog_dir": str(tlogs)},
-                    on_step=on_step,
-                    on_progress=view,
+        step_callbacks: list[Callable[[int, StepRecord], None]] = [on_step]
+        progress_callbacks: list[Callable[[Progress], None]] = [view] if view is not None else []
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(capture.attached())
+            server = _live_server(arguments, scenario)
+            if server is not None:
+                from .live import FlightFeed, LiveLog  # noqa: PLC0415
+
+                stack.enter_context(server)
+                print(f"live: {server.url} (Foxglove: Open connection)", flush=True)
+                feed = FlightFeed(scenario, server.channels)
+                live_log = stack.enter_context(LiveLog(server.channels).attached())
+                step_callbacks += [feed.on_step, lambda _, step: live_log.stamp(step.time_s)]
+                progress_callbacks.append(feed.on_progress)
+            try:
+                outcome = _run_async(
+                    fly(
+                        scenario,
+                        emulator_overrides={"tlog_dir": str(tlogs)},
+                        on_step=_every(step_callbacks),
+                        on_progress=_every(progress_callbacks),
+                    )
                 )
-            )
-        finally:
-            if view is not None:
-                view.close()
+            finally:
+                if view is not None:
+                    view.close()
         document = record.write_results(
             outcome.result,
             wall_time_s=outcome.wall_time_s,
             figures=not arguments.no_figures,
             vehicles=outcome.vehicles,
+            records=outcome.records,
+            start_s=outcome.start_s,
+            logs=capture.lines,
         )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
@@ -415,6 +645,7 @@ def _run(arguments: argparse.Namespace) -> int:
             f"flown: {mission_s:g} s of mission in {outcome.mission_wall_time_s:.2f} s wall "
             f"({mission_s / outcome.mission_wall_time_s:.1f}x real time); MAVLink logs in {tlogs}/"
         )
+    _maybe_replay(arguments, out_dir)
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
 
 
@@ -428,15 +659,32 @@ def _vehicle(arguments: argparse.Namespace) -> int:
         arguments.out or _mission_dir(scenario) / f"vehicle_{arguments.id}", VEHICLE_FILES
     )
     run = VehicleRun(arguments.id)
+    capture = LogCapture()
     status: Status = "error"
     try:
-        _run_async(run_vehicle(scenario, arguments.id, url=arguments.url, run=run))
+        with capture.attached():
+            _run_async(
+                run_vehicle(
+                    scenario,
+                    arguments.id,
+                    url=arguments.url,
+                    run=run,
+                    on_step=lambda _, record: capture.stamp(record.time_s),
+                )
+            )
         status = "passed" if run.state == "done" else "error"
     except KeyboardInterrupt:
         status = "interrupted"
         raise
     finally:
-        write_vehicle_run(run, out_dir, config_path=arguments.config, status=status)
+        write_vehicle_run(
+            run,
+            out_dir,
+            config_path=arguments.config,
+            status=status,
+            scenario=scenario,
+            logs=capture.lines,
+        )
     following = sum(record.state == "following" for record in run.records)
     print(
         f"vehicle {arguments.id}: {run.state}, {len(run.records)} steps, {following} following "
@@ -450,6 +698,7 @@ def _vehicle(arguments: argparse.Namespace) -> int:
 def _ground(arguments: argparse.Namespace) -> int:
     from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from .runner.process import run_ground, wait_and_merge  # noqa: PLC0415
+    from .runner.scoring import mission_records  # noqa: PLC0415
 
     scenario = load_scenario(arguments.config)
     mission_dir = prepare_out_dir(arguments.out or _mission_dir(scenario), RUN_FILES)
@@ -466,10 +715,37 @@ def _ground(arguments: argparse.Namespace) -> int:
                 flush=True,
             )
 
-    with RunSummary(mission_dir, scenario, config_path=arguments.config) as record:
-        outcome = _run_async(
-            run_ground(scenario, start_delay_s=arguments.start_delay, on_status=show)
-        )
+    capture = LogCapture()
+
+    def on_status(status: VehicleStatus) -> None:
+        capture.stamp(status.time_s)
+        show(status)
+
+    with (
+        RunSummary(mission_dir, scenario, config_path=arguments.config) as record,
+        capture.attached(),
+        contextlib.ExitStack() as stack,
+    ):
+        ground = run_ground(scenario, start_delay_s=arguments.start_delay, on_status=on_status)
+        server = _live_server(arguments, scenario)
+        if server is None:
+            outcome = _run_async(ground)
+        else:
+            from .live import LiveLog, alongside  # noqa: PLC0415
+
+            stack.enter_context(server)
+            print(f"live: {server.url} (Foxglove: Open connection)", flush=True)
+            live_log = stack.enter_context(LiveLog(server.channels).attached())
+            outcome = _run_async(
+                alongside(
+                    ground,
+                    scenario,
+                    server.channels,
+                    client_id=f"{scenario.name}-ground-view",
+                    on_time=live_log.stamp,
+                )
+            )
+            stack.close()  # the live view ends with the mission, before the merge
         done = len(outcome.statuses) - len(outcome.lost)
         lost = ", ".join(
             f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
@@ -494,6 +770,9 @@ def _ground(arguments: argparse.Namespace) -> int:
                 i: {"state": status.state, "detail": status.detail}
                 for i, status in outcome.statuses.items()
             },
+            records=mission_records(mission_dir, (v.id for v in scenario.vehicles)),
+            start_s=outcome.start_s or 0.0,
+            logs=capture.lines,
         )
     print(_summary_text(document, mission_dir))
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
@@ -638,7 +917,7 @@ def _summary_text(document: Mapping[str, Any], out_dir: Path) -> str:
         verdict = "PASS" if expectations["passed"] else "FAIL"
         lines.append(f"expectations: {verdict} ({len(expectations['checked'])} checked)")
         lines += [f"  failed: {failure}" for failure in expectations["failures"]]
-    written = ["summary.json", "timeseries.csv", *document.get("figures", [])]
+    written = ["summary.json", "timeseries.csv", "recording.mcap", *document.get("figures", [])]
     lines.append(f"results in {out_dir}/ ({', '.join(written)})")
     return "\n".join(lines)
 

@@ -537,6 +537,17 @@ class Scenario(Model):
 # --- Loading --------------------------------------------------------------------------------------
 
 
+def scenario_json_schema() -> dict[str, Any]:
+    """The scenario's JSON Schema (draft 2020-12), from the model: what an editor's YAML
+    language server checks and completes as one writes a scenario (titles and descriptions as
+    hover text). Rules across fields (``beta < 1/step_s``, unique vehicle ids, events naming
+    vehicles that exist) cannot be said in JSON Schema: loading the file checks those."""
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        **Scenario.model_json_schema(),
+    }
+
+
 #: A scenario file is a few kilobytes; the cap makes ``/dev/zero`` or a wrong, huge file end at
 #: once instead of being read (and parsed) into memory.
 MAX_FILE_BYTES = 1 << 20

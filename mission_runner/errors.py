@@ -5,8 +5,9 @@ Exception tree::
     MissionRunnerError
     ├── ConfigError          a scenario file is unreadable or invalid (names the YAML path)
     ├── OutputError          an output folder cannot be used (a file, not writable)
-    └── SimulationError      the numeric simulator cannot run a valid scenario (e.g. all
-                             target-sensing vehicles lost)
+    ├── SimulationError      the numeric simulator cannot run a valid scenario (e.g. all
+    │                        target-sensing vehicles lost)
+    └── ReplayError          a folder cannot be replayed (no recording, or no truth to draw)
 """
 
 
@@ -35,3 +36,8 @@ class OutputError(MissionRunnerError):
 
 class SimulationError(MissionRunnerError):
     """A valid scenario reached a state the simulator cannot continue from."""
+
+
+class ReplayError(MissionRunnerError):
+    """A run cannot be replayed: its folder has no ``recording.mcap``, or one without the truth
+    to draw (a vehicle process's own)."""

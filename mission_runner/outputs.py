@@ -1,4 +1,5 @@
-"""Write a run's results: ``timeseries.csv``, ``summary.json`` and the figures.
+"""Write a run's results: ``timeseries.csv``, ``summary.json``, ``recording.mcap`` (see
+:mod:`.recording`) and the figures.
 
 Every file is written to a temporary name and renamed into place, so a crash or Ctrl-C never leaves
 a half-written result that looks complete. The folder is made ready before any work
@@ -31,6 +32,8 @@ from .sim.metrics import MetricValue, check_expectations, distribution, run_metr
 
 if TYPE_CHECKING:
     from .config import Scenario
+    from .recording import LogLine
+    from .runner.controller import StepRecord
     from .runner.process import VehicleRun
     from .sim.simulator import SimulationResult
 
@@ -55,9 +58,12 @@ RUN_FILES = (
     "tracking_error.png",
     "batch_tracking_error.png",
     "tlogs/vehicle_*.tlog",
+    "recording.mcap",
+    "replay.gif",
+    "replay.mp4",
 )
 #: What a vehicle process writes into its folder.
-VEHICLE_FILES = ("summary.json", "steps.csv")
+VEHICLE_FILES = ("summary.json", "steps.csv", "recording.mcap")
 #: What the range aid writes into its folder.
 TRUTH_FILES = ("truth.csv",)
 
@@ -243,15 +249,30 @@ def write_results(
     wall_time_s: float | None = None,
     figures: bool = True,
     vehicles: Mapping[int, Mapping[str, str]] | None = None,
+    records: Mapping[int, Sequence[StepRecord]] | None = None,
+    start_s: float = 0.0,
+    logs: Sequence[LogLine] = (),
 ) -> dict[str, Any]:
-    """Write timeseries.csv, summary.json and (optionally) the figures into ``out_dir``.
+    """Write timeseries.csv, summary.json, recording.mcap and (optionally) the figures into
+    ``out_dir``. A flight passes its controllers' ``records`` and ``start_s`` (the mission clock
+    at k = 0) for the recording; ``logs`` are the run's log lines.
 
     Returns the summary dict.
     """
+    from .recording import RECORDING, write_recording  # noqa: PLC0415 - foxglove loads a library
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     document = summary(result, config_path=config_path, wall_time_s=wall_time_s, vehicles=vehicles)
     write_atomic(out_dir / "timeseries.csv", timeseries_csv(result))
+    expectations = document["expectations"]
+    verdict = None
+    if expectations["checked"]:
+        verdict = "expectations: " + ("PASS" if expectations["passed"] else "FAIL")
+        verdict += "".join(f"; failed: {failure}" for failure in expectations["failures"])
+    write_recording(
+        result, out_dir / RECORDING, records=records, start_s=start_s, logs=logs, verdict=verdict
+    )
     if result.runs > 1:
         write_atomic(out_dir / "batch.csv", batch_csv(result))
     if figures:
@@ -279,11 +300,15 @@ def write_vehicle_run(
     *,
     config_path: PathName | None = None,
     status: Status | None = None,
+    scenario: Scenario | None = None,
+    logs: Sequence[LogLine] = (),
 ) -> dict[str, Any]:
     """One vehicle process's outputs: ``steps.csv`` (per step: state, phase, command, consensus,
-    neighbours used, lateness of the setpoint, every estimate) and ``summary.json`` (how the
-    process ended, final state, counts, the autopilot's clock fit, parameters applied). Written
-    atomically."""
+    neighbours used, lateness of the setpoint, every estimate), ``recording.mcap`` (the same and
+    ``logs``, see :mod:`.recording`) and ``summary.json`` (how the process ended, final state,
+    counts, the autopilot's clock fit, parameters applied). Written atomically."""
+    from .recording import RECORDING, write_vehicle_recording  # noqa: PLC0415
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     peers = sorted({peer for record in run.records for peer in record.estimates_m})
@@ -328,6 +353,9 @@ def write_vehicle_run(
             ]
         )
     write_atomic(out_dir / "steps.csv", buffer.getvalue())
+    write_vehicle_recording(
+        run.vehicle_id, run.records, out_dir / RECORDING, scenario=scenario, logs=logs
+    )
     states: dict[str, int] = {}
     for record in run.records:
         states[record.state] = states.get(record.state, 0) + 1
@@ -415,6 +443,9 @@ class RunSummary:
         wall_time_s: float | None = None,
         figures: bool = True,
         vehicles: Mapping[int, Mapping[str, str]] | None = None,
+        records: Mapping[int, Sequence[StepRecord]] | None = None,
+        start_s: float = 0.0,
+        logs: Sequence[LogLine] = (),
     ) -> dict[str, Any]:
         """:func:`write_results` into this run's folder; returns the summary dict."""
         self.document = write_results(
@@ -424,6 +455,9 @@ class RunSummary:
             wall_time_s=wall_time_s,
             figures=figures,
             vehicles=vehicles,
+            records=records,
+            start_s=start_s,
+            logs=logs,
         )
         return self.document
 

@@ -308,6 +308,7 @@ def test_a_second_run_removes_the_first_runs_files_and_nothing_else(tmp_path):
         "tlogs",
         "summary.json",
         "timeseries.csv",
+        "recording.mcap",  # written by every run, as the summary
     }
     assert not list((out / "tlogs").iterdir())
     assert (out / "notes.txt").read_text() == "mine"

@@ -161,6 +161,56 @@ def test_every_bundled_scenario_is_valid():
         assert load_scenario(CONFIGS / f"{name}.yaml").name == name
 
 
+# The JSON Schema an editor checks scenarios against (``mission-runner schema``).
+
+SCHEMA_FILE = CONFIGS / "scenario.schema.json"
+
+
+@pytest.fixture(scope="module")
+def validator():
+    """A JSON Schema validator of the scenario's schema (checked to be a valid schema itself)."""
+    from mission_runner.config import scenario_json_schema
+
+    jsonschema = pytest.importorskip("jsonschema")
+    document = scenario_json_schema()
+    jsonschema.Draft202012Validator.check_schema(document)
+    return jsonschema.Draft202012Validator(document)
+
+
+@pytest.mark.parametrize("path", sorted(CONFIGS.glob("*.yaml")), ids=lambda path: path.stem)
+def test_every_bundled_scenario_meets_the_schema_and_names_it(validator, path):
+    text = path.read_text()
+    assert [error.message for error in validator.iter_errors(yaml.safe_load(text))] == []
+    assert text.splitlines()[0] == "# yaml-language-server: $schema=scenario.schema.json"
+
+
+@pytest.mark.parametrize(
+    ("path", "value"),
+    [
+        (("algorithm", "forgetting_factor"), 1.5),  # out of range
+        (("timing", "steps"), "many"),  # wrong type
+        (("algorithm", "radius"), 4.0),  # unknown key
+        (("target", "path", "kind"), "spiral"),  # not one of the kinds
+    ],
+)
+def test_the_schema_rejects_what_loading_rejects(validator, path, value):
+    data = edit(path, value)
+    assert problems_of(data)
+    errors = list(validator.iter_errors(data))
+    assert errors
+    assert all(error.absolute_path[0] == path[0] for error in errors)
+
+
+def test_the_bundled_schema_file_is_what_the_command_prints(capsys):
+    from mission_runner.cli import EXIT_OK, main
+
+    assert main(["schema"]) == EXIT_OK
+    assert capsys.readouterr().out == SCHEMA_FILE.read_text(), (
+        "configs/scenario.schema.json is stale: mission-runner schema --out "
+        "configs/scenario.schema.json"
+    )
+
+
 # --- Inputs that once gave a traceback, a hang or a silent wrong result --------------------------
 
 

@@ -40,6 +40,7 @@ if TYPE_CHECKING:
     from sitl.emulator import Emulator, EmulatorStats
 
     from ..config import Scenario
+    from ..sim.metrics import TruthSample
     from ..sim.simulator import SimulationResult
 
 #: Sees every controller step: ``(vehicle_id, record)``.
@@ -67,6 +68,8 @@ class Progress:
     states: dict[int, str]
     tracking_error_m: float
     localization_error_m: float
+    #: The emulator's truth at t_k, for views (None if the world had no sample of step k).
+    truth: TruthSample | None = None
 
 
 class _ProgressAggregator:
@@ -104,6 +107,7 @@ class _ProgressAggregator:
                 {i: r.state for i, r in sorted(records.items())},
                 tracking,
                 localization,
+                sample,
             )
         )
 

@@ -192,9 +192,16 @@ def merge_mission(scenario: Scenario, mission_dir: PathName) -> SimulationResult
     truth = mission_dir / "truth" / "truth.csv"
     if not truth.exists():
         return None
+    records = mission_records(mission_dir, ids)
+    return score_flight(scenario, read_truth_csv(truth, ids), records, None)
+
+
+def mission_records(mission_dir: PathName, ids: Iterable[int]) -> dict[int, list[StepRecord]]:
+    """Every vehicle's records from its ``vehicle_<id>/steps.csv`` under ``mission_dir`` (those
+    that wrote one)."""
     records = {}
     for vehicle_id in ids:
-        steps = mission_dir / f"vehicle_{vehicle_id}" / "steps.csv"
+        steps = Path(mission_dir) / f"vehicle_{vehicle_id}" / "steps.csv"
         if steps.exists():
             records[vehicle_id] = read_steps_csv(steps)
-    return score_flight(scenario, read_truth_csv(truth, ids), records, None)
+    return records

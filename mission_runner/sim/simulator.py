@@ -34,7 +34,10 @@ class SimulationResult:
     phases_rad ``(B, K+1, N)``; commands_m_s ``(B, K, N, 2)`` (after the speed bound);
     live ``(B, K+1, N)``; tracking_error_m ``(B, K+1)``; localization_error_m ``(B, K)`` (max over
     estimated edges at step k); phase_spacing_error_rad ``(B, K+1)``; consensus_speed_m_s
-    ``(B, K)`` (max over vehicles of |sat(ubar)|); separation_m ``(B, K+1)`` (closest live pair).
+    ``(B, K)`` (max over vehicles of |sat(ubar)|); separation_m ``(B, K+1)`` (closest live pair);
+    estimates_m ``(K, N, N+1, 2)`` run 0's phat_ij(k) [north, east] (slot 0 the target; NaN where
+    not estimated), or None (flights carry theirs in the controllers' step records; a swarm whose
+    estimates would exceed ``ESTIMATES_LIMIT_BYTES`` does not keep them).
     """
 
     scenario: Scenario
@@ -51,6 +54,7 @@ class SimulationResult:
     separation_m: NDArray[np.float64]
     #: Flight-only metrics, ``{name: (B,) array}`` (see ``config.FLIGHT_METRICS``).
     extra_metrics: dict[str, NDArray[Any]] = field(default_factory=dict)
+    estimates_m: NDArray[np.float64] | None = None
 
     @property
     def runs(self) -> int:
@@ -122,6 +126,14 @@ def _event_schedule(scenario: Scenario) -> Callable[[int], NDArray[np.bool_]]:
 #: refused before anything is allocated (``timing.steps: 10000000`` with ``--runs 100`` once grew
 #: until the machine swapped).
 MEMORY_LIMIT_BYTES = 4 << 30
+#: Run 0's estimates (for the recording) are kept up to this size [bytes]: they grow as N^2 K
+#: (paper scenario 0.2 MB, 32 vehicles x 300 steps 5 MB; 256 vehicles x 600 steps would be 630 MB).
+ESTIMATES_LIMIT_BYTES = 8 << 20
+
+
+def estimates_bytes(steps: int, vehicles: int) -> int:
+    """Size of run 0's estimates ``(K, N, N+1, 2)`` as float64."""
+    return 16 * steps * vehicles * (vehicles + 1)
 
 
 def memory_estimate_bytes(steps: int, vehicles: int, runs: int) -> int:
@@ -133,7 +145,14 @@ def memory_estimate_bytes(steps: int, vehicles: int, runs: int) -> int:
     working = 32 * 8 * runs * vehicles * (vehicles + 1)
     schedules = 96 * (steps + 2)
     text = 2 * (steps + 1) * (80 + 60 * vehicles)
-    return series + working + schedules + text
+    estimates = estimates_bytes(steps, vehicles)
+    return (
+        series
+        + working
+        + schedules
+        + text
+        + (estimates if estimates <= ESTIMATES_LIMIT_BYTES else 0)
+    )
 
 
 def check_memory(scenario: Scenario, runs: int, source: str) -> None:
@@ -195,6 +214,11 @@ def simulate(
         "consensus_speed_m_s": np.empty((runs, steps)),
         "separation_m": np.empty((runs, steps + 1)),
     }
+    # Run 0 only (a 1000-run batch would hold 1000 times as much for nobody to look at), and only
+    # while small: they grow as N^2.
+    keep_estimates = estimates_bytes(steps, n) <= ESTIMATES_LIMIT_BYTES
+    if keep_estimates:
+        out["estimates_m"] = np.empty((steps, n, n + 1, 2))
     not_self = ~np.eye(n, n + 1, k=1, dtype=bool)
     target_column = np.concatenate([senses[:, None], np.ones((n, n), dtype=bool)], axis=1)
 
@@ -227,6 +251,9 @@ def simulate(
             shape_now=shapes[k],
             shape_next=shapes[k + 1],
         )
+        if keep_estimates:
+            out["estimates_m"][k, ..., 0] = step.estimate_north_m[0]
+            out["estimates_m"][k, ..., 1] = step.estimate_east_m[0]
         error_north = step.estimate_north_m - truth_north
         error_east = step.estimate_east_m - truth_east
         error = np.sqrt(error_north * error_north + error_east * error_east)
@@ -305,7 +332,7 @@ def score(
 
     times ``(K+1,)``, target ``(K+1, 2)``; ``out`` the series named as the result's fields
     (positions_m, phases_rad, commands_m_s, live, localization_error_m, consensus_speed_m_s,
-    separation_m), shaped as documented there."""
+    separation_m; optionally estimates_m), shaped as documented there."""
     positions, live = out["positions_m"], out["live"]
     tracking = tracking_error(positions, live, target)
     spacing = splay_spacing_error(out["phases_rad"], live)

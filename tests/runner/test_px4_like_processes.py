@@ -16,7 +16,9 @@ import signal
 import pytest
 import yaml
 
+from mission_runner.recording import RECORDING
 from tests.sitl.helpers import free_port_config, free_truth_stream
+from tests.test_recording import summary_of
 
 from .flying import CONFIGS, start
 
@@ -121,7 +123,15 @@ class Swarm:
             for i, vehicle in enumerate(self.data["vehicles"])
         ]
         ground = start(
-            "mission_runner.cli", "ground", self.scenario, "--out", str(mission), "--no-figures"
+            "mission_runner.cli",
+            "ground",
+            self.scenario,
+            "--out",
+            str(mission),
+            "--no-figures",
+            "--live",  # the live view of the bus runs alongside, on a free port
+            "--live-port",
+            "0",
         )
         self.processes = [ranges, *vehicles, ground]
         ground_out, _ = ground.communicate(timeout=timeout_s)
@@ -163,6 +173,15 @@ def test_the_mission_flies_on_px4_like_vehicles_as_separate_processes(tmp_path, 
         assert summary["autopilot_params"]["COM_OBL_RC_ACT"] == 4  # on_lost: land
     merged = json.loads((mission / "summary.json").read_text())
     assert merged["metrics"]["tail_tracking_error_rms_m"] < 0.2
+    assert "live: ws://127.0.0.1:" in ground_out
+    # Every process recorded its part: the ground the truth and all records, each vehicle itself.
+    recorded = summary_of(mission / RECORDING)
+    samples = len((mission / "timeseries.csv").read_text().splitlines()) - 1  # the truth's
+    assert recorded["/vehicles/3/pose"] == ("foxglove.PoseInFrame", samples)
+    assert recorded["/vehicles/3/state"] == ("mission_runner.VehicleState", STEPS)
+    for number in range(1, 5):
+        own = summary_of(mission / f"vehicle_{number}" / RECORDING)
+        assert own[f"/vehicles/{number}/state"] == ("mission_runner.VehicleState", STEPS)
 
 
 @pytest.mark.timeout(240)
