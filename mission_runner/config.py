@@ -196,6 +196,57 @@ class ShapeConfig(Model):
     shear_b: Signal = Field(0.0, title="H_b", description="Shear of east by north.")
 
 
+class EstimatorSettingsConfig(Model):
+    """The filter estimator's noise model and outlier gate (``algorithm.estimator: ekf``).
+
+    The noise figures default to the scenario's ``sensors:`` model; on real hardware give the
+    ranging radio's and the odometry's own figures here."""
+
+    range_noise_std_m: NonNegativeFloat | None = Field(
+        None,
+        title="Range noise",
+        description="Std of one range [m] the filter assumes (default: sensors.range_noise_std_m).",
+    )
+    displacement_noise_std_m: NonNegativeFloat | None = Field(
+        None,
+        title="Displacement noise",
+        description="Per-axis std of one vehicle's displacement over one step [m] the filter "
+        "assumes (default: sensors.displacement_noise_std_m, with sensors.displacement_drift_m_s "
+        "x timing.step_s added in quadrature).",
+    )
+    gate_chi2: PositiveFloat | None = Field(
+        10.83,
+        title="Outlier gate",
+        description="A range whose squared innovation exceeds this many innovation variances "
+        "is rejected as an outlier (chi-square, 1 degree of freedom: 10.83 rejects 0.1 % of good "
+        "ranges); null: no gate.",
+    )
+    gate_patience: Annotated[int, Field(ge=1)] = Field(
+        10,
+        title="Gate patience",
+        description="Ranges of one edge rejected in a row after which the edge restarts from "
+        "its regression (it has lost track).",
+    )
+    initial_forgetting_factor: float = Field(
+        0.7,
+        gt=0,
+        le=1,
+        title="Start-up beta_f",
+        description="Forgetting factor of the cosine-law RLSE that starts each edge.",
+    )
+    handover_updates: Annotated[int, Field(ge=1)] = Field(
+        10,
+        title="Hand-over updates",
+        description="Start-up RLSE updates before the filter may take an edge over.",
+    )
+    handover_std_m: PositiveFloat = Field(
+        1.0,
+        title="Hand-over std",
+        description="The filter takes an edge over once the start-up RLSE's error bound (1 "
+        "sigma, worst direction) is below this [m].",
+    )
+
+
 class AlgorithmConfig(Model):
     """The paper's parameters (ALGORITHM.md)."""
 
@@ -219,6 +270,18 @@ class AlgorithmConfig(Model):
         description="Circle radius [m]; neighbours on it must be at least 0.1 m apart.",
     )
     initial_gain: PositiveFloat = Field(1.0, title="Gamma(0)", description="Gamma(0) = value * I.")
+    estimator: Literal["rlse", "ekf"] = Field(
+        "rlse",
+        title="Estimator",
+        description="Relative localization: rlse, the paper's cosine-law RLSE with forgetting "
+        "factor beta_f; ekf, a per-edge extended Kalman filter on range and odometry with an "
+        "outlier gate (estimator_settings), started by the RLSE.",
+    )
+    estimator_settings: EstimatorSettingsConfig = Field(
+        EstimatorSettingsConfig(),
+        title="Estimator settings",
+        description="Noise model and outlier gate of the ekf estimator.",
+    )
     shape: ShapeConfig = Field(ShapeConfig(), title="Shape", description="Affine shaping.")
 
 
@@ -352,6 +415,7 @@ SimulationMetricName = Literal[
     "final_tracking_error_m",
     "tail_tracking_error_rms_m",
     "tail_localization_error_median_m",
+    "tail_localization_error_rms_m",
     "final_localization_error_m",
     "final_phase_spacing_error_rad",
     "tracking_converged_step",
@@ -361,6 +425,7 @@ SimulationMetricName = Literal[
     "max_speed_m_s",
     "min_separation_m",
     "final_live_vehicles",
+    "gated_ranges",
 ]
 FlightMetricName = Literal[
     "vehicles_disarmed_at_end",
