@@ -339,6 +339,20 @@ class SensorConfig(Model):
     range_max_m: PositiveFloat | None = Field(
         None, title="Range limit", description="Ranges beyond this are not measured [m]."
     )
+    range_outlier_probability: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        title="Range outliers",
+        description="Probability a range is an NLOS outlier: read long by a bias drawn "
+        "uniformly from range_outlier_bias_m.",
+    )
+    range_outlier_bias_m: Pair = Field(
+        [0.3, 3.0],
+        title="Outlier bias",
+        description="[low, high] of the extra length of an outlying range [m] (UWB through an "
+        "obstacle reads long, never short).",
+    )
     displacement_noise_std_m: NonNegativeFloat = Field(
         0.0, title="Flow noise", description="Std of per-step displacement noise, per axis [m]."
     )
@@ -347,6 +361,13 @@ class SensorConfig(Model):
         title="Flow drift",
         description="Magnitude of a constant odometry drift per vehicle, random direction [m/s].",
     )
+
+    @field_validator("range_outlier_bias_m")
+    @classmethod
+    def _bias_interval(cls, bias: list[float]) -> list[float]:
+        if not 0 <= bias[0] <= bias[1]:
+            raise ValueError("must be [low, high] with 0 <= low <= high")
+        return bias
 
 
 #: Events only a flight can play (they need real links, sensors or autopilots); the numeric
