@@ -11,6 +11,7 @@ Python code.
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 import sys
 from collections.abc import Iterable
@@ -28,6 +29,8 @@ from .expressions import ExpressionError, compile_expression
 
 if TYPE_CHECKING:
     from .outputs import PathName
+
+logger = logging.getLogger(__name__)
 
 #: A scenario problem: the YAML path a user would edit (``vehicles[2].id``) and what is wrong.
 Problem = tuple[str, str]
@@ -773,7 +776,51 @@ def validate_scenario(data: dict[str, Any], source: str = "<data>") -> Scenario:
     problems = _rule_problems(scenario)
     if problems:
         raise ConfigError(source, problems)
+    for where, warning in scenario_warnings(scenario):
+        logger.warning("%s: %s: %s", source, where, warning)
     return scenario
+
+
+def scenario_warnings(scenario: Scenario) -> list[Problem]:
+    """What is valid but will not do what the file seems to ask, at the path to edit: a vehicle
+    speed limit below the speed the law commands (it then clips the command and the formation
+    falls behind while the final sample may still look fine)."""
+    from .scenario import shape_matrices, target_positions  # noqa: PLC0415 - imports this module
+
+    step_s, steps = scenario.timing.step_s, scenario.timing.steps
+    times = np.arange(steps + 2, dtype=np.float64) * step_s
+    with np.errstate(all="ignore"):
+        shapes = shape_matrices(scenario.algorithm.shape, times)
+        target = target_positions(scenario.target.path, times)
+    # |u| <= Ubar + |delta_r / T| + |u_0|, and on the circle |delta_r / T| is at most
+    # |A(k+1)| rho omega (the phase turning) + rho |A(k+1) - A(k)| / T + |dT| / T (the shape
+    # changing), |.| the largest singular value of the linear part.
+    linear = shapes[:, :2, :2]
+    stretch = np.linalg.norm(linear, ord=2, axis=(-2, -1))
+    reshape = np.linalg.norm(np.diff(linear, axis=0), ord=2, axis=(-2, -1)) / step_s
+    shift = np.linalg.norm(np.diff(shapes[:, :2, 2], axis=0), axis=-1) / step_s
+    target_speed = float(np.max(np.linalg.norm(np.diff(target, axis=0), axis=-1))) / step_s
+    radius_m = scenario.algorithm.radius_m
+    warnings: list[Problem] = []
+    for index, vehicle in enumerate(scenario.vehicles):
+        omega = vehicle.omega_rad_s or scenario.algorithm.omega_rad_s
+        circle = radius_m * (omega * stretch[1:] + reshape) + shift
+        needed = scenario.algorithm.saturation_m_s + float(np.max(circle)) + target_speed
+        if vehicle.speed_limit_m_s < needed:
+            source = (
+                "vehicles[{index}].omega_rad_s" if vehicle.omega_rad_s else "algorithm.omega_rad_s"
+            )
+            warnings.append(
+                (
+                    f"vehicles[{index}].speed_limit_m_s",
+                    f"{vehicle.speed_limit_m_s:g} m/s is below the {needed:.3g} m/s the law may "
+                    f"command (algorithm.saturation_m_s {scenario.algorithm.saturation_m_s:g} + "
+                    f"the circle's {float(np.max(circle)):.3g} from algorithm.radius_m, "
+                    f"algorithm.shape and {source.format(index=index)} + target.path's "
+                    f"{target_speed:.3g}): commands will be clipped and the formation will lag",
+                )
+            )
+    return warnings
 
 
 def yaml_path(location: Iterable[int | str]) -> str:
