@@ -11,6 +11,7 @@ Python code.
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 import sys
 from collections.abc import Iterable
@@ -28,6 +29,8 @@ from .expressions import ExpressionError, compile_expression
 
 if TYPE_CHECKING:
     from .outputs import PathName
+
+logger = logging.getLogger(__name__)
 
 #: A scenario problem: the YAML path a user would edit (``vehicles[2].id``) and what is wrong.
 Problem = tuple[str, str]
@@ -196,6 +199,57 @@ class ShapeConfig(Model):
     shear_b: Signal = Field(0.0, title="H_b", description="Shear of east by north.")
 
 
+class EstimatorSettingsConfig(Model):
+    """The filter estimator's noise model and outlier gate (``algorithm.estimator: ekf``).
+
+    The noise figures default to the scenario's ``sensors:`` model; on real hardware give the
+    ranging radio's and the odometry's own figures here."""
+
+    range_noise_std_m: NonNegativeFloat | None = Field(
+        None,
+        title="Range noise",
+        description="Std of one range [m] the filter assumes (default: sensors.range_noise_std_m).",
+    )
+    displacement_noise_std_m: NonNegativeFloat | None = Field(
+        None,
+        title="Displacement noise",
+        description="Per-axis std of one vehicle's displacement over one step [m] the filter "
+        "assumes (default: sensors.displacement_noise_std_m, with sensors.displacement_drift_m_s "
+        "x timing.step_s added in quadrature).",
+    )
+    gate_chi2: PositiveFloat | None = Field(
+        10.83,
+        title="Outlier gate",
+        description="A range whose squared innovation exceeds this many innovation variances "
+        "is rejected as an outlier (chi-square, 1 degree of freedom: 10.83 rejects 0.1 % of good "
+        "ranges); null: no gate.",
+    )
+    gate_patience: Annotated[int, Field(ge=1)] = Field(
+        10,
+        title="Gate patience",
+        description="Ranges of one edge rejected in a row after which the edge restarts from "
+        "its regression (it has lost track).",
+    )
+    initial_forgetting_factor: float = Field(
+        0.7,
+        gt=0,
+        le=1,
+        title="Start-up beta_f",
+        description="Forgetting factor of the cosine-law RLSE that starts each edge.",
+    )
+    handover_updates: Annotated[int, Field(ge=1)] = Field(
+        10,
+        title="Hand-over updates",
+        description="Start-up RLSE updates before the filter may take an edge over.",
+    )
+    handover_std_m: PositiveFloat = Field(
+        1.0,
+        title="Hand-over std",
+        description="The filter takes an edge over once the start-up RLSE's error bound (1 "
+        "sigma, worst direction) is below this [m].",
+    )
+
+
 class AlgorithmConfig(Model):
     """The paper's parameters (ALGORITHM.md)."""
 
@@ -219,6 +273,18 @@ class AlgorithmConfig(Model):
         description="Circle radius [m]; neighbours on it must be at least 0.1 m apart.",
     )
     initial_gain: PositiveFloat = Field(1.0, title="Gamma(0)", description="Gamma(0) = value * I.")
+    estimator: Literal["rlse", "ekf"] = Field(
+        "rlse",
+        title="Estimator",
+        description="Relative localization: rlse, the paper's cosine-law RLSE with forgetting "
+        "factor beta_f; ekf, a per-edge extended Kalman filter on range and odometry with an "
+        "outlier gate (estimator_settings), started by the RLSE.",
+    )
+    estimator_settings: EstimatorSettingsConfig = Field(
+        EstimatorSettingsConfig(),
+        title="Estimator settings",
+        description="Noise model and outlier gate of the ekf estimator.",
+    )
     shape: ShapeConfig = Field(ShapeConfig(), title="Shape", description="Affine shaping.")
 
 
@@ -276,6 +342,20 @@ class SensorConfig(Model):
     range_max_m: PositiveFloat | None = Field(
         None, title="Range limit", description="Ranges beyond this are not measured [m]."
     )
+    range_outlier_probability: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        title="Range outliers",
+        description="Probability a range is an NLOS outlier: read long by a bias drawn "
+        "uniformly from range_outlier_bias_m.",
+    )
+    range_outlier_bias_m: Pair = Field(
+        [0.3, 3.0],
+        title="Outlier bias",
+        description="[low, high] of the extra length of an outlying range [m] (UWB through an "
+        "obstacle reads long, never short).",
+    )
     displacement_noise_std_m: NonNegativeFloat = Field(
         0.0, title="Flow noise", description="Std of per-step displacement noise, per axis [m]."
     )
@@ -284,6 +364,13 @@ class SensorConfig(Model):
         title="Flow drift",
         description="Magnitude of a constant odometry drift per vehicle, random direction [m/s].",
     )
+
+    @field_validator("range_outlier_bias_m")
+    @classmethod
+    def _bias_interval(cls, bias: list[float]) -> list[float]:
+        if not 0 <= bias[0] <= bias[1]:
+            raise ValueError("must be [low, high] with 0 <= low <= high")
+        return bias
 
 
 #: Events only a flight can play (they need real links, sensors or autopilots); the numeric
@@ -352,6 +439,7 @@ SimulationMetricName = Literal[
     "final_tracking_error_m",
     "tail_tracking_error_rms_m",
     "tail_localization_error_median_m",
+    "tail_localization_error_rms_m",
     "final_localization_error_m",
     "final_phase_spacing_error_rad",
     "tracking_converged_step",
@@ -361,6 +449,7 @@ SimulationMetricName = Literal[
     "max_speed_m_s",
     "min_separation_m",
     "final_live_vehicles",
+    "gated_ranges",
 ]
 FlightMetricName = Literal[
     "vehicles_disarmed_at_end",
@@ -698,7 +787,51 @@ def validate_scenario(data: dict[str, Any], source: str = "<data>") -> Scenario:
     problems = _rule_problems(scenario)
     if problems:
         raise ConfigError(source, problems)
+    for where, warning in scenario_warnings(scenario):
+        logger.warning("%s: %s: %s", source, where, warning)
     return scenario
+
+
+def scenario_warnings(scenario: Scenario) -> list[Problem]:
+    """What is valid but will not do what the file seems to ask, at the path to edit: a vehicle
+    speed limit below the speed the law commands (it then clips the command and the formation
+    falls behind while the final sample may still look fine)."""
+    from .scenario import shape_matrices, target_positions  # noqa: PLC0415 - imports this module
+
+    step_s, steps = scenario.timing.step_s, scenario.timing.steps
+    times = np.arange(steps + 2, dtype=np.float64) * step_s
+    with np.errstate(all="ignore"):
+        shapes = shape_matrices(scenario.algorithm.shape, times)
+        target = target_positions(scenario.target.path, times)
+    # |u| <= Ubar + |delta_r / T| + |u_0|, and on the circle |delta_r / T| is at most
+    # |A(k+1)| rho omega (the phase turning) + rho |A(k+1) - A(k)| / T + |dT| / T (the shape
+    # changing), |.| the largest singular value of the linear part.
+    linear = shapes[:, :2, :2]
+    stretch = np.linalg.norm(linear, ord=2, axis=(-2, -1))
+    reshape = np.linalg.norm(np.diff(linear, axis=0), ord=2, axis=(-2, -1)) / step_s
+    shift = np.linalg.norm(np.diff(shapes[:, :2, 2], axis=0), axis=-1) / step_s
+    target_speed = float(np.max(np.linalg.norm(np.diff(target, axis=0), axis=-1))) / step_s
+    radius_m = scenario.algorithm.radius_m
+    warnings: list[Problem] = []
+    for index, vehicle in enumerate(scenario.vehicles):
+        omega = vehicle.omega_rad_s or scenario.algorithm.omega_rad_s
+        circle = radius_m * (omega * stretch[1:] + reshape) + shift
+        needed = scenario.algorithm.saturation_m_s + float(np.max(circle)) + target_speed
+        if vehicle.speed_limit_m_s < needed:
+            source = (
+                "vehicles[{index}].omega_rad_s" if vehicle.omega_rad_s else "algorithm.omega_rad_s"
+            )
+            warnings.append(
+                (
+                    f"vehicles[{index}].speed_limit_m_s",
+                    f"{vehicle.speed_limit_m_s:g} m/s is below the {needed:.3g} m/s the law may "
+                    f"command (algorithm.saturation_m_s {scenario.algorithm.saturation_m_s:g} + "
+                    f"the circle's {float(np.max(circle)):.3g} from algorithm.radius_m, "
+                    f"algorithm.shape and {source.format(index=index)} + target.path's "
+                    f"{target_speed:.3g}): commands will be clipped and the formation will lag",
+                )
+            )
+    return warnings
 
 
 def yaml_path(location: Iterable[int | str]) -> str:

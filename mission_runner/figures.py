@@ -20,7 +20,10 @@ from .outputs import PathName, write_atomic
 from .wiring import omega_of
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from .sim.simulator import SimulationResult
+    from .sim.sweep import SweepPoint
 
 
 def write_figures(result: SimulationResult, out_dir: PathName, run: int = 0) -> list[str]:
@@ -143,3 +146,36 @@ def _batch(result: SimulationResult) -> Figure:
     axes.legend(fontsize=8)
     axes.grid(alpha=0.3, which="both")
     return figure
+
+
+def write_sweep_figure(points: Sequence[SweepPoint], metric: str, path: PathName) -> None:
+    """``metric`` against the first swept path's values: the median over runs with the 5-95 and
+    25-75 percentile bands, one line per combination of the other paths."""
+    paths = list(points[0].values)
+    first, others = paths[0], paths[1:]
+    groups: dict[str, list[SweepPoint]] = {}
+    for point in points:
+        label = ", ".join(f"{p}={point.values[p]}" for p in others) or metric
+        groups.setdefault(label, []).append(point)
+    numeric = all(isinstance(p.values[first], int | float) for p in points)
+    figure, axes = plt.subplots(figsize=(7, 4.5))
+    for label, group in groups.items():
+        ticks = [p.values[first] for p in group]
+        x = np.asarray(ticks, dtype=float) if numeric else np.arange(len(group), dtype=float)
+        values = [np.asarray(p.metrics[metric], dtype=float) for p in group]
+        low, quarter, median, three, high = np.array(
+            [np.percentile(v, [5, 25, 50, 75, 95]) for v in values]
+        ).T
+        (line,) = axes.plot(x, median, marker="o", label=label)
+        axes.fill_between(x, low, high, color=line.get_color(), alpha=0.15, linewidth=0)
+        axes.fill_between(x, quarter, three, color=line.get_color(), alpha=0.3, linewidth=0)
+        if not numeric:
+            axes.set_xticks(x, [str(t) for t in ticks])
+    axes.set_xlabel(first)
+    axes.set_ylabel(metric)
+    runs = len(next(iter(points[0].metrics.values())))
+    axes.set_title(f"median, 25-75 % and 5-95 % of {runs} runs")
+    if len(groups) > 1:
+        axes.legend(fontsize="small")
+    axes.grid(True, alpha=0.3)
+    _save(figure, Path(path))

@@ -125,6 +125,8 @@ def timeseries_csv(result: SimulationResult, run: int = 0) -> str:
         "localization_error_m",
         "phase_spacing_error_rad",
         "consensus_speed_m_s",
+        "localization_rms_m",
+        "gated_ranges",
     ]
     for vehicle in ids:
         header += [
@@ -154,6 +156,8 @@ def timeseries_csv(result: SimulationResult, run: int = 0) -> str:
             None if last else number(result.localization_error_m[run, k]),
             number(result.phase_spacing_error_rad[run, k]),
             None if last else number(result.consensus_speed_m_s[run, k]),
+            None if last else number(result.localization_rms_m[run, k]),
+            None if last else int(result.gated_ranges[run, k]),
         ]
         for index in range(len(ids)):
             position = result.positions_m[run, k, index]
@@ -304,9 +308,10 @@ def write_vehicle_run(
     logs: Sequence[LogLine] = (),
 ) -> dict[str, Any]:
     """One vehicle process's outputs: ``steps.csv`` (per step: state, phase, command, consensus,
-    neighbours used, lateness of the setpoint, every estimate), ``recording.mcap`` (the same and
-    ``logs``, see :mod:`.recording`) and ``summary.json`` (how the process ended, final state,
-    counts, the autopilot's clock fit, parameters applied). Written atomically."""
+    neighbours used, lateness of the setpoint, odometry, peers whose range the estimator gated as
+    an outlier, every estimate), ``recording.mcap`` (the same and ``logs``, see
+    :mod:`.recording`) and ``summary.json`` (how the process ended, final state, counts including
+    gated ranges, the autopilot's clock fit, parameters applied). Written atomically."""
     from .recording import RECORDING, write_vehicle_recording  # noqa: PLC0415
 
     out_dir = Path(out_dir)
@@ -330,6 +335,7 @@ def write_vehicle_run(
             "odometry_north_m",
             "odometry_east_m",
             "odometry_down_m",
+            "gated_ranges",
             *(f"estimate_{peer}_{axis}_m" for peer in peers for axis in ("north", "east")),
         ]
     )
@@ -349,6 +355,7 @@ def write_vehicle_run(
                 " ".join(str(peer) for peer in record.neighbours_used),
                 f"{record.setpoint_sent_s - record.time_s:.6f}",
                 *(f"{v:.6f}" for v in record.odometry_m),
+                " ".join(str(peer) for peer in record.gated),
                 *estimates,
             ]
         )
@@ -369,6 +376,7 @@ def write_vehicle_run(
         "steps": len(run.records),
         "steps_by_state": states,
         "skipped_steps": run.skipped_steps,
+        "gated_ranges": sum(len(record.gated) for record in run.records),
         "start_s": run.start_s,
         "mission_clock_rate": run.clock_rate,
         "autopilot_clock_rate": run.autopilot_clock_rate,

@@ -65,9 +65,11 @@ def range_readings(
 ) -> NDArray[np.float64]:
     """What a UWB radio reads for true distances ``true_m`` (any shape, NaN: no line): Gaussian
     noise (``range_noise_std_m``, reported as its absolute value), random dropouts
-    (``range_dropout_probability``) and a maximum range (``range_max_m``); NaN where nothing is
-    read, or where ``measured`` (same shape, bool) is False. Noise and dropout are drawn for
-    every entry, read or not, so that one pair's fate does not shift another's draws.
+    (``range_dropout_probability``), NLOS outliers (``range_outlier_probability``: longer by a
+    bias uniform in ``range_outlier_bias_m``) and a maximum range (``range_max_m``); NaN where
+    nothing is read, or where ``measured`` (same shape, bool) is False. Noise, dropout and
+    outliers are drawn for every entry, read or not, so that one pair's fate does not shift
+    another's draws.
     """
     kept = np.isfinite(true_m)
     if measured is not None:
@@ -77,6 +79,11 @@ def range_readings(
         readings = readings + rng.normal(scale=sensors.range_noise_std_m, size=true_m.shape)
     if sensors.range_dropout_probability > 0:
         kept &= rng.uniform(size=true_m.shape) >= sensors.range_dropout_probability
+    if sensors.range_outlier_probability > 0:
+        outlier = rng.uniform(size=true_m.shape) < sensors.range_outlier_probability
+        low, high = sensors.range_outlier_bias_m
+        bias = rng.uniform(low=low, high=high, size=true_m.shape)
+        readings = readings + np.where(outlier, bias, 0.0)
     if sensors.range_max_m is not None:
         kept &= readings <= sensors.range_max_m
     return np.where(kept, np.abs(readings), np.nan)

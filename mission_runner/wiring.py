@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from .config import Scenario, VehicleConfig
 from .enclosing import EnclosingParams
+from .enclosing.ekf import FilterSettings
 from .scenario import shape_matrices
 
 if TYPE_CHECKING:
@@ -42,6 +43,31 @@ def algorithm_params(scenario: Scenario) -> EnclosingParams:
         coupling_gain_last=algorithm.coupling_gain_last,
         radius_m=algorithm.radius_m,
         initial_gain=algorithm.initial_gain,
+        estimator=algorithm.estimator,
+        filter=filter_settings(scenario) if algorithm.estimator == "ekf" else None,
+    )
+
+
+def filter_settings(scenario: Scenario) -> FilterSettings:
+    """The filter estimator's settings: ``algorithm.estimator_settings``, with the noise figures
+    it leaves unset taken from the ``sensors:`` model (a drift is a displacement error too: its
+    share of one step is added in quadrature)."""
+    given, sensors = scenario.algorithm.estimator_settings, scenario.sensors
+    range_std = given.range_noise_std_m
+    if range_std is None:
+        range_std = sensors.range_noise_std_m
+    displacement_std = given.displacement_noise_std_m
+    if displacement_std is None:
+        drift_m = sensors.displacement_drift_m_s * scenario.timing.step_s
+        displacement_std = math.hypot(sensors.displacement_noise_std_m, drift_m)
+    return FilterSettings(
+        range_noise_std_m=range_std,
+        displacement_noise_std_m=displacement_std,
+        gate_chi2=given.gate_chi2,
+        gate_patience=given.gate_patience,
+        initial_forgetting_factor=given.initial_forgetting_factor,
+        handover_updates=given.handover_updates,
+        handover_std_m=given.handover_std_m,
     )
 
 

@@ -384,3 +384,52 @@ def test_vehicles_all_starting_at_one_point_are_each_named():
         f"vehicles[{index}].initial_position_m" for index in (1, 2, 3)
     ]
     assert all("0 m from vehicles[0] (id 1)" in message for _, message in problems)
+
+
+def test_a_speed_limit_below_what_the_law_commands_is_a_warning_naming_the_paths(caplog):
+    data = yaml.safe_load((CONFIGS / "paper_narrow_passage.yaml").read_text())
+    for vehicle in data["vehicles"]:
+        vehicle["speed_limit_m_s"] = 10.0  # the circle grows to 6 m: the law asks ~10.8 m/s
+    with caplog.at_level("WARNING", logger="mission_runner.config"):
+        parse_scenario(yaml.safe_dump(data), source="narrow.yaml")
+    lines = caplog.text.splitlines()
+    assert len(lines) == 4
+    assert "narrow.yaml: vehicles[0].speed_limit_m_s: 10 m/s is below the 10.8 m/s" in lines[0]
+    for path in ("algorithm.saturation_m_s", "algorithm.radius_m", "algorithm.shape"):
+        assert path in lines[0]
+    assert "algorithm.omega_rad_s" in lines[0] and "target.path" in lines[0]
+
+
+def test_a_vehicle_of_its_own_frequency_is_named_in_the_warning(caplog):
+    data = base()
+    data["vehicles"][2]["omega_rad_s"] = 3.0  # 4 m x 3 rad/s = 12 m/s on the circle
+    with caplog.at_level("WARNING", logger="mission_runner.config"):
+        parse_scenario(yaml.safe_dump(data), source="fast.yaml")
+    assert "vehicles[2].speed_limit_m_s" in caplog.text
+    assert "vehicles[2].omega_rad_s" in caplog.text
+    assert "vehicles[0]" not in caplog.text
+
+
+@pytest.mark.parametrize("path", sorted(CONFIGS.glob("*.yaml")), ids=lambda path: path.stem)
+def test_bundled_scenarios_load_without_warnings(path, caplog):
+    with caplog.at_level("WARNING", logger="mission_runner.config"):
+        load_scenario(path)
+    assert caplog.text == ""
+
+
+def test_outlier_bias_must_be_an_interval():
+    data = edit(("sensors",), {"range_outlier_bias_m": [2.0, 0.5]})
+    assert problems_of(data) == [
+        ("sensors.range_outlier_bias_m", "must be [low, high] with 0 <= low <= high")
+    ]
+
+
+def test_estimator_settings_are_checked_at_their_paths():
+    data = edit(("algorithm", "estimator"), "kalman")
+    data["algorithm"]["estimator_settings"] = {"gate_chi2": -1.0, "handover_updates": 0}
+    paths = [path for path, _ in problems_of(data)]
+    assert paths == [
+        "algorithm.estimator",
+        "algorithm.estimator_settings.gate_chi2",
+        "algorithm.estimator_settings.handover_updates",
+    ]

@@ -8,7 +8,8 @@ inputs are what a vehicle measures and hears at step k.
 Slots index everything a vehicle can relate to: slot 0 is the target, slots 1..N the vehicles.
 Order of one step k (every k-indexed input refers to the same instant kT):
 
-1. RLSE update of every edge from the ranges and odometries at k (eqs. cosinelaw, estimator),
+1. Estimator update of every edge from the ranges and odometries at k: the paper's RLSE (eqs.
+   cosinelaw, estimator) or, by ``EnclosingParams.estimator``, the per-edge filter of :mod:`.ekf`;
    then phat_ij(k) carried to now by odometry.
 2. Oscillator: theta_i(k+1) from the phases at k of the neighbours heard this step (eq. osc).
 3. Desired offsets r(k), r_i(k+1) through the affine shape at k and k+1 (eq. desipos).
@@ -19,12 +20,13 @@ sums, whose weights are re-normalised over the neighbours that are there.
 """
 
 from dataclasses import dataclass
-from typing import Self
+from typing import Literal, Self
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .control import consensus_velocity, row_normalised, saturate
+from .ekf import FilterEdges, FilterSettings, filter_update
 from .errors import EnclosingError
 from .oscillator import advance_phase, coupling_rate, harmonic_gains
 from .rlse import EdgeEstimates, rlse_update
@@ -39,7 +41,8 @@ class EnclosingParams:
 
     step_s: T [s]. beta: consensus gain, 0 < beta < 1/T. saturation_m_s: Ubar [m/s].
     forgetting_factor: beta_f in (0, 1]. coupling_gain: K_l for l < n. coupling_gain_last: K_n.
-    radius_m: rho. initial_gain: Gamma(0) = initial_gain * I.
+    radius_m: rho. initial_gain: Gamma(0) = initial_gain * I. estimator: ``rlse`` (the paper's)
+    or ``ekf`` (:mod:`.ekf`, which needs ``filter``, its noise model and gate).
     """
 
     step_s: float
@@ -50,6 +53,8 @@ class EnclosingParams:
     coupling_gain_last: float
     radius_m: float
     initial_gain: float = 1.0
+    estimator: Literal["rlse", "ekf"] = "rlse"
+    filter: FilterSettings | None = None
 
     def __post_init__(self) -> None:
         rules = [
@@ -59,6 +64,8 @@ class EnclosingParams:
             (0 < self.forgetting_factor <= 1, "forgetting_factor must be in (0, 1]"),
             (self.radius_m > 0, "radius_m must be > 0"),
             (self.initial_gain > 0, "initial_gain must be > 0"),
+            (self.estimator in ("rlse", "ekf"), "estimator must be rlse or ekf"),
+            (self.estimator != "ekf" or self.filter is not None, "estimator ekf needs filter"),
         ]
         broken = [message for ok, message in rules if not ok]
         if broken:
@@ -74,13 +81,18 @@ class EnclosingState:
 
     step: int
     phase_rad: NDArray[np.float64]
-    edges: EdgeEstimates
+    edges: EdgeEstimates | FilterEdges
 
     @classmethod
     def initial(cls, params: EnclosingParams, phase_rad: ArrayLike, n_slots: int) -> Self:
         """State at k = 0 for rows with phases ``(..., R)`` and ``n_slots`` slots."""
         phase_rad = np.asarray(phase_rad, dtype=float)
-        edges = EdgeEstimates.initial((*phase_rad.shape, n_slots), params.initial_gain)
+        shape = (*phase_rad.shape, n_slots)
+        edges: EdgeEstimates | FilterEdges
+        if params.estimator == "ekf":
+            edges = FilterEdges.initial(shape, params.initial_gain)
+        else:
+            edges = EdgeEstimates.initial(shape, params.initial_gain)
         return cls(step=0, phase_rad=phase_rad, edges=edges)
 
 
@@ -119,6 +131,7 @@ class StepOutputs:
     estimate_north_m, estimate_east_m: ``(..., R, S)`` phat_ij(k), NaN where the edge is not
         estimated (see :attr:`estimate_m` for the ``(..., R, S, 2)`` form).
     consensus_weights: ``(..., R, S)`` abar_ij used this step.
+    gated: ``(..., R, S)`` bool, ranges the estimator rejected as outliers this step.
     """
 
     velocity_m_s: NDArray[np.float64]
@@ -126,6 +139,7 @@ class StepOutputs:
     estimate_north_m: NDArray[np.float64]
     estimate_east_m: NDArray[np.float64]
     consensus_weights: NDArray[np.float64]
+    gated: NDArray[np.bool_]
 
     @property
     def estimate_m(self) -> NDArray[np.float64]:
@@ -139,9 +153,9 @@ def enclosing_step(
     """Advance the rows ``row_slots`` ``(R,)`` from step k to k+1. Returns ``(state, outputs)``."""
     row_slots = np.asarray(row_slots)
     n_slots = inputs.phase_rad.shape[-1]
-    if state.edges.anchor_range_m.shape[-1] != n_slots:
+    if state.edges.anchored.shape[-1] != n_slots:
         raise EnclosingError(
-            f"state has {state.edges.anchor_range_m.shape[-1]} slots, inputs have {n_slots}"
+            f"state has {state.edges.anchored.shape[-1]} slots, inputs have {n_slots}"
         )
     slot_index = np.arange(n_slots)
     not_self = slot_index != row_slots[:, None]  # (R, S)
@@ -152,9 +166,24 @@ def enclosing_step(
     relative_north = odometry_north[..., row_slots, None] - odometry_north[..., None, :]
     relative_east = odometry_east[..., row_slots, None] - odometry_east[..., None, :]
     range_m = np.where(not_self, inputs.range_m, np.nan)
-    edges = rlse_update(
-        state.edges, range_m, relative_north, relative_east, params.forgetting_factor
-    )
+    edges: EdgeEstimates | FilterEdges
+    if isinstance(state.edges, FilterEdges):
+        if params.filter is None:
+            raise EnclosingError("the state carries filter edges but params have no filter")
+        edges, gated = filter_update(
+            state.edges,
+            range_m,
+            relative_north,
+            relative_east,
+            step=state.step,
+            settings=params.filter,
+            initial_gain=params.initial_gain,
+        )
+    else:
+        edges = rlse_update(
+            state.edges, range_m, relative_north, relative_east, params.forgetting_factor
+        )
+        gated = np.zeros(range_m.shape, dtype=bool)
     estimate_north, estimate_east = edges.current(relative_north, relative_east)
 
     # 2. Oscillator over the vehicles heard this step.
@@ -195,5 +224,6 @@ def enclosing_step(
         estimate_north_m=estimate_north,
         estimate_east_m=estimate_east,
         consensus_weights=weights,
+        gated=gated,
     )
     return next_state, outputs

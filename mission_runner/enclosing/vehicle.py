@@ -41,12 +41,14 @@ class VehicleCommand:
     velocity_m_s: ``(2,)`` north-east velocity setpoint u_i(k) [m/s], before vehicle limits.
     consensus_m_s: ``(2,)`` the saturated consensus term. estimates_m: phat_ij(k) per peer id
     (0 = target) for the edges estimated this step. neighbours_used: peer ids in this step's sum.
+    gated: peer ids whose range the estimator rejected as an outlier this step.
     """
 
     velocity_m_s: NDArray[np.float64]
     consensus_m_s: NDArray[np.float64]
     estimates_m: dict[int, NDArray[np.float64]]
     neighbours_used: tuple[int, ...]
+    gated: tuple[int, ...] = ()
 
 
 class VehicleEnclosing:
@@ -145,6 +147,7 @@ class VehicleEnclosing:
             consensus_m_s=out.consensus_m_s[0],
             estimates_m={peers[s]: estimate[s] for s in estimated},
             neighbours_used=tuple(peers[s] for s in used),
+            gated=tuple(peers[s] for s in np.flatnonzero(out.gated[0]).tolist()),
         )
 
     def _slot(self, peer: int) -> int:

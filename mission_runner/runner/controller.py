@@ -93,7 +93,7 @@ class StepRecord:
     vehicle link (after ``set_velocity_ned`` returned); ``setpoint_sent_s - time_s`` is the
     step's lateness, for timing figures only (NaN if not measured). odometry_m: the own odometry
     (north, east, down) sampled at t_k (NaN if none). estimates_m: phat_ij ``(2,)`` [m] by peer
-    id (0 = target).
+    id (0 = target). gated: peer ids whose range the estimator rejected as an outlier.
     """
 
     step: int
@@ -106,6 +106,7 @@ class StepRecord:
     estimates_m: dict[int, NDArray[np.float64]]
     setpoint_sent_s: float = math.nan
     odometry_m: tuple[float, float, float] = (math.nan, math.nan, math.nan)
+    gated: tuple[int, ...] = ()
 
 
 class VehicleController:
@@ -304,6 +305,7 @@ class VehicleController:
         if data.neighbours:
             self._last_fresh_s = now
         used: tuple[int, ...]
+        gated: tuple[int, ...] = ()
         estimates: dict[int, NDArray[np.float64]]
         consensus: tuple[float, float]
         # Hold on stale data, and while the vehicle is not seen armed in OFFBOARD.
@@ -339,7 +341,7 @@ class VehicleController:
             if settings.min_separation_m is not None:
                 wanted = self._separated(wanted, command.estimates_m, data, odometry)
             velocity = self._clamp(wanted)
-            used, estimates = command.neighbours_used, command.estimates_m
+            used, estimates, gated = command.neighbours_used, command.estimates_m, command.gated
             consensus = (float(command.consensus_m_s[0]), float(command.consensus_m_s[1]))
         vertical = self._altitude_hold(odometry)
         await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
@@ -355,6 +357,7 @@ class VehicleController:
             estimates,
             sent_s,
             (math.nan, math.nan, math.nan) if odometry is None else odometry,
+            gated,
         )
         self.records.append(record)
         await self._publish_status(k, t_k)

@@ -22,17 +22,24 @@ if TYPE_CHECKING:
     from ..outputs import PathName
 
 
-def worst_estimate(
+def estimate_errors(
     ids: Sequence[int], records: Mapping[int, StepRecord], sample: TruthSample
-) -> float:
-    """max |phat_ij - p_ij| over the estimates in ``records`` against truth ``sample``."""
-    worst = 0.0
+) -> list[float]:
+    """|phat_ij - p_ij| of every estimate in ``records`` against truth ``sample``."""
+    errors = []
     for vehicle_id, record in records.items():
         own = sample.positions_m[ids.index(vehicle_id)]
         for peer, estimate in record.estimates_m.items():
             other = sample.target_m if peer == 0 else sample.positions_m[ids.index(peer)]
-            worst = max(worst, float(np.hypot(*(estimate - (own - other)))))
-    return worst
+            errors.append(float(np.hypot(*(estimate - (own - other)))))
+    return errors
+
+
+def worst_estimate(
+    ids: Sequence[int], records: Mapping[int, StepRecord], sample: TruthSample
+) -> float:
+    """max |phat_ij - p_ij| over the estimates in ``records`` against truth ``sample``."""
+    return max(estimate_errors(ids, records, sample), default=0.0)
 
 
 def score_flight(
@@ -63,6 +70,8 @@ def score_flight(
     commands = np.zeros((1, max(count - 1, 0), n, 2))
     consensus = np.zeros((1, max(count - 1, 0)))
     localization = np.zeros((1, max(count - 1, 0)))
+    square_errors: list[list[float]] = [[] for _ in range(max(count - 1, 0))]
+    gated = np.zeros((1, max(count - 1, 0)), dtype=np.int64)
     truth_by_step = {s.step: s for s in samples}
     for column, vehicle_id in enumerate(ids):
         for record in records.get(vehicle_id, []):
@@ -74,8 +83,10 @@ def score_flight(
             if k < count - 1:
                 commands[0, k, column] = record.velocity_ned_m_s[:2]
                 consensus[0, k] = max(consensus[0, k], float(np.hypot(*record.consensus_m_s)))
-                worst = worst_estimate(ids, {vehicle_id: record}, truth_by_step[k])
-                localization[0, k] = max(localization[0, k], worst)
+                errors = estimate_errors(ids, {vehicle_id: record}, truth_by_step[k])
+                localization[0, k] = max(localization[0, k], *errors, 0.0)
+                square_errors[k] += [error * error for error in errors]
+                gated[0, k] += len(record.gated)
     for column, vehicle_id in enumerate(ids):
         final = (final_phases or {}).get(vehicle_id)
         if final is not None and count == steps + 1 and np.isnan(phases[0, steps, column]):
@@ -91,6 +102,10 @@ def score_flight(
         "commands_m_s": commands,
         "live": live,
         "localization_error_m": localization,
+        "localization_rms_m": np.array(
+            [[np.sqrt(np.mean(squares)) if squares else 0.0 for squares in square_errors]]
+        ),
+        "gated_ranges": gated,
         "consensus_speed_m_s": consensus,
         "separation_m": closest_pair(distance, live),
     }
@@ -166,6 +181,7 @@ def read_steps_csv(path: PathName) -> list[StepRecord]:
                         [float(north), float(row[f"estimate_{peer}_east_m"])]
                     )
             used = tuple(int(p) for p in row["neighbours_used"].split())
+            gated = tuple(int(p) for p in (row.get("gated_ranges") or "").split())
             records.append(
                 StepRecord(
                     int(row["step"]),
@@ -178,6 +194,7 @@ def read_steps_csv(path: PathName) -> list[StepRecord]:
                     estimates,
                     float(row["time_s"]) + float(row["setpoint_lateness_s"]),
                     _ned(row, "odometry_{}_m"),
+                    gated,
                 )
             )
     return records

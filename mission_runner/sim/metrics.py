@@ -41,6 +41,9 @@ def run_metrics(result: SimulationResult) -> dict[str, NDArray[Any]]:
         "final_tracking_error_m": result.tracking_error_m[:, -1],
         "tail_tracking_error_rms_m": np.sqrt(np.mean(result.tracking_error_m[:, -tail:] ** 2, -1)),
         "tail_localization_error_median_m": np.median(result.localization_error_m[:, -tail:], -1),
+        "tail_localization_error_rms_m": np.sqrt(
+            np.mean(result.localization_rms_m[:, -tail:] ** 2, -1)
+        ),
         "final_localization_error_m": result.localization_error_m[:, -1],
         "final_phase_spacing_error_rad": result.phase_spacing_error_rad[:, -1],
         "tracking_converged_step": converged_step(
@@ -56,6 +59,7 @@ def run_metrics(result: SimulationResult) -> dict[str, NDArray[Any]]:
         "max_speed_m_s": speed,
         "min_separation_m": result.separation_m.min(axis=-1),
         "final_live_vehicles": result.live[:, -1].sum(axis=-1),
+        "gated_ranges": result.gated_ranges.sum(axis=-1),
     }
     # Flight-only metrics (e.g. vehicles disarmed at the end) come with the result; a simulated
     # run has none, and an expectation on them then fails with "no value".
@@ -153,6 +157,14 @@ def tracking_error(
     ``(..., n)``, target_m ``(..., 2)`` -> ``(...)``."""
     gap = formation_centre(positions_m, live) - target_m
     return np.sqrt(np.sum(gap * gap, axis=-1))
+
+
+def edge_rms(error_m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """RMS over edges of |phat_ij - p_ij|: error_m ``(..., R, S)`` (NaN: not estimated, which does
+    not count; inf: diverged, which does) -> ``(...)`` (0 where no edge is estimated)."""
+    counted = ~np.isnan(error_m)
+    square = np.where(counted, error_m * error_m, 0.0).sum(axis=(-1, -2))
+    return np.sqrt(square / np.maximum(counted.sum(axis=(-1, -2)), 1))
 
 
 def closest_pair(distance_m: NDArray[np.float64], live: NDArray[np.bool_]) -> NDArray[np.float64]:

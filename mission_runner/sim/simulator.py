@@ -23,7 +23,7 @@ from ..errors import ConfigError, SimulationError
 from ..scenario import shape_matrices, target_positions
 from ..sensors import odometry_drift, odometry_error_step, range_readings
 from ..wiring import algorithm_params, omega_of
-from .metrics import closest_pair, tracking_error
+from .metrics import closest_pair, edge_rms, tracking_error
 
 
 @dataclass(frozen=True)
@@ -33,11 +33,13 @@ class SimulationResult:
     times_s ``(K+1,)``; target_m ``(K+1, 2)``; positions_m ``(B, K+1, N, 2)``;
     phases_rad ``(B, K+1, N)``; commands_m_s ``(B, K, N, 2)`` (after the speed bound);
     live ``(B, K+1, N)``; tracking_error_m ``(B, K+1)``; localization_error_m ``(B, K)`` (max over
-    estimated edges at step k); phase_spacing_error_rad ``(B, K+1)``; consensus_speed_m_s
-    ``(B, K)`` (max over vehicles of |sat(ubar)|); separation_m ``(B, K+1)`` (closest live pair);
-    estimates_m ``(K, N, N+1, 2)`` run 0's phat_ij(k) [north, east] (slot 0 the target; NaN where
-    not estimated), or None (flights carry theirs in the controllers' step records; a swarm whose
-    estimates would exceed ``ESTIMATES_LIMIT_BYTES`` does not keep them).
+    estimated edges at step k); localization_rms_m ``(B, K)`` (RMS over the estimated edges at
+    step k); gated_ranges ``(B, K)`` (ranges the estimators rejected as outliers at step k);
+    phase_spacing_error_rad ``(B, K+1)``; consensus_speed_m_s ``(B, K)`` (max over vehicles of
+    |sat(ubar)|); separation_m ``(B, K+1)`` (closest live pair); estimates_m ``(K, N, N+1, 2)``
+    run 0's phat_ij(k) [north, east] (slot 0 the target; NaN where not estimated), or None
+    (flights carry theirs in the controllers' step records; a swarm whose estimates would exceed
+    ``ESTIMATES_LIMIT_BYTES`` does not keep them).
     """
 
     scenario: Scenario
@@ -49,6 +51,8 @@ class SimulationResult:
     live: NDArray[np.bool_]
     tracking_error_m: NDArray[np.float64]
     localization_error_m: NDArray[np.float64]
+    localization_rms_m: NDArray[np.float64]
+    gated_ranges: NDArray[np.int_]
     phase_spacing_error_rad: NDArray[np.float64]
     consensus_speed_m_s: NDArray[np.float64]
     separation_m: NDArray[np.float64]
@@ -141,7 +145,7 @@ def memory_estimate_bytes(steps: int, vehicles: int, runs: int) -> int:
     series ``(B, K, N)`` and the metrics' copies of them, the per-step working arrays
     ``(B, N, N+1)``, the shape and target schedules ``(K,)`` and run 0's timeseries.csv text
     (measured within 15 % on paper_tracking)."""
-    series = 2 * runs * (steps + 1) * (41 * vehicles + 40)
+    series = 2 * runs * (steps + 1) * (41 * vehicles + 56)
     working = 32 * 8 * runs * vehicles * (vehicles + 1)
     schedules = 96 * (steps + 2)
     text = 2 * (steps + 1) * (80 + 60 * vehicles)
@@ -211,6 +215,8 @@ def simulate(
         "commands_m_s": np.empty((runs, steps, n, 2)),
         "live": np.empty((runs, steps + 1, n), dtype=bool),
         "localization_error_m": np.empty((runs, steps)),
+        "localization_rms_m": np.empty((runs, steps)),
+        "gated_ranges": np.empty((runs, steps), dtype=np.int64),
         "consensus_speed_m_s": np.empty((runs, steps)),
         "separation_m": np.empty((runs, steps + 1)),
     }
@@ -265,6 +271,8 @@ def simulate(
         )
         error = np.where(diverged & ~np.isfinite(error), np.inf, error)
         out["localization_error_m"][:, k] = np.where(np.isnan(error), 0.0, error).max(axis=(-1, -2))
+        out["localization_rms_m"][:, k] = edge_rms(error)
+        out["gated_ranges"][:, k] = step.gated.sum(axis=(-1, -2))
         speed = np.sqrt(np.sum(step.consensus_m_s**2, axis=-1))
         out["consensus_speed_m_s"][:, k] = np.where(live, speed, 0.0).max(axis=-1)
 
@@ -331,8 +339,9 @@ def score(
     error (centroid of live vehicles to target) and the phase-spacing error.
 
     times ``(K+1,)``, target ``(K+1, 2)``; ``out`` the series named as the result's fields
-    (positions_m, phases_rad, commands_m_s, live, localization_error_m, consensus_speed_m_s,
-    separation_m; optionally estimates_m), shaped as documented there."""
+    (positions_m, phases_rad, commands_m_s, live, localization_error_m, localization_rms_m,
+    gated_ranges, consensus_speed_m_s, separation_m; optionally estimates_m), shaped as
+    documented there."""
     positions, live = out["positions_m"], out["live"]
     tracking = tracking_error(positions, live, target)
     spacing = splay_spacing_error(out["phases_rad"], live)

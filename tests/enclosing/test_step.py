@@ -61,8 +61,8 @@ def vehicle_steps(vehicles, world, heard=None):
     return commands
 
 
-def make_vehicles(ids=(1, 2, 3, 4)):
-    return [VehicleEnclosing(PAPER, i, ids, PHASES[n], OMEGA) for n, i in enumerate(ids)]
+def make_vehicles(ids=(1, 2, 3, 4), params=PAPER):
+    return [VehicleEnclosing(params, i, ids, PHASES[n], OMEGA) for n, i in enumerate(ids)]
 
 
 def test_vehicle_face_and_swarm_face_compute_the_same_commands():
