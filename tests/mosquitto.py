@@ -31,6 +31,18 @@ from typing import IO
 
 import pytest
 
+from mission_runner.bus.auth import BusKey
+
+#: The bus key of the tests (MQTT buses refuse to open without one); tests/conftest.py puts it in
+#: the environment of every test, so that processes a test starts share it.
+TEST_BUS_KEY = "test-bus-key-0123456789abcdef0123456789abcdef"
+
+
+def bus_test_key() -> BusKey:
+    """:data:`TEST_BUS_KEY` as a key, for buses a test builds itself."""
+    return BusKey.from_text(TEST_BUS_KEY, "tests")
+
+
 _CANDIDATES = ("mosquitto", "/usr/sbin/mosquitto", "/usr/local/sbin/mosquitto")
 
 

@@ -6,7 +6,10 @@ deliveries (seeded, and timed by an injected ``Clock``) so tests can check step 
 under a bad network deterministically.
 
 Semantics match ``MqttBus`` with QoS 0: MQTT wildcard patterns (``topic_matches``),
-retained messages handed to new subscribers, per-subscription drop-oldest queues.
+retained messages handed to new subscribers, per-subscription drop-oldest queues. Messages are
+sealed and opened as on MQTT (``mission_runner.bus.auth``), with a random key of the process
+unless one is given: nothing outside the process can reach this bus, but the same code path
+runs.
 """
 
 from __future__ import annotations
@@ -18,10 +21,12 @@ import itertools
 import logging
 import math
 import random
-from collections.abc import AsyncIterator
+import time
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from typing import Self
 
+from mission_runner.bus.auth import AuthPolicy, BusKey, MessageAuth, Sender
 from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
 from mission_runner.bus.errors import BusConnectionError
 from mission_runner.bus.topics import topic_matches, validate_pattern, validate_topic
@@ -80,7 +85,15 @@ class InProcessBus(Bus):
         link: LinkModel | None = None,
         clock: Clock | None = None,
         queue_size: int = DEFAULT_QUEUE_SIZE,
+        key: BusKey | None = None,
+        sender: Sender | None = None,
+        auth_policy: AuthPolicy | None = None,
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
+        self.auth = MessageAuth(
+            key or BusKey.generate(), auth_policy, endpoint=ENDPOINT, wall_clock=wall_clock
+        )
+        self.sender = sender
         self.link = link
         self.clock: Clock = clock if clock is not None else MonotonicClock()
         self.queue_size = queue_size
@@ -134,11 +147,23 @@ class InProcessBus(Bus):
         return len(self._pending)
 
     async def publish(
-        self, topic: str, payload: bytes, *, retain: bool = False, timeout: float
+        self,
+        topic: str,
+        payload: bytes,
+        *,
+        retain: bool = False,
+        timeout: float,
+        sender: Sender | None = None,
     ) -> None:
         validate_topic(topic)
         self._check_open(f"publish to {topic!r}")
-        payload = bytes(payload)
+        sealed = self._seal(topic, bytes(payload), retain=retain, sender=sender)
+        # One receiver (this bus) opens each message once, as an MQTT client does on arrival;
+        # what is stored and delivered is the checked body.
+        opened = self.auth.open(topic, sealed)
+        if opened is None:
+            return
+        payload = opened
         self.published += 1
         if retain:
             if payload:

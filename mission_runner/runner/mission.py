@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..bus import lost_vehicle_will, open_bus
+from ..bus import Sender, lost_vehicle_will, open_bus
 from ..sim.metrics import tracking_error
 from ..wiring import altitude_of, autopilot_params, emulator_config, shape_schedule
 from ..world import World
@@ -158,10 +158,19 @@ async def fly(
         emulator = await stack.enter_async_context(Emulator(config))
         before_mission = await stack.enter_async_context(contextlib.AsyncExitStack())
         await before_mission.enter_async_context(_paced(emulator.clock))
+        # In-process, the one bus is the whole network: each member signs as itself through
+        # its own view of it. Over MQTT the world is the range aid's client.
+        in_process = scenario.bus.kind == "inprocess"
         bus = await stack.enter_async_context(
-            open_bus(scenario.bus, client_id=f"{scenario.name}-world")
+            open_bus(
+                scenario.bus,
+                sender=None if in_process else Sender.ranges(),
+                client_id=f"{scenario.name}-world",
+            )
         )
-        world = await stack.enter_async_context(World.for_scenario(emulator, scenario, bus))
+        world = await stack.enter_async_context(
+            World.for_scenario(emulator, scenario, bus.as_sender(Sender.ranges()))
+        )
         sysids = [endpoint.sysid for endpoint in emulator.endpoints]
         systems = await stack.enter_async_context(
             connected_vehicles([e.mavsdk_url for e in emulator.endpoints], sysids)
@@ -188,12 +197,13 @@ async def fly(
 
         # Over MQTT every vehicle has its own client, as on a real swarm (one companion computer
         # each, with its last will on its status topic); in-process they share the one bus.
-        buses: list[ControllerBus] = [bus] * len(ids)
+        buses: list[ControllerBus] = [bus.as_sender(Sender.vehicle(i)) for i in ids]
         if scenario.bus.kind == "mqtt":
             buses = [
                 await stack.enter_async_context(
                     open_bus(
                         scenario.bus,
+                        sender=Sender.vehicle(vehicle_id),
                         client_id=f"{scenario.name}-vehicle-{vehicle_id}",
                         will=lost_vehicle_will(topics, vehicle_id, time_s=emulator.time_s),
                     )

@@ -41,6 +41,7 @@ from ..bus import (
     BusError,
     ControlCommand,
     MissionControl,
+    Sender,
     Subscription,
     Topics,
     VehicleStatus,
@@ -160,6 +161,7 @@ async def run_vehicle(
         bus = await stack.enter_async_context(
             open_bus(
                 scenario.bus,
+                sender=Sender.vehicle(vehicle_id),
                 client_id=f"{scenario.name}-vehicle-{vehicle_id}",
                 will=lost_vehicle_will(topics, vehicle_id, time_s=time.time()),
             )
@@ -372,7 +374,7 @@ async def run_ground(
     latest: dict[int, VehicleStatus] = {}
     started: dict[str, float | None] = {"at": None}
     async with (
-        open_bus(scenario.bus, client_id=f"{scenario.name}-ground") as bus,
+        open_bus(scenario.bus, sender=Sender.ground(), client_id=f"{scenario.name}-ground") as bus,
         bus.subscribe(topics.all_status()) as statuses,
     ):
 
@@ -526,7 +528,12 @@ async def send_control(
         raise RunnerError(f"vehicle {vehicle_id} is not in the scenario")
     topics = scenario.bus.topics(scenario.name)
     async with (
-        open_bus(scenario.bus, client_id=f"{scenario.name}-operator-{uuid.uuid4().hex[:6]}") as bus,
+        # The operator's commands are the ground station's: same role, same broker user.
+        open_bus(
+            scenario.bus,
+            sender=Sender.ground(),
+            client_id=f"{scenario.name}-operator-{uuid.uuid4().hex[:6]}",
+        ) as bus,
         bus.subscribe(topics.control()) as control,
     ):
         try:

@@ -26,7 +26,7 @@ from pydantic import ValidationError
 from sitl import cli as sitl_cli
 from sitl.emulator import Emulator
 
-from ..bus import open_bus
+from ..bus import Sender, open_bus
 from ..config import load_scenario
 from ..errors import ConfigError
 from ..runner.handshake import start_command
@@ -55,7 +55,9 @@ async def emulated_world(
         emulator = await stack.enter_async_context(Emulator(config))
         offset_s = emulator.autopilot(0).unix_epoch_start_us / 1e6
         bus = await stack.enter_async_context(
-            open_bus(scenario.bus, client_id=f"{scenario.name}-emulated-world")
+            open_bus(
+                scenario.bus, sender=Sender.ranges(), client_id=f"{scenario.name}-emulated-world"
+            )
         )
         world = await stack.enter_async_context(
             World.for_scenario(emulator, scenario, bus, time_offset_s=offset_s)

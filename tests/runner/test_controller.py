@@ -258,7 +258,7 @@ async def rig(scenario=None, *, path=wandering, truth=None, **settings):
     topics = scenario.bus.topics(scenario.name)
     vehicle = next(v for v in scenario.vehicles if v.id == OWN)
     async with (
-        open_bus(scenario.bus) as bus,
+        open_bus(scenario.bus, sender=None) as bus,
         bus.subscribe(topics.step(OWN)) as own_steps,
         bus.subscribe(topics.status(OWN)) as own_status,
     ):
