@@ -27,6 +27,7 @@ from sitl import cli as sitl_cli
 from sitl.emulator import Emulator
 
 from ..bus import Sender, open_bus
+from ..bus.cli_options import with_bus_access
 from ..config import load_scenario
 from ..errors import ConfigError
 from ..runner.handshake import start_command
@@ -96,7 +97,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def command(arguments: argparse.Namespace) -> int:
     """Run the scenario's emulated world until SIGINT/SIGTERM; exit code 0."""
-    scenario = load_scenario(arguments.scenario)
+    scenario = with_bus_access(load_scenario(arguments.scenario), arguments)
     source = f"emulator settings ({arguments.config or 'command line'})"
     try:
         options = sitl_cli.load_config(arguments)
