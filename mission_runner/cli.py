@@ -470,6 +470,7 @@ def _run(arguments: argparse.Namespace) -> int:
             wall_time_s=outcome.wall_time_s,
             figures=not arguments.no_figures,
             vehicles=outcome.vehicles,
+            bus_security=outcome.bus_security,
         )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
@@ -482,7 +483,14 @@ def _run(arguments: argparse.Namespace) -> int:
 
 
 def _vehicle(arguments: argparse.Namespace) -> int:
-    from .outputs import VEHICLE_FILES, Status, prepare_out_dir, write_vehicle_run  # noqa: PLC0415
+    from .outputs import (  # noqa: PLC0415
+        VEHICLE_FILES,
+        Status,
+        bus_security,
+        bus_security_line,
+        prepare_out_dir,
+        write_vehicle_run,
+    )
     from .runner.process import VehicleRun, run_vehicle  # noqa: PLC0415
 
     scenario = with_bus_access(load_scenario(arguments.config), arguments)
@@ -507,11 +515,23 @@ def _vehicle(arguments: argparse.Namespace) -> int:
         f"{run.autopilot_clock_rate or 1:.4f}x, mission clock {run.clock_rate:.4f}x; "
         f"results in {out_dir}/" + (f"\n  {run.detail}" if run.detail else "")
     )
+    security = {
+        "bus_security": bus_security(run.bus_messages, {run.vehicle_id: run.ranges_rejected})
+    }
+    line = bus_security_line(security)
+    if line:
+        print(f"vehicle {arguments.id}: {line}")
     return EXIT_OK if run.state == "done" else EXIT_RUNTIME_FAILURE
 
 
 def _ground(arguments: argparse.Namespace) -> int:
-    from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
+    from .outputs import (  # noqa: PLC0415
+        RUN_FILES,
+        RunSummary,
+        bus_security,
+        bus_security_line,
+        prepare_out_dir,
+    )
     from .runner.process import run_ground, wait_and_merge  # noqa: PLC0415
 
     scenario = with_bus_access(load_scenario(arguments.config), arguments)
@@ -542,6 +562,10 @@ def _ground(arguments: argparse.Namespace) -> int:
             f"{lost or 'none'}; mission clock {outcome.clock_rate:.4f}x",
             flush=True,
         )
+        security = bus_security(outcome.bus_messages, {})
+        line = bus_security_line({"bus_security": security})
+        if line:  # what each vehicle dropped is in its own summary
+            print(f"ground: {line}", flush=True)
         result = _run_async(wait_and_merge(scenario, mission_dir, outcome))
         if result is None:
             record.finish("passed", "no truth (no simulator): expectations not checked")
@@ -557,6 +581,7 @@ def _ground(arguments: argparse.Namespace) -> int:
                 i: {"state": status.state, "detail": status.detail}
                 for i, status in outcome.statuses.items()
             },
+            bus_security=security,
         )
     print(_summary_text(document, mission_dir))
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
@@ -727,6 +752,11 @@ def _summary_text(document: Mapping[str, Any], out_dir: Path) -> str:
                 else "; ".join(f"{i} {v['state']}: {v['detail'] or '-'}" for i, v in ended.items())
             )
         )
+    from .outputs import bus_security_line  # noqa: PLC0415
+
+    security = bus_security_line(document)
+    if security:
+        lines.append(security)
     expectations = document["expectations"]
     if expectations["checked"]:
         verdict = "PASS" if expectations["passed"] else "FAIL"

@@ -19,12 +19,13 @@ import logging
 import math
 import time
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..bus import Sender, lost_vehicle_will, open_bus
+from ..bus import Bus, Sender, lost_vehicle_will, open_bus
+from ..outputs import bus_security
 from ..sim.metrics import tracking_error
 from ..wiring import altitude_of, autopilot_params, emulator_config, shape_schedule
 from ..world import World
@@ -121,6 +122,8 @@ class FlightOutcome:
     #: How each vehicle ended, as its controller saw it: ``{id: {"state", "detail"}}`` (state
     #: ``done``, ``lost`` or ``taken_over``).
     vehicles: dict[int, dict[str, str]]
+    #: What the bus and the controllers dropped (``outputs.bus_security``).
+    bus_security: dict[str, Any] = field(default_factory=dict)
 
 
 async def fly(
@@ -198,8 +201,9 @@ async def fly(
         # Over MQTT every vehicle has its own client, as on a real swarm (one companion computer
         # each, with its last will on its status topic); in-process they share the one bus.
         buses: list[ControllerBus] = [bus.as_sender(Sender.vehicle(i)) for i in ids]
+        receivers: list[Bus] = [bus]  # every bus that checks what it receives
         if scenario.bus.kind == "mqtt":
-            buses = [
+            receivers += [
                 await stack.enter_async_context(
                     open_bus(
                         scenario.bus,
@@ -210,6 +214,7 @@ async def fly(
                 )
                 for vehicle_id in ids
             ]
+            buses = list(receivers[1:])
         # Each controller's own view of the emulator's clock: a lockstep participant while its
         # controller flies.
         clocks = [EmulatorClock(emulator.clock, f"vehicle-{i}") for i in ids]
@@ -252,6 +257,14 @@ async def fly(
             disarmed,
             final_phases={c.vehicle_id: c.law.phase_rad for c in controllers},
         )
+    messages: dict[str, int] = {}
+    for receiver in receivers:
+        for reason, count in receiver.auth_counters.as_dict().items():
+            messages[reason] = messages.get(reason, 0) + count
+    security = bus_security(
+        messages,
+        {c.vehicle_id: c.range_gate.rejected for c in controllers if c.range_gate is not None},
+    )
     ended = {
         controller.vehicle_id: {
             "state": controller.state if controller.state in ("lost", "taken_over") else "done",
@@ -260,7 +273,14 @@ async def fly(
         for controller, vehicle in zip(controllers, vehicles, strict=True)
     }
     return FlightOutcome(
-        result, records, start_s, time.perf_counter() - started, mission_wall, stats, ended
+        result,
+        records,
+        start_s,
+        time.perf_counter() - started,
+        mission_wall,
+        stats,
+        ended,
+        security,
     )
 
 

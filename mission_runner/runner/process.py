@@ -99,6 +99,10 @@ class VehicleRun:
     clock_residual_s: float | None = None
     skipped_steps: int = 0
     params: dict[str, float | int] = field(default_factory=dict)
+    #: Received bus messages accepted and dropped by reason (``AuthCounters.as_dict``).
+    bus_messages: dict[str, int] = field(default_factory=dict)
+    #: Ranges the controller found impossible, by reason (``RangeGate.rejected``).
+    ranges_rejected: dict[str, int] = field(default_factory=dict)
 
 
 class _Reporter:
@@ -203,6 +207,9 @@ async def run_vehicle(
         finally:
             run.records = controller.records
             run.skipped_steps = controller.skipped_steps
+            run.bus_messages = bus.auth_counters.as_dict()
+            if controller.range_gate is not None:
+                run.ranges_rejected = dict(controller.range_gate.rejected)
             run.autopilot_clock_rate = mapping.fit.boot_rate
             run.clock_residual_s = mapping.fit.residual_s
     return run
@@ -348,6 +355,8 @@ class GroundOutcome:
     start_s: float | None
     clock_rate: float
     statuses: dict[int, VehicleStatus]
+    #: Received bus messages accepted and dropped by reason (``AuthCounters.as_dict``).
+    bus_messages: dict[str, int] = field(default_factory=dict)
 
     @property
     def lost(self) -> list[int]:
@@ -471,7 +480,8 @@ async def run_ground(
             # The prepare must not start the next vehicle process that connects.
             with contextlib.suppress(BusError):
                 await bus.publish(topics.control(), b"", retain=True, timeout=2.0)
-    return GroundOutcome(mission_id, started["at"], rate, latest)
+            counters = bus.auth_counters.as_dict()
+    return GroundOutcome(mission_id, started["at"], rate, latest, counters)
 
 
 def _final_already(last: VehicleStatus | None, status: VehicleStatus) -> bool:
