@@ -401,7 +401,8 @@ class MqttBus(Bus):
                     self._fatal = BusConnectionError(
                         self.endpoint,
                         f"the broker refused the credentials of {self.client_id!r} ({exc})",
-                        hint="check bus.mqtt.username and bus.mqtt.password",
+                        hint="check the broker login: --bus-credentials (or bus.mqtt."
+                        "credentials_file, or MISSION_BUS_USERNAME/MISSION_BUS_PASSWORD)",
                     )
                     self.last_error = reason
                     await self._notify()
