@@ -34,6 +34,7 @@ sys.path.insert(0, str(ROOT))
 from mission_runner.bus import (  # noqa: E402
     Bus,
     BusConnectionError,
+    BusKey,
     InProcessBus,
     MqttBus,
     StepMessage,
@@ -41,6 +42,8 @@ from mission_runner.bus import (  # noqa: E402
 )
 
 TOPICS = Topics.for_mission("bench")
+#: Every message is signed and checked (HMAC-SHA256), as in a mission.
+KEY = BusKey.generate("bench")
 
 
 @dataclass
@@ -155,7 +158,7 @@ async def main(arguments: argparse.Namespace) -> None:
 
     def in_process_buses(count: int) -> tuple[list[Bus], list[Bus]]:
         # One in-process bus is the whole network; every vehicle uses it.
-        bus = InProcessBus()
+        bus = InProcessBus(key=KEY)
         return [bus], [bus] * count
 
     runs: list[tuple[str, Callable[[int], tuple[list[Bus], list[Bus]]]]] = []
@@ -173,7 +176,7 @@ async def main(arguments: argparse.Namespace) -> None:
         def mqtt_buses(count: int) -> tuple[list[Bus], list[Bus]]:
             # One connection per vehicle, as on real vehicles.
             buses: list[Bus] = [
-                MqttBus("127.0.0.1", port, client_id=f"bench-{count}-{i}", queue_size=4096)
+                MqttBus("127.0.0.1", port, key=KEY, client_id=f"bench-{count}-{i}", queue_size=4096)
                 for i in range(count)
             ]
             return buses, buses

@@ -13,6 +13,11 @@
     mission-runner px4-sitl CONFIG --px4-dir DIR         real PX4 SITL (SIH), one per vehicle
     mission-runner emulate CONFIG [sitl options]         emulated vehicles + the scenario's world
     mission-runner control CONFIG hold|resume|land|return|stop [--vehicle N]   operator command
+    mission-runner broker-config CONFIG --out DIR        mosquitto config, per-role logins, ACL
+
+Every command that talks on the bus takes ``--bus-key-file FILE`` (the mission's message key;
+else ``MISSION_BUS_KEY``, else ``bus.auth.key_file``), ``--bus-credentials FILE`` (broker
+logins) and ``--insecure-bus`` (an MQTT bus without a key: closed bench networks only).
 
 Exit codes:
 
@@ -48,6 +53,7 @@ from types import FrameType
 from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 
 from . import argtypes
+from .bus.cli_options import add_bus_arguments, with_bus_access
 from .bus.errors import BusConnectionError, BusTimeoutError
 from .config import load_scenario
 from .errors import ConfigError, MissionRunnerError
@@ -276,6 +282,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--quiet", action="store_true", help="no progress view, no summary")
     _replay_flag(run)
     _live_flags(run)
+    add_bus_arguments(run)
     run.set_defaults(handler=_run)
 
     replay = commands.add_parser(
@@ -324,6 +331,7 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="output folder (default: out/<name>-mission/vehicle_<id>)",
     )
+    add_bus_arguments(vehicle)
     vehicle.set_defaults(handler=_vehicle)
 
     ground = commands.add_parser(
@@ -345,6 +353,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     ground.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     _live_flags(ground)
+    add_bus_arguments(ground)
     ground.set_defaults(handler=_ground)
 
     view = commands.add_parser(
@@ -357,6 +366,7 @@ def _parser() -> argparse.ArgumentParser:
     view.add_argument(
         "--port", type=argtypes.port_or_zero, default=8765, help="port (0: any free one)"
     )
+    add_bus_arguments(view)
     view.set_defaults(handler=_view)
 
     layout = commands.add_parser(
@@ -399,6 +409,7 @@ def _parser() -> argparse.ArgumentParser:
         help="where the truth at every t_k is written, for scoring only "
         "(default: out/<name>-mission/truth)",
     )
+    add_bus_arguments(ranges)
     ranges.set_defaults(handler=_ranges)
 
     schema = commands.add_parser(
@@ -419,7 +430,30 @@ def _parser() -> argparse.ArgumentParser:
         "--vehicle", type=argtypes.positive_int, default=None, help="one vehicle's id"
     )
     operate.add_argument("--reason", default=None, help="a note the vehicles log and report")
+    add_bus_arguments(operate)
     operate.set_defaults(handler=_control)
+
+    broker = commands.add_parser(
+        "broker-config",
+        help="write a mosquitto configuration for the scenario's mission: listener, optional "
+        "TLS, one login per role (random passwords, 0600 credentials file), an ACL (each "
+        "vehicle publishes only its own topics, only the ground station commands) and a bus key",
+    )
+    broker.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
+    broker.add_argument("--out", type=Path, required=True, help="folder to write the files in")
+    broker.add_argument(
+        "--port", type=argtypes.port, default=None, help="listener port (default: bus.mqtt.port)"
+    )
+    broker.add_argument("--bind", default=None, help="listen on this address only")
+    broker.add_argument("--tls-cert", type=Path, default=None, help="broker certificate (PEM)")
+    broker.add_argument("--tls-key", type=Path, default=None, help="its private key (PEM)")
+    broker.add_argument(
+        "--tls-ca", type=Path, default=None, help="CA file, for clients with certificates"
+    )
+    broker.add_argument(
+        "--no-bus-key", action="store_true", help="keep the mission's existing bus key"
+    )
+    broker.set_defaults(handler=_broker_config)
 
     from . import px4sitl  # noqa: PLC0415 - only its argument definitions
     from .world import emulated  # noqa: PLC0415
@@ -430,6 +464,7 @@ def _parser() -> argparse.ArgumentParser:
         "vehicle processes (what 'sitl --scenario' did)",
     )
     emulated.add_arguments(emulate)
+    add_bus_arguments(emulate)
 
     px4 = commands.add_parser(
         "px4-sitl",
@@ -512,10 +547,9 @@ def _every(callbacks: Sequence[Callable[P, None]]) -> Callable[P, None]:
 
 
 def _view(arguments: argparse.Namespace) -> int:
-
     from .live import LiveLog, LiveServer, serve_bus  # noqa: PLC0415
 
-    scenario = load_scenario(arguments.config)
+    scenario = with_bus_access(load_scenario(arguments.config), arguments)
     if scenario.bus.kind != "mqtt":
         raise ConfigError(
             str(arguments.config),
@@ -674,6 +708,7 @@ def _run(arguments: argparse.Namespace) -> int:
         data["flight"]["clock"] = "realtime"
         data["flight"]["speed"] = 1.0 if arguments.speed is None else arguments.speed
         scenario = validate_scenario(data, str(arguments.config))
+    scenario = with_bus_access(scenario, arguments)
     check_memory(scenario, 1, str(arguments.config))  # the flight's scored result
     out_dir = prepare_out_dir(arguments.out or Path("out") / f"{scenario.name}-run", RUN_FILES)
     tlogs = out_dir / "tlogs"
@@ -720,6 +755,7 @@ def _run(arguments: argparse.Namespace) -> int:
             records=outcome.records,
             start_s=outcome.start_s,
             logs=capture.lines,
+            bus_security=outcome.bus_security,
         )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
@@ -733,10 +769,17 @@ def _run(arguments: argparse.Namespace) -> int:
 
 
 def _vehicle(arguments: argparse.Namespace) -> int:
-    from .outputs import VEHICLE_FILES, Status, prepare_out_dir, write_vehicle_run  # noqa: PLC0415
+    from .outputs import (  # noqa: PLC0415
+        VEHICLE_FILES,
+        Status,
+        bus_security,
+        bus_security_line,
+        prepare_out_dir,
+        write_vehicle_run,
+    )
     from .runner.process import VehicleRun, run_vehicle  # noqa: PLC0415
 
-    scenario = load_scenario(arguments.config)
+    scenario = with_bus_access(load_scenario(arguments.config), arguments)
     # No summary.json until the end: the ground station takes one as "this vehicle is done".
     out_dir = prepare_out_dir(
         arguments.out or _mission_dir(scenario) / f"vehicle_{arguments.id}", VEHICLE_FILES
@@ -775,15 +818,27 @@ def _vehicle(arguments: argparse.Namespace) -> int:
         f"{run.autopilot_clock_rate or 1:.4f}x, mission clock {run.clock_rate:.4f}x; "
         f"results in {out_dir}/" + (f"\n  {run.detail}" if run.detail else "")
     )
+    security = {
+        "bus_security": bus_security(run.bus_messages, {run.vehicle_id: run.ranges_rejected})
+    }
+    line = bus_security_line(security)
+    if line:
+        print(f"vehicle {arguments.id}: {line}")
     return EXIT_OK if run.state == "done" else EXIT_RUNTIME_FAILURE
 
 
 def _ground(arguments: argparse.Namespace) -> int:
-    from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
+    from .outputs import (  # noqa: PLC0415
+        RUN_FILES,
+        RunSummary,
+        bus_security,
+        bus_security_line,
+        prepare_out_dir,
+    )
     from .runner.process import run_ground, wait_and_merge  # noqa: PLC0415
     from .runner.scoring import mission_records  # noqa: PLC0415
 
-    scenario = load_scenario(arguments.config)
+    scenario = with_bus_access(load_scenario(arguments.config), arguments)
     mission_dir = prepare_out_dir(arguments.out or _mission_dir(scenario), RUN_FILES)
 
     last_state: dict[int, str] = {}
@@ -838,6 +893,10 @@ def _ground(arguments: argparse.Namespace) -> int:
             f"{lost or 'none'}; mission clock {outcome.clock_rate:.4f}x",
             flush=True,
         )
+        security = bus_security(outcome.bus_messages, {})
+        line = bus_security_line({"bus_security": security})
+        if line:  # what each vehicle dropped is in its own summary
+            print(f"ground: {line}", flush=True)
         result = _run_async(wait_and_merge(scenario, mission_dir, outcome))
         if result is None:
             record.finish("passed", "no truth (no simulator): expectations not checked")
@@ -856,6 +915,7 @@ def _ground(arguments: argparse.Namespace) -> int:
             records=mission_records(mission_dir, (v.id for v in scenario.vehicles)),
             start_s=outcome.start_s or 0.0,
             logs=capture.lines,
+            bus_security=security,
         )
     print(_summary_text(document, mission_dir))
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
@@ -867,13 +927,44 @@ def _control(arguments: argparse.Namespace) -> int:
     from .bus import ControlCommand  # noqa: PLC0415
     from .runner.process import send_control  # noqa: PLC0415
 
-    scenario = load_scenario(arguments.config)
+    scenario = with_bus_access(load_scenario(arguments.config), arguments)
     command = ControlCommand(arguments.command)
     mission_id = asyncio.run(
         send_control(scenario, command, vehicle_id=arguments.vehicle, reason=arguments.reason)
     )
     who = f"vehicle {arguments.vehicle}" if arguments.vehicle else "every vehicle"
     print(f"control: {command.value} sent to {who} of mission {mission_id}")
+    return EXIT_OK
+
+
+def _broker_config(arguments: argparse.Namespace) -> int:
+    from .bus.broker import TlsListener, write_broker_config  # noqa: PLC0415
+    from .errors import ConfigError  # noqa: PLC0415
+
+    scenario = load_scenario(arguments.config)
+    source = str(arguments.config)
+    if scenario.bus.kind != "mqtt":
+        raise ConfigError(source, [("bus.kind", "a broker is for bus.kind: mqtt")])
+    if (arguments.tls_cert is None) != (arguments.tls_key is None):
+        raise ConfigError("broker-config", [("--tls-cert/--tls-key", "give both or neither")])
+    tls = None
+    if arguments.tls_cert is not None:
+        tls = TlsListener(arguments.tls_cert, arguments.tls_key, arguments.tls_ca)
+    files = write_broker_config(
+        arguments.out,
+        scenario.bus.topics(scenario.name),
+        [vehicle.id for vehicle in scenario.vehicles],
+        port=arguments.port or scenario.bus.mqtt.port,
+        bind_address=arguments.bind,
+        tls=tls,
+        write_bus_key=not arguments.no_bus_key,
+    )
+    print(f"broker-config: users {', '.join(files.users)}")
+    print(f"  start the broker:   mosquitto -c {files.config}")
+    print(f"  broker logins:      {files.credentials} (0600; each machine needs its own line)")
+    if not arguments.no_bus_key:
+        print(f"  message key:        {files.bus_key} (0600; every process: --bus-key-file)")
+    print(f"  access control:     {files.acl}")
     return EXIT_OK
 
 
@@ -887,7 +978,7 @@ def _ranges(arguments: argparse.Namespace) -> int:
     from .runner.ranges import run_range_provider  # noqa: PLC0415
     from .runner.scoring import write_truth_csv  # noqa: PLC0415
 
-    scenario = load_scenario(arguments.config)
+    scenario = with_bus_access(load_scenario(arguments.config), arguments)
     out_dir = prepare_out_dir(arguments.out or _mission_dir(scenario) / "truth", TRUTH_FILES)
     print(
         f"ranges: SIMULATION AID - ranges are synthesised from {arguments.source.upper()} "
@@ -995,6 +1086,11 @@ def _summary_text(document: Mapping[str, Any], out_dir: Path) -> str:
                 else "; ".join(f"{i} {v['state']}: {v['detail'] or '-'}" for i, v in ended.items())
             )
         )
+    from .outputs import bus_security_line  # noqa: PLC0415
+
+    security = bus_security_line(document)
+    if security:
+        lines.append(security)
     expectations = document["expectations"]
     if expectations["checked"]:
         verdict = "PASS" if expectations["passed"] else "FAIL"

@@ -468,6 +468,30 @@ class Expectation(Model):
     min: float | None = Field(None, title="Minimum", description="Metric must be >= this.")
 
 
+class RangeCheckConfig(Model):
+    """Which ranges are physically possible: the rest are dropped where they enter a vehicle's
+    controller, before the estimator, and counted (``mission_runner.runner.plausibility``)."""
+
+    max_range_m: PositiveFloat | None = Field(
+        None,
+        title="Radio reach",
+        description="Longest range the radio measures [m]; None: sensors.range_max_m, else "
+        "300 m (UWB line of sight).",
+    )
+    max_relative_speed_m_s: PositiveFloat | None = Field(
+        None,
+        title="Relative speed bound",
+        description="How fast a range can change [m/s]; None: twice the fastest vehicle's "
+        "speed limit (the target is slower than the vehicles that enclose it).",
+    )
+    margin_m: NonNegativeFloat | None = Field(
+        None,
+        title="Noise margin",
+        description="Change a range may show beyond the speed bound, from noise [m]; None: "
+        "0.2 m plus six times the difference of two noisy ranges' std.",
+    )
+
+
 class DisplacementTrackingConfig(Model):
     """A PI correction that makes the vehicle realise the displacement the law commands."""
 
@@ -579,6 +603,12 @@ class FlightConfig(Model):
         description="Close the loop on the own odometry so the vehicle moves T u(k) per step "
         "as the paper's model assumes; needed on airframes whose velocity loop lags or loses "
         "to drag (PX4 SIH), off by default.",
+    )
+    range_check: RangeCheckConfig = Field(
+        RangeCheckConfig(),
+        title="Range plausibility",
+        description="Ranges that cannot be (negative, beyond the radio's reach, changing "
+        "faster than the vehicles can move) are dropped before the estimator and counted.",
     )
     emulator: dict[str, Any] = Field(
         {},

@@ -180,9 +180,11 @@ def summary(
     config_path: PathName | None = None,
     wall_time_s: float | None = None,
     vehicles: Mapping[int, Mapping[str, str]] | None = None,
+    bus_security: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The summary dict: run 0's metrics, expectations, batch distribution, parameters, versions;
-    for a flight, how each vehicle ended (``vehicles``: ``{id: {"state", "detail"}}``)."""
+    for a flight, how each vehicle ended (``vehicles``: ``{id: {"state", "detail"}}``) and what
+    the bus and the controllers dropped (``bus_security``, see :func:`bus_security`)."""
     scenario = result.scenario
     metrics = run_metrics(result)
     first = {name: _plain(values[0]) for name, values in metrics.items()}
@@ -210,9 +212,47 @@ def summary(
         document["batch"]["runs_passing_expectations"] = int(sum(per_run))
     if vehicles is not None:
         document["vehicles"] = {str(i): dict(v) for i, v in sorted(vehicles.items())}
+    if bus_security is not None:
+        document["bus_security"] = dict(bus_security)
     if wall_time_s is not None:
         document["wall_time_s"] = round(wall_time_s, 4)
     return document
+
+
+def bus_security(
+    messages: Mapping[str, int], ranges_rejected: Mapping[int, Mapping[str, int]]
+) -> dict[str, Any]:
+    """What a summary says about dropped input: ``messages``, the bus's received messages
+    accepted and dropped by reason (forged, replayed, ...; ``AuthCounters.as_dict``), and
+    ``ranges_rejected``, per vehicle id the ranges its controller found impossible, by reason."""
+    dropped = sum(count for reason, count in messages.items() if reason != "accepted")
+    return {
+        "messages": dict(messages),
+        "messages_dropped": dropped,
+        "ranges_rejected": {str(i): dict(c) for i, c in sorted(ranges_rejected.items())},
+    }
+
+
+def bus_security_line(document: Mapping[str, Any]) -> str | None:
+    """One line for the terminal when a summary's ``bus_security`` shows dropped input."""
+    security = document.get("bus_security")
+    if not security:
+        return None
+    messages = security["messages"]
+    ranges = {
+        reason: sum(counts.get(reason, 0) for counts in security["ranges_rejected"].values())
+        for reason in ("invalid", "beyond_reach", "jump")
+    }
+    if not security["messages_dropped"] and not any(ranges.values()):
+        return None
+    parts = [f"{count} {reason}" for reason, count in messages.items() if reason != "accepted"]
+    impossible = [f"{count} {reason}" for reason, count in ranges.items() if count]
+    return (
+        f"bus: dropped {security['messages_dropped']} of "
+        f"{security['messages_dropped'] + messages.get('accepted', 0)} messages "
+        f"({', '.join(p for p in parts if not p.startswith('0 ')) or 'none'}); impossible "
+        f"ranges rejected: {', '.join(impossible) or 'none'}"
+    )
 
 
 def _about(scenario: Scenario, config_path: PathName | None, runs: int) -> dict[str, Any]:
@@ -256,6 +296,7 @@ def write_results(
     records: Mapping[int, Sequence[StepRecord]] | None = None,
     start_s: float = 0.0,
     logs: Sequence[LogLine] = (),
+    bus_security: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write timeseries.csv, summary.json, recording.mcap and (optionally) the figures into
     ``out_dir``. A flight passes its controllers' ``records`` and ``start_s`` (the mission clock
@@ -267,7 +308,13 @@ def write_results(
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    document = summary(result, config_path=config_path, wall_time_s=wall_time_s, vehicles=vehicles)
+    document = summary(
+        result,
+        config_path=config_path,
+        wall_time_s=wall_time_s,
+        vehicles=vehicles,
+        bus_security=bus_security,
+    )
     write_atomic(out_dir / "timeseries.csv", timeseries_csv(result))
     expectations = document["expectations"]
     verdict = None
@@ -391,6 +438,7 @@ def write_vehicle_run(
             else None
         ),
         "autopilot_params": run.params,
+        "bus_security": bus_security(run.bus_messages, {run.vehicle_id: run.ranges_rejected}),
         "config": None if config_path is None else str(config_path),
         "versions": versions(),
     }
@@ -454,6 +502,7 @@ class RunSummary:
         records: Mapping[int, Sequence[StepRecord]] | None = None,
         start_s: float = 0.0,
         logs: Sequence[LogLine] = (),
+        bus_security: Mapping[str, Any] | None = None,
     ) -> dict[str, Any]:
         """:func:`write_results` into this run's folder; returns the summary dict."""
         self.document = write_results(
@@ -466,6 +515,7 @@ class RunSummary:
             records=records,
             start_s=start_s,
             logs=logs,
+            bus_security=bus_security,
         )
         return self.document
 

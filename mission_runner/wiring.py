@@ -23,6 +23,7 @@ if TYPE_CHECKING:
     from sitl.config import EmulatorConfig
 
     from .runner.controller import ControllerSettings
+    from .runner.plausibility import RangeLimits
 
 #: k -> the affine shape matrix ``(3, 3)`` at step k.
 ShapeSchedule = Callable[[int], NDArray[np.float64]]
@@ -95,7 +96,29 @@ def controller_settings(scenario: Scenario, vehicle: VehicleConfig) -> Controlle
         tracking_max_correction_m_s=flight.displacement_tracking.max_correction_m_s,
         min_separation_m=scenario.safety.min_separation_m,
         separation_gain_1_s=scenario.safety.separation_gain_1_s,
+        range_limits=range_limits(scenario),
     )
+
+
+#: A UWB radio's line-of-sight reach, when the scenario gives none [m].
+DEFAULT_RADIO_REACH_M = 300.0
+
+
+def range_limits(scenario: Scenario) -> RangeLimits:
+    """What a range can be in ``scenario`` (``flight.range_check``, defaults from the sensors
+    and the vehicles' speed limits)."""
+    from .runner.plausibility import RangeLimits  # noqa: PLC0415
+
+    check = scenario.flight.range_check
+    sensors = scenario.sensors
+    reach_m = check.max_range_m or sensors.range_max_m or DEFAULT_RADIO_REACH_M
+    speed_m_s = check.max_relative_speed_m_s or 2.0 * max(
+        vehicle.speed_limit_m_s for vehicle in scenario.vehicles
+    )
+    margin_m = check.margin_m
+    if margin_m is None:
+        margin_m = 0.2 + 6.0 * math.sqrt(2.0) * sensors.range_noise_std_m
+    return RangeLimits(reach_m, speed_m_s, margin_m)
 
 
 def altitude_of(scenario: Scenario, vehicle: VehicleConfig) -> float:

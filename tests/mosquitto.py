@@ -31,6 +31,20 @@ from typing import IO
 
 import pytest
 
+from mission_runner.bus.auth import BusKey
+from mission_runner.bus.broker import BrokerFiles, write_broker_config
+from mission_runner.bus.topics import Topics
+
+#: The bus key of the tests (MQTT buses refuse to open without one); tests/conftest.py puts it in
+#: the environment of every test, so that processes a test starts share it.
+TEST_BUS_KEY = "test-bus-key-0123456789abcdef0123456789abcdef"
+
+
+def bus_test_key() -> BusKey:
+    """:data:`TEST_BUS_KEY` as a key, for buses a test builds itself."""
+    return BusKey.from_text(TEST_BUS_KEY, "tests")
+
+
 _CANDIDATES = ("mosquitto", "/usr/sbin/mosquitto", "/usr/local/sbin/mosquitto")
 
 
@@ -101,7 +115,9 @@ class MosquittoBroker:
 
     ``users`` (name -> password) turns off anonymous access and writes a password file
     with ``mosquitto_passwd``; ``tls`` makes the listener TLS-only with that server
-    certificate. ``port`` stays the same across restarts.
+    certificate. ``config_file`` runs that configuration instead (``broker-config``'s: its
+    listener must be ``port`` on 127.0.0.1), with this class's logging. ``port`` stays the
+    same across restarts.
     """
 
     def __init__(
@@ -111,6 +127,7 @@ class MosquittoBroker:
         port: int | None = None,
         users: dict[str, str] | None = None,
         tls: TlsFiles | None = None,
+        config_file: Path | None = None,
         ready_timeout_s: float = 10.0,
     ) -> None:
         self.binary = require_mosquitto()
@@ -123,11 +140,14 @@ class MosquittoBroker:
         self.log_path = self.directory / "mosquitto.log"
         self._process: subprocess.Popen[bytes] | None = None
         self._log: IO[bytes] | None = None
-        self._write_config(users, tls)
+        self._write_config(users, tls, config_file)
 
-    def _write_config(self, users: dict[str, str] | None, tls: TlsFiles | None) -> None:
-        lines = [
-            f"listener {self.port} 127.0.0.1",
+    def _write_config(
+        self, users: dict[str, str] | None, tls: TlsFiles | None, config_file: Path | None
+    ) -> None:
+        given = config_file.read_text().splitlines() if config_file is not None else []
+        lines = given or [f"listener {self.port} 127.0.0.1"]
+        lines += [
             "persistence false",
             # Without it mosquitto lets Nagle's algorithm delay small messages to its
             # subscribers by up to a delayed-ACK period (40 ms on Linux).
@@ -141,7 +161,9 @@ class MosquittoBroker:
             # Started as root, mosquitto would switch to the "mosquitto" user, who cannot
             # read files in the test's private temporary directory.
             lines.append("user root")
-        if users:
+        if given:
+            pass  # access control is the given configuration's
+        elif users:
             passwd = mosquitto_passwd_binary()
             if passwd is None:
                 pytest.skip("mosquitto_passwd is not installed; cannot make a password file")
@@ -242,3 +264,16 @@ class MosquittoBroker:
 
     async def akill(self) -> None:
         await asyncio.to_thread(self.kill)
+
+
+def secured_broker(
+    directory: Path, topics: Topics, vehicle_ids: list[int]
+) -> tuple[MosquittoBroker, BrokerFiles]:
+    """A mosquitto (not yet started) running ``mission-runner broker-config``'s configuration for
+    the mission under ``topics`` with ``vehicle_ids``, on a free loopback port, and the files
+    written (logins, ACL, bus key)."""
+    port = free_loopback_port()
+    files = write_broker_config(
+        directory / "broker-config", topics, vehicle_ids, port=port, bind_address="127.0.0.1"
+    )
+    return MosquittoBroker(directory / "broker", port=port, config_file=files.config), files

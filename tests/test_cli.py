@@ -467,3 +467,46 @@ def test_a_taken_port_is_one_line_naming_the_setting(tmp_path, capsys):
     assert f"UDP port {port} for vehicle 0 is already in use" in error
     assert "ports.gcs_local_base" in error
     assert json.loads((out / "summary.json").read_text())["status"] == "error"
+
+
+def test_broker_config_writes_a_mosquitto_config_logins_an_acl_and_a_key(tmp_path, capsys):
+    out = tmp_path / "broker"
+    config = CONFIGS / "px4_sih_tracking.yaml"
+    assert main(["broker-config", str(config), "--out", str(out), "--port", "18883"]) == EXIT_OK
+    text = capsys.readouterr().out
+    assert "users ground, ranges, vehicle-1, vehicle-2, vehicle-3, vehicle-4" in text
+    assert f"mosquitto -c {out.resolve() / 'mosquitto.conf'}" in text
+    assert "listener 18883" in (out / "mosquitto.conf").read_text()
+    assert {p.name for p in out.iterdir()} == {
+        "mosquitto.conf",
+        "passwords",
+        "acl",
+        "credentials",
+        "bus.key",
+    }
+    assert main(["broker-config", str(CONFIGS / "paper_tracking.yaml"), "--out", str(out)]) == (
+        EXIT_BAD_INPUT
+    )
+    assert "bus.kind: a broker is for bus.kind: mqtt" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["ground", "control", "ranges", "vehicle"])
+def test_an_mqtt_bus_without_a_key_is_refused_before_anything_connects(
+    command, monkeypatch, capsys
+):
+    monkeypatch.delenv("MISSION_BUS_KEY")
+    arguments = [command, str(CONFIGS / "px4_sih_tracking.yaml")]
+    arguments += {"control": ["land"], "vehicle": ["--id", "1"]}.get(command, [])
+    assert main(arguments) == EXIT_BAD_INPUT
+    error = capsys.readouterr().err
+    assert "an MQTT bus needs a key" in error and "--bus-key-file" in error
+
+
+def test_a_bus_key_file_that_is_missing_or_short_is_refused(tmp_path, capsys):
+    config = str(CONFIGS / "px4_sih_tracking.yaml")
+    assert main(["ground", config, "--bus-key-file", str(tmp_path / "nope")]) == EXIT_BAD_INPUT
+    assert "cannot read the bus key file" in capsys.readouterr().err
+    short = tmp_path / "short.key"
+    short.write_text("abc\n")
+    assert main(["ground", config, "--bus-key-file", str(short)]) == EXIT_BAD_INPUT
+    assert "at least 32" in capsys.readouterr().err

@@ -238,7 +238,7 @@ def test_the_view_of_a_mission_bus_sends_each_step_message_and_status(mosquitto)
             view = group.create_task(
                 serve_bus(scenario, server.channels, client_id="view"), name="view"
             )
-            async with open_bus(scenario.bus, client_id="vehicles") as bus:
+            async with open_bus(scenario.bus, sender=None, client_id="vehicles") as bus:
                 status = VehicleStatus(1, start_s, "following", 0, True)
                 await bus.publish_message(topics.status(1), status, retain=True, timeout=5)
                 # The retained status seen means the view is subscribed to the steps too.

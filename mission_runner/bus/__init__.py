@@ -7,7 +7,7 @@ A step loop on the bus (tests/bus/test_usage.py runs this pattern)::
 
     topics = settings.bus.topics(mission_id)
     async with (
-        open_bus(settings.bus, client_id=f"vehicle-{i}",
+        open_bus(settings.bus, sender=Sender.vehicle(i), client_id=f"vehicle-{i}",
                  will=lost_vehicle_will(topics, i, time_s=clock.now_s())) as bus,
         bus.subscribe(topics.all_steps()) as neighbours,
     ):
@@ -31,17 +31,33 @@ The mission's controller (``mission_runner.runner.controller``) follows the same
 feeds a step inbox from ``Subscription.messages`` and waits for each step's messages until
 the step's deadline, instead of sleeping to the deadline and draining.
 
-Modules: ``topics`` (layout and MQTT matching), ``messages`` (payloads), ``base`` (the
-interface and subscriptions), ``inprocess`` and ``mqtt`` (implementations), ``clock`` (real
-and manual clocks), ``settings`` (typed config), ``errors`` (exception tree).
+Every message is signed by its sender's role and checked on arrival (``auth``); what fails
+is dropped and counted in ``Bus.auth_counters``, never handed to a subscription.
+
+Modules: ``topics`` (layout and MQTT matching), ``messages`` (payloads), ``auth`` (message
+keys, signing, replay protection, who may publish what), ``base`` (the interface and
+subscriptions), ``inprocess`` and ``mqtt`` (implementations), ``broker`` (mosquitto's
+configuration and broker logins), ``settings`` (typed config), ``errors`` (exception tree).
 """
 
 from __future__ import annotations
 
+import logging
 import random
 
-from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
+from mission_runner.bus.auth import (
+    AuthCounters,
+    AuthPolicy,
+    BusKey,
+    MessageAuth,
+    Rejection,
+    Role,
+    Sender,
+)
+from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, BusClient, Subscription
+from mission_runner.bus.broker import broker_login
 from mission_runner.bus.errors import (
+    BusAuthError,
     BusConnectionError,
     BusError,
     BusTimeoutError,
@@ -61,7 +77,14 @@ from mission_runner.bus.messages import (
     VehicleStatus,
 )
 from mission_runner.bus.mqtt import Backoff, LastWill, MqttBus, lost_vehicle_will
-from mission_runner.bus.settings import BusSettings, LinkSettings, MqttSettings, TlsSettings
+from mission_runner.bus.settings import (
+    AuthSettings,
+    BusAccess,
+    BusSettings,
+    LinkSettings,
+    MqttSettings,
+    TlsSettings,
+)
 from mission_runner.bus.topics import (
     ParsedTopic,
     TopicKind,
@@ -72,13 +95,22 @@ from mission_runner.bus.topics import (
 )
 from mission_runner.clock import Clock, ManualClock, MonotonicClock
 
+logger = logging.getLogger(__name__)
+
 __all__ = [
     "DEFAULT_QUEUE_SIZE",
     "MESSAGE_TYPES",
+    "AuthCounters",
+    "AuthPolicy",
+    "AuthSettings",
     "Backoff",
     "Bus",
+    "BusAccess",
+    "BusAuthError",
+    "BusClient",
     "BusConnectionError",
     "BusError",
+    "BusKey",
     "BusSettings",
     "BusTimeoutError",
     "Clock",
@@ -89,6 +121,7 @@ __all__ = [
     "LinkSettings",
     "ManualClock",
     "Message",
+    "MessageAuth",
     "MessageDecodeError",
     "MessageValueError",
     "MissionControl",
@@ -97,6 +130,9 @@ __all__ = [
     "MqttSettings",
     "ParsedTopic",
     "RangeMessage",
+    "Rejection",
+    "Role",
+    "Sender",
     "StepMessage",
     "Subscription",
     "TargetObservation",
@@ -116,6 +152,7 @@ __all__ = [
 def open_bus(
     settings: BusSettings,
     *,
+    sender: Sender | None,
     client_id: str | None = None,
     will: LastWill | None = None,
     clock: Clock | None = None,
@@ -123,20 +160,46 @@ def open_bus(
 ) -> Bus:
     """The bus ``settings`` describe, not yet entered: use it as ``async with``.
 
+    ``sender`` is whom this process signs as (None: each topic's owner, for one process that
+    is the whole swarm) and which broker user it logs in as (see ``broker.broker_login``).
+    The key comes from ``settings.bus_key()``: raises BusAuthError when an MQTT bus has none.
     ``client_id`` overrides ``settings.mqtt.client_id`` (give each vehicle its own);
     ``will`` is the MQTT last will (see ``lost_vehicle_will``). ``clock`` and ``rng`` are
     for tests. The in-process bus ignores ``client_id``, ``will`` and ``rng``.
     """
+    key = settings.bus_key()
+    policy = settings.auth.policy()
     if settings.kind == "inprocess":
         link = settings.link.link_model() if settings.link is not None else None
-        return InProcessBus(link=link, clock=clock, queue_size=settings.queue_size)
+        return InProcessBus(
+            link=link,
+            clock=clock,
+            queue_size=settings.queue_size,
+            key=key,
+            sender=sender,
+            auth_policy=policy,
+        )
+    if key.insecure:
+        logger.warning(
+            "INSECURE BUS: messages to %s:%d are signed with a public key; anyone on the "
+            "network can forge commands (--insecure-bus)",
+            settings.mqtt.host,
+            settings.mqtt.port,
+        )
     mqtt = settings.mqtt
+    username, password = broker_login(
+        settings.access.credentials_file or mqtt.credentials_file,
+        sender or Sender.ground(),
+    )
     return MqttBus(
         mqtt.host,
         mqtt.port,
+        key=key,
+        sender=sender,
+        auth_policy=policy,
         client_id=client_id or mqtt.client_id,
-        username=mqtt.username,
-        password=mqtt.password.get_secret_value() if mqtt.password is not None else None,
+        username=username,
+        password=password,
         tls=mqtt.tls,
         keepalive_s=mqtt.keepalive_s,
         connect_timeout_s=mqtt.connect_timeout_s,

@@ -11,6 +11,12 @@ one event loop; ``MqttBus`` through an MQTT broker. Both:
   consumer falls behind (counted in ``Subscription.dropped``), so a publisher never blocks
   on a slow subscriber and memory stays bounded.
 
+Every payload is sealed on the way out and opened on the way in (``mission_runner.bus.auth``):
+a subscription only ever sees message bodies that carried a valid signature of a sender allowed
+on their topic, fresh and not seen before. A bus signs as its ``sender``; a bus that several
+senders share (one process running the whole swarm in-process) hands each its own
+``as_sender`` view.
+
 Usage::
 
     async with bus.subscribe(topics.all_steps()) as steps:
@@ -30,6 +36,7 @@ from contextlib import AbstractAsyncContextManager
 from types import TracebackType
 from typing import Generic, Self, TypeVar
 
+from mission_runner.bus.auth import AuthCounters, MessageAuth, Sender
 from mission_runner.bus.errors import BusConnectionError, BusTimeoutError, MessageDecodeError
 from mission_runner.bus.messages import Message
 
@@ -220,6 +227,14 @@ class Bus(abc.ABC):
     endpoint: str
     """Where the bus connects, for error messages (``"host:port"`` or ``"in-process"``)."""
 
+    auth: MessageAuth
+    """Seals what this bus publishes and opens what it receives; ``auth.counters`` says how
+    many received messages were accepted and dropped, by reason."""
+
+    sender: Sender | None
+    """Whom this bus signs as; None: the owner of each topic (``Sender.for_topic``), for a bus
+    that speaks for the whole swarm of one process."""
+
     _subscriptions: list[Subscription]
     _open: bool
     _closed: bool
@@ -246,15 +261,36 @@ class Bus(abc.ABC):
     ) -> None:
         await self._stack.__aexit__(exc_type, exc, tb)
 
+    @property
+    def auth_counters(self) -> AuthCounters:
+        """Received messages accepted and dropped (forged, replayed, ...), by reason."""
+        return self.auth.counters
+
+    def _seal(self, topic: str, payload: bytes, *, retain: bool, sender: Sender | None) -> bytes:
+        """``payload`` signed as ``sender`` (else the bus's sender, else the topic's owner)."""
+        signer = sender or self.sender or Sender.for_topic(topic)
+        return self.auth.seal(signer, topic, payload, retain=retain)
+
+    def as_sender(self, sender: Sender) -> BusClient:
+        """This bus, publishing as ``sender``: one member's view of a shared bus."""
+        return BusClient(self, sender)
+
     @abc.abstractmethod
     async def publish(
-        self, topic: str, payload: bytes, *, retain: bool = False, timeout: float
+        self,
+        topic: str,
+        payload: bytes,
+        *,
+        retain: bool = False,
+        timeout: float,
+        sender: Sender | None = None,
     ) -> None:
         """Publish ``payload`` on ``topic`` (no wildcards), waiting at most ``timeout`` s.
 
         ``retain`` asks the bus to keep the payload as the topic's last value, handed to
-        later subscribers; an empty retained payload clears it. Raises BusConnectionError
-        if the message could not be handed over in time; the message is then dropped.
+        later subscribers; an empty retained payload clears it. ``sender`` signs instead of
+        the bus's own sender. Raises BusConnectionError if the message could not be handed
+        over in time; the message is then dropped.
         """
 
     @abc.abstractmethod
@@ -269,7 +305,48 @@ class Bus(abc.ABC):
         """
 
     async def publish_message(
-        self, topic: str, message: Message, *, retain: bool = False, timeout: float
+        self,
+        topic: str,
+        message: Message,
+        *,
+        retain: bool = False,
+        timeout: float,
+        sender: Sender | None = None,
     ) -> None:
         """Encode ``message`` and publish it (see ``publish``)."""
-        await self.publish(topic, message.to_payload(), retain=retain, timeout=timeout)
+        await self.publish(
+            topic, message.to_payload(), retain=retain, timeout=timeout, sender=sender
+        )
+
+
+class BusClient:
+    """One sender's view of a bus (``Bus.as_sender``): publishes signed as ``sender``,
+    subscribes through the bus. Has what a controller needs of a bus."""
+
+    def __init__(self, bus: Bus, sender: Sender) -> None:
+        self.bus = bus
+        self.sender = sender
+
+    def __repr__(self) -> str:
+        return f"<BusClient {self.sender} on {self.bus!r}>"
+
+    @property
+    def auth_counters(self) -> AuthCounters:
+        return self.bus.auth_counters
+
+    async def publish(
+        self, topic: str, payload: bytes, *, retain: bool = False, timeout: float
+    ) -> None:
+        await self.bus.publish(topic, payload, retain=retain, timeout=timeout, sender=self.sender)
+
+    async def publish_message(
+        self, topic: str, message: Message, *, retain: bool = False, timeout: float
+    ) -> None:
+        await self.bus.publish_message(
+            topic, message, retain=retain, timeout=timeout, sender=self.sender
+        )
+
+    def subscribe(
+        self, pattern: str, *, queue_size: int | None = None, timeout: float | None = None
+    ) -> AbstractAsyncContextManager[Subscription]:
+        return self.bus.subscribe(pattern, queue_size=queue_size, timeout=timeout)

@@ -12,6 +12,8 @@ Exception tree::
         ├── MessageDecodeError   a payload is not a valid message of the expected type
         ├── MessageValueError    a message was built with a field of the wrong type or out of
         │                        range (a bug on the sending side; also a ``ValueError``)
+        ├── BusAuthError         no usable bus key or broker credentials (missing, unreadable,
+        │                        too short): found before anything connects
         └── TopicError           a topic or subscription pattern is malformed or does not
                                  fit the mission's topic layout (also a ``ValueError``)
 
@@ -87,3 +89,13 @@ class MessageValueError(BusError, ValueError):
 
 class TopicError(BusError, ValueError):
     """A topic or subscription pattern is malformed or outside the mission's layout."""
+
+
+class BusAuthError(BusError):
+    """The bus cannot authenticate: no key for an MQTT bus, an unreadable or short key, or
+    broker credentials that cannot be found. The message says where a key or credentials go."""
+
+    def __init__(self, problem: str, hint: str = "") -> None:
+        self.problem = problem
+        self.hint = hint
+        super().__init__(f"{problem}; {hint}" if hint else problem)

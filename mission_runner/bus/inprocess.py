@@ -6,7 +6,10 @@ deliveries (seeded, and timed by an injected ``Clock``) so tests can check step 
 under a bad network deterministically.
 
 Semantics match ``MqttBus`` with QoS 0: MQTT wildcard patterns (``topic_matches``),
-retained messages handed to new subscribers, per-subscription drop-oldest queues.
+retained messages handed to new subscribers, per-subscription drop-oldest queues. Messages are
+sealed and opened as on MQTT (``mission_runner.bus.auth``), with a random key of the process
+unless one is given: nothing outside the process can reach this bus, but the same code path
+runs.
 """
 
 from __future__ import annotations
@@ -19,13 +22,14 @@ import itertools
 import logging
 import math
 import random
-from collections.abc import AsyncIterator
+import time
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from typing import Self
 
-from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
+from mission_runner.bus.auth import AuthPolicy, BusKey, MessageAuth, Sender
+from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, BusClient, Subscription
 from mission_runner.bus.errors import BusConnectionError
-from mission_runner.bus.messages import Message
 from mission_runner.bus.topics import topic_matches, validate_pattern, validate_topic
 from mission_runner.clock import Clock, MonotonicClock
 
@@ -42,7 +46,7 @@ class LinkModel:
     ``loss_probability``, otherwise delivered ``latency_s + U(0, jitter_s)`` seconds after
     publishing, on the bus's clock. The draws for the n-th delivery on a topic to a
     subscription depend only on ``seed``, the topic, n, the subscription's pattern and the
-    client it belongs to (:meth:`InProcessBus.client`), never on how the publishers' or
+    client it belongs to (:meth:`InProcessBus.as_sender`), never on how the publishers' or
     subscribers' tasks interleave, so a run is reproducible. Unless ``reorder`` is True, a
     message never overtakes an earlier one on the same topic to the same subscription (MQTT
     keeps a publisher's order per topic); messages of different topics, i.e. of different
@@ -85,7 +89,15 @@ class InProcessBus(Bus):
         link: LinkModel | None = None,
         clock: Clock | None = None,
         queue_size: int = DEFAULT_QUEUE_SIZE,
+        key: BusKey | None = None,
+        sender: Sender | None = None,
+        auth_policy: AuthPolicy | None = None,
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
+        self.auth = MessageAuth(
+            key or BusKey.generate(), auth_policy, endpoint=ENDPOINT, wall_clock=wall_clock
+        )
+        self.sender = sender
         self.link = link
         self.clock: Clock = clock if clock is not None else MonotonicClock()
         self.queue_size = queue_size
@@ -142,11 +154,23 @@ class InProcessBus(Bus):
         return len(self._pending)
 
     async def publish(
-        self, topic: str, payload: bytes, *, retain: bool = False, timeout: float
+        self,
+        topic: str,
+        payload: bytes,
+        *,
+        retain: bool = False,
+        timeout: float,
+        sender: Sender | None = None,
     ) -> None:
         validate_topic(topic)
         self._check_open(f"publish to {topic!r}")
-        payload = bytes(payload)
+        sealed = self._seal(topic, bytes(payload), retain=retain, sender=sender)
+        # One receiver (this bus) opens each message once, as an MQTT client does on arrival;
+        # what is stored and delivered is the checked body.
+        opened = self.auth.open(topic, sealed)
+        if opened is None:
+            return
+        payload = opened
         self.published += 1
         if retain:
             if payload:
@@ -243,26 +267,19 @@ class InProcessBus(Bus):
     ) -> contextlib.AbstractAsyncContextManager[Subscription]:
         return self._subscription(pattern, queue_size)
 
-    def client(self, client_id: str) -> InProcessClient:
-        """One participant's view of this bus, as one MQTT client is of a broker."""
-        return InProcessClient(self, client_id)
+    def as_sender(self, sender: Sender) -> InProcessClient:
+        """This bus, publishing as ``sender`` (one member of the swarm of this process), whose
+        subscriptions are ``sender``'s own to the link model, as one MQTT client's are."""
+        return InProcessClient(self, sender)
 
 
-class InProcessClient:
-    """One participant of an :class:`InProcessBus` (a vehicle's controller, say): publishes on
-    the bus, and its subscriptions are its own to the link model, so each participant meets
-    its own losses and delays, drawn the same whatever order the participants subscribe in."""
+class InProcessClient(BusClient):
+    """One member of an :class:`InProcessBus` (a vehicle's controller, say): it meets its own
+    losses and delays, drawn the same whatever order the members subscribe in."""
 
-    def __init__(self, bus: InProcessBus, client_id: str) -> None:
-        self.bus = bus
-        self.client_id = client_id
+    bus: InProcessBus
 
     def subscribe(
         self, pattern: str, *, queue_size: int | None = None, timeout: float | None = None
     ) -> contextlib.AbstractAsyncContextManager[Subscription]:
-        return self.bus._subscription(pattern, queue_size, self.client_id)
-
-    async def publish_message(
-        self, topic: str, message: Message, *, retain: bool = False, timeout: float
-    ) -> None:
-        await self.bus.publish_message(topic, message, retain=retain, timeout=timeout)
+        return self.bus._subscription(pattern, queue_size, str(self.sender))

@@ -5,25 +5,40 @@ Example::
     bus:
       kind: mqtt
       topic_prefix: enclosing/field-test-3
+      auth:
+        key_file: /etc/mission_runner/bus.key     # the key itself never goes in a scenario
       mqtt:
         host: 192.168.1.10
         port: 8883
-        username: vehicle
-        password: change-me
+        credentials_file: /etc/mission_runner/credentials   # user:password lines (0600)
         tls:
           ca_file: /etc/mission_runner/ca.crt
 
-Everything is validated once, at load; ``open_bus`` turns a valid model into a bus.
+Everything is validated once, at load; ``open_bus`` turns a valid model into a bus. What a
+process brings that a scenario must not hold (the command line's ``--bus-key-file``,
+``--bus-credentials`` and ``--insecure-bus``) is attached with ``with_access`` (a
+:class:`BusAccess`), never read from the file.
 """
 
 from __future__ import annotations
 
 import ssl
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    SecretStr,
+    field_validator,
+    model_validator,
+)
 
+from mission_runner.bus.auth import DEFAULT_KEY_ENV, AuthPolicy, BusKey, resolve_key
 from mission_runner.bus.base import DEFAULT_QUEUE_SIZE
 from mission_runner.bus.inprocess import LinkModel
 from mission_runner.bus.topics import DEFAULT_PREFIX_ROOT, Topics
@@ -113,11 +128,14 @@ class MqttSettings(BaseModel):
         description="Must be unique per connection: a second client with the same id makes "
         "the broker drop the first. None generates one; the runner passes one per vehicle.",
     )
-    username: str | None = Field(
-        None, min_length=1, title="User name", description="User name for the broker, if any."
-    )
-    password: SecretStr | None = Field(
-        None, title="Password", description="Password for username; needs username."
+    credentials_file: Path | None = Field(
+        None,
+        title="Broker credentials file",
+        description="File of 'user:password' lines (as `mission-runner broker-config` writes, "
+        "mode 0600): each process logs in as its role's user (ground, vehicle-<id>, ranges), "
+        "or as the file's only user. --bus-credentials overrides it; so do the environment "
+        "variables MISSION_BUS_USERNAME and MISSION_BUS_PASSWORD. None: anonymous. Passwords "
+        "never go in a scenario file.",
     )
     tls: TlsSettings | None = Field(
         None, title="TLS", description="TLS settings; None connects in plain TCP."
@@ -170,8 +188,6 @@ class MqttSettings(BaseModel):
                 f"reconnect_max_s ({self.reconnect_max_s}) must be >= "
                 f"reconnect_initial_s ({self.reconnect_initial_s})"
             )
-        if self.password is not None and self.username is None:
-            raise ValueError("password is set but username is not")
         return self
 
 
@@ -214,6 +230,64 @@ class LinkSettings(BaseModel):
         )
 
 
+class AuthSettings(BaseModel):
+    """How messages are authenticated (see :mod:`mission_runner.bus.auth`). The key itself is
+    never in a scenario: a file named here or on the command line, or an environment variable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    key_file: Path | None = Field(
+        None,
+        title="Bus key file",
+        description="File holding the mission's HMAC key (at least 32 characters, e.g. "
+        "`openssl rand -hex 32`), the same on every process of the mission. --bus-key-file "
+        "and the environment variable key_env take precedence.",
+    )
+    key_env: str = Field(
+        DEFAULT_KEY_ENV,
+        min_length=1,
+        title="Bus key environment variable",
+        description="Environment variable holding the key (used before key_file).",
+    )
+    time_window_s: float = Field(
+        10.0,
+        gt=0.0,
+        le=3600.0,
+        title="Freshness window (s)",
+        description="A message sent longer ago than this, or this far ahead of the receiver's "
+        "clock, is dropped as stale: the bound on clock skew between machines.",
+    )
+    retained_max_age_s: float = Field(
+        600.0,
+        gt=0.0,
+        le=86400.0,
+        title="Oldest retained message (s)",
+        description="Retained messages (the ground's prepare, statuses) handed over by the "
+        "broker are accepted this long after they were sent.",
+    )
+    max_message_bytes: int = Field(
+        16384,
+        ge=1024,
+        le=1 << 24,
+        title="Largest message (bytes)",
+        description="Payloads larger than this are dropped unread.",
+    )
+
+    def policy(self) -> AuthPolicy:
+        return AuthPolicy(self.time_window_s, self.retained_max_age_s, self.max_message_bytes)
+
+
+@dataclass(frozen=True)
+class BusAccess:
+    """What a process brings to the bus from its command line, never from the scenario file:
+    a key file (``--bus-key-file``), broker credentials (``--bus-credentials``) and the
+    choice to run an MQTT bus without a key (``--insecure-bus``)."""
+
+    key_file: Path | None = None
+    credentials_file: Path | None = None
+    insecure: bool = False
+
+
 class BusSettings(BaseModel):
     """Which bus the vehicles talk over, and its settings."""
 
@@ -250,6 +324,13 @@ class BusSettings(BaseModel):
         description="Latency, jitter and loss of the in-process bus; None is a perfect "
         "network. Used when kind is 'inprocess'.",
     )
+    auth: AuthSettings = Field(
+        default_factory=AuthSettings,
+        title="Authentication",
+        description="Where the message key is and how strict receivers are.",
+    )
+    _access: BusAccess = PrivateAttr(default_factory=BusAccess)
+    _key: BusKey | None = PrivateAttr(None)
 
     @field_validator("topic_prefix")
     @classmethod
@@ -257,6 +338,34 @@ class BusSettings(BaseModel):
         if prefix is not None:
             Topics(prefix)  # TopicError is a ValueError: pydantic reports it at the field
         return prefix
+
+    @property
+    def access(self) -> BusAccess:
+        """What the command line added (see :meth:`with_access`)."""
+        return self._access
+
+    def with_access(self, access: BusAccess, *, environ: Mapping[str, str] | None = None) -> Self:
+        """These settings with ``access`` attached and the key resolved now (so a missing or
+        unreadable key is reported before anything connects). Raises BusAuthError."""
+        copy = self.model_copy()
+        copy._access = access
+        copy._key = None
+        copy._key = copy.bus_key(environ=environ)
+        return copy
+
+    def bus_key(self, *, environ: Mapping[str, str] | None = None) -> BusKey:
+        """The key this process signs and checks with (see ``auth.resolve_key``): resolved once
+        by :meth:`with_access`, else now. Raises BusAuthError."""
+        if self._key is not None:
+            return self._key
+        return resolve_key(
+            kind=self.kind,
+            key_file=self.auth.key_file,
+            cli_key_file=self._access.key_file,
+            key_env=self.auth.key_env,
+            insecure=self._access.insecure,
+            environ=environ,
+        )
 
     def topics(self, mission_id: str) -> Topics:
         """The mission's topics: under ``topic_prefix``, or ``enclosing/<mission_id>``."""

@@ -13,6 +13,9 @@ Each step k (t_k = start + kT on the mission clock):
 4. run the law (:class:`mission_runner.enclosing.VehicleEnclosing`), clamp the velocity to the
    vehicle's limits, add the altitude-hold term and send the setpoint.
 
+Ranges and target observations that cannot be (:mod:`.plausibility`) are dropped and counted
+where they come in, before the inbox and the estimator see them.
+
 It uses only its own measurements and its neighbours' messages, never ground truth. If nothing
 fresh is heard from any neighbour for ``silence_timeout_s``, or its own odometry stops, it stops
 following the law and holds (zero velocity), resuming when data is fresh again.
@@ -50,6 +53,7 @@ from ..wiring import (
     shape_schedule,
 )
 from .inbox import StepData, StepInbox
+from .plausibility import RangeGate, RangeLimits
 from .ports import ControllerBus, ControllerClock, ControllerLink, MessageSource
 
 logger = logging.getLogger(__name__)
@@ -83,6 +87,7 @@ class ControllerSettings:
     tracking_max_correction_m_s: float = 2.0
     min_separation_m: float | None = None
     separation_gain_1_s: float = 4.0
+    range_limits: RangeLimits | None = None
 
 
 @dataclass
@@ -169,6 +174,12 @@ class VehicleController:
         self._missed_odometry = 0
         self._known_target_velocity: tuple[int, tuple[float, float]] | None = None
         self.skipped_steps = 0
+        #: None: every range is taken as it comes (a unit test's fake sensors).
+        self.range_gate = (
+            RangeGate(settings.range_limits, vehicle_id)
+            if settings.range_limits is not None
+            else None
+        )
         self.mission_id: str | None = None  # carried by every status (vehicle processes set it)
         self.records: list[StepRecord] = []
 
@@ -249,8 +260,8 @@ class VehicleController:
         """Feed the inbox from the bus subscriptions (decode errors are dropped, not fatal)."""
         handlers: dict[type[Message], Callable[[Any], None]] = {
             StepMessage: self.inbox.add_step,
-            RangeMessage: self.inbox.add_range,
-            TargetObservation: self.inbox.add_target,
+            RangeMessage: self._add_range,
+            TargetObservation: self._add_target,
         }
 
         async def drain(subscription: MessageSource, message_type: type[Message]) -> None:
@@ -265,6 +276,21 @@ class VehicleController:
                     drain(subscription, message_type),
                     name=f"vehicle-{self.vehicle_id}-{message_type.__name__}",
                 )
+
+    def _possible(self, vehicle_id: int, peer_id: int, range_m: float, time_s: float) -> bool:
+        """Whether a range may go on to the inbox (which ignores other vehicles' anyway)."""
+        gate = self.range_gate
+        if gate is None or vehicle_id != self.vehicle_id:
+            return True
+        return gate.accept(peer_id, range_m, time_s)
+
+    def _add_range(self, message: RangeMessage) -> None:
+        if self._possible(message.vehicle_id, message.peer_id, message.range_m, message.time_s):
+            self.inbox.add_range(message)
+
+    def _add_target(self, observation: TargetObservation) -> None:
+        if self._possible(observation.vehicle_id, 0, observation.range_m, observation.time_s):
+            self.inbox.add_target(observation)
 
     async def _step(self, k: int, t_k: float) -> None:
         settings = self.settings

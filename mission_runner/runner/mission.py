@@ -19,12 +19,13 @@ import logging
 import math
 import time
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..bus import InProcessBus, lost_vehicle_will, open_bus
+from ..bus import Bus, Sender, lost_vehicle_will, open_bus
+from ..outputs import bus_security
 from ..sim.metrics import tracking_error
 from ..wiring import altitude_of, autopilot_params, emulator_config, shape_schedule
 from ..world import World
@@ -125,6 +126,8 @@ class FlightOutcome:
     #: How each vehicle ended, as its controller saw it: ``{id: {"state", "detail"}}`` (state
     #: ``done``, ``lost`` or ``taken_over``).
     vehicles: dict[int, dict[str, str]]
+    #: What the bus and the controllers dropped (``outputs.bus_security``).
+    bus_security: dict[str, Any] = field(default_factory=dict)
 
 
 async def fly(
@@ -162,10 +165,19 @@ async def fly(
         emulator = await stack.enter_async_context(Emulator(config))
         before_mission = await stack.enter_async_context(contextlib.AsyncExitStack())
         await before_mission.enter_async_context(_paced(emulator.clock))
+        # In-process, the one bus is the whole network: each member signs as itself through
+        # its own view of it. Over MQTT the world is the range aid's client.
+        in_process = scenario.bus.kind == "inprocess"
         bus = await stack.enter_async_context(
-            open_bus(scenario.bus, client_id=f"{scenario.name}-world")
+            open_bus(
+                scenario.bus,
+                sender=None if in_process else Sender.ranges(),
+                client_id=f"{scenario.name}-world",
+            )
         )
-        world = await stack.enter_async_context(World.for_scenario(emulator, scenario, bus))
+        world = await stack.enter_async_context(
+            World.for_scenario(emulator, scenario, bus.as_sender(Sender.ranges()))
+        )
         sysids = [endpoint.sysid for endpoint in emulator.endpoints]
         systems = await stack.enter_async_context(
             connected_vehicles([e.mavsdk_url for e in emulator.endpoints], sysids)
@@ -193,20 +205,21 @@ async def fly(
         # Over MQTT every vehicle has its own client, as on a real swarm (one companion computer
         # each, with its last will on its status topic); in-process each has its own view of
         # the one bus (its own losses and delays under a link model).
-        buses: list[ControllerBus] = [bus] * len(ids)
-        if isinstance(bus, InProcessBus):
-            buses = [bus.client(f"{scenario.name}-vehicle-{vehicle_id}") for vehicle_id in ids]
-        elif scenario.bus.kind == "mqtt":
-            buses = [
+        buses: list[ControllerBus] = [bus.as_sender(Sender.vehicle(i)) for i in ids]
+        receivers: list[Bus] = [bus]  # every bus that checks what it receives
+        if scenario.bus.kind == "mqtt":
+            receivers += [
                 await stack.enter_async_context(
                     open_bus(
                         scenario.bus,
+                        sender=Sender.vehicle(vehicle_id),
                         client_id=f"{scenario.name}-vehicle-{vehicle_id}",
                         will=lost_vehicle_will(topics, vehicle_id, time_s=emulator.time_s),
                     )
                 )
                 for vehicle_id in ids
             ]
+            buses = list(receivers[1:])
         # Each controller's own view of the emulator's clock: a lockstep participant while its
         # controller flies.
         clocks = [EmulatorClock(emulator.clock, f"vehicle-{i}") for i in ids]
@@ -249,6 +262,14 @@ async def fly(
             disarmed,
             final_phases={c.vehicle_id: c.law.phase_rad for c in controllers},
         )
+    messages: dict[str, int] = {}
+    for receiver in receivers:
+        for reason, count in receiver.auth_counters.as_dict().items():
+            messages[reason] = messages.get(reason, 0) + count
+    security = bus_security(
+        messages,
+        {c.vehicle_id: c.range_gate.rejected for c in controllers if c.range_gate is not None},
+    )
     ended = {
         controller.vehicle_id: {
             "state": controller.state if controller.state in ("lost", "taken_over") else "done",
@@ -257,7 +278,14 @@ async def fly(
         for controller, vehicle in zip(controllers, vehicles, strict=True)
     }
     return FlightOutcome(
-        result, records, start_s, time.perf_counter() - started, mission_wall, stats, ended
+        result,
+        records,
+        start_s,
+        time.perf_counter() - started,
+        mission_wall,
+        stats,
+        ended,
+        security,
     )
 
 

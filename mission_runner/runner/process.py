@@ -41,6 +41,7 @@ from ..bus import (
     BusError,
     ControlCommand,
     MissionControl,
+    Sender,
     Subscription,
     Topics,
     VehicleStatus,
@@ -98,6 +99,10 @@ class VehicleRun:
     clock_residual_s: float | None = None
     skipped_steps: int = 0
     params: dict[str, float | int] = field(default_factory=dict)
+    #: Received bus messages accepted and dropped by reason (``AuthCounters.as_dict``).
+    bus_messages: dict[str, int] = field(default_factory=dict)
+    #: Ranges the controller found impossible, by reason (``RangeGate.rejected``).
+    ranges_rejected: dict[str, int] = field(default_factory=dict)
 
 
 class _Reporter:
@@ -160,6 +165,7 @@ async def run_vehicle(
         bus = await stack.enter_async_context(
             open_bus(
                 scenario.bus,
+                sender=Sender.vehicle(vehicle_id),
                 client_id=f"{scenario.name}-vehicle-{vehicle_id}",
                 will=lost_vehicle_will(topics, vehicle_id, time_s=time.time()),
             )
@@ -201,6 +207,9 @@ async def run_vehicle(
         finally:
             run.records = controller.records
             run.skipped_steps = controller.skipped_steps
+            run.bus_messages = bus.auth_counters.as_dict()
+            if controller.range_gate is not None:
+                run.ranges_rejected = dict(controller.range_gate.rejected)
             run.autopilot_clock_rate = mapping.fit.boot_rate
             run.clock_residual_s = mapping.fit.residual_s
     return run
@@ -346,6 +355,8 @@ class GroundOutcome:
     start_s: float | None
     clock_rate: float
     statuses: dict[int, VehicleStatus]
+    #: Received bus messages accepted and dropped by reason (``AuthCounters.as_dict``).
+    bus_messages: dict[str, int] = field(default_factory=dict)
 
     @property
     def lost(self) -> list[int]:
@@ -372,7 +383,7 @@ async def run_ground(
     latest: dict[int, VehicleStatus] = {}
     started: dict[str, float | None] = {"at": None}
     async with (
-        open_bus(scenario.bus, client_id=f"{scenario.name}-ground") as bus,
+        open_bus(scenario.bus, sender=Sender.ground(), client_id=f"{scenario.name}-ground") as bus,
         bus.subscribe(topics.all_status()) as statuses,
     ):
 
@@ -469,7 +480,8 @@ async def run_ground(
             # The prepare must not start the next vehicle process that connects.
             with contextlib.suppress(BusError):
                 await bus.publish(topics.control(), b"", retain=True, timeout=2.0)
-    return GroundOutcome(mission_id, started["at"], rate, latest)
+            counters = bus.auth_counters.as_dict()
+    return GroundOutcome(mission_id, started["at"], rate, latest, counters)
 
 
 def _final_already(last: VehicleStatus | None, status: VehicleStatus) -> bool:
@@ -526,7 +538,12 @@ async def send_control(
         raise RunnerError(f"vehicle {vehicle_id} is not in the scenario")
     topics = scenario.bus.topics(scenario.name)
     async with (
-        open_bus(scenario.bus, client_id=f"{scenario.name}-operator-{uuid.uuid4().hex[:6]}") as bus,
+        # The operator's commands are the ground station's: same role, same broker user.
+        open_bus(
+            scenario.bus,
+            sender=Sender.ground(),
+            client_id=f"{scenario.name}-operator-{uuid.uuid4().hex[:6]}",
+        ) as bus,
         bus.subscribe(topics.control()) as control,
     ):
         try:

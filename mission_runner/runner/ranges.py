@@ -39,7 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pymavlink.dialects.v20 import common as mavlink
 
-from ..bus import Bus, RangeMessage, Topics, open_bus
+from ..bus import Bus, RangeMessage, Sender, Topics, open_bus
 from ..scenario import target_positions
 from ..sim.metrics import TruthSample
 from ..world.world import step_measurements
@@ -275,7 +275,9 @@ async def run_range_provider(
     stats = RangeStats()
     async with contextlib.AsyncExitStack() as stack:
         bus = await stack.enter_async_context(
-            open_bus(scenario.bus, client_id=f"{scenario.name}-range-provider")
+            open_bus(
+                scenario.bus, sender=Sender.ranges(), client_id=f"{scenario.name}-range-provider"
+            )
         )
         control = await stack.enter_async_context(bus.subscribe(topics.control()))
         group = await stack.enter_async_context(asyncio.TaskGroup())

@@ -26,7 +26,8 @@ from pydantic import ValidationError
 from sitl import cli as sitl_cli
 from sitl.emulator import Emulator
 
-from ..bus import open_bus
+from ..bus import Sender, open_bus
+from ..bus.cli_options import with_bus_access
 from ..config import load_scenario
 from ..errors import ConfigError
 from ..runner.handshake import start_command
@@ -55,7 +56,9 @@ async def emulated_world(
         emulator = await stack.enter_async_context(Emulator(config))
         offset_s = emulator.autopilot(0).unix_epoch_start_us / 1e6
         bus = await stack.enter_async_context(
-            open_bus(scenario.bus, client_id=f"{scenario.name}-emulated-world")
+            open_bus(
+                scenario.bus, sender=Sender.ranges(), client_id=f"{scenario.name}-emulated-world"
+            )
         )
         world = await stack.enter_async_context(
             World.for_scenario(emulator, scenario, bus, time_offset_s=offset_s)
@@ -94,7 +97,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def command(arguments: argparse.Namespace) -> int:
     """Run the scenario's emulated world until SIGINT/SIGTERM; exit code 0."""
-    scenario = load_scenario(arguments.scenario)
+    scenario = with_bus_access(load_scenario(arguments.scenario), arguments)
     source = f"emulator settings ({arguments.config or 'command line'})"
     try:
         options = sitl_cli.load_config(arguments)

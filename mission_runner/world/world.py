@@ -35,7 +35,7 @@ from ..sim.metrics import TruthSample
 if TYPE_CHECKING:
     from sitl.emulator import Emulator, Truth
 
-    from ..bus import Bus, Topics
+    from ..bus import Bus, BusClient, Topics
     from ..config import Scenario, SensorConfig, TargetPath
     from ..sensors import Rng
 
@@ -64,7 +64,7 @@ class World:
         self,
         emulator: Emulator,
         *,
-        bus: Bus,
+        bus: Bus | BusClient,
         topics: Topics,
         vehicle_ids: Sequence[int],
         senses_target: ArrayLike,
@@ -118,7 +118,12 @@ class World:
 
     @classmethod
     def for_scenario(
-        cls, emulator: Emulator, scenario: Scenario, bus: Bus, *, time_offset_s: float = 0.0
+        cls,
+        emulator: Emulator,
+        scenario: Scenario,
+        bus: Bus | BusClient,
+        *,
+        time_offset_s: float = 0.0,
     ) -> World:
         """The world a mission scenario describes, publishing on ``bus`` under its topics."""
         return cls(

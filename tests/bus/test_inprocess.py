@@ -12,6 +12,7 @@ from mission_runner.bus import (
     InProcessBus,
     LinkModel,
     ManualClock,
+    Sender,
     StepMessage,
     TopicError,
     Topics,
@@ -255,7 +256,9 @@ class TestLinkModel:
         vehicles = (1, 2, 3, 4)
         arrivals: list[tuple[int, int, int]] = []
         async with InProcessBus(link=link, clock=clock) as bus:
-            subs = {v: bus.client(f"vehicle-{v}").subscribe(TOPICS.all_steps()) for v in order}
+            subs = {
+                v: bus.as_sender(Sender.vehicle(v)).subscribe(TOPICS.all_steps()) for v in order
+            }
             entered = {v: await subs[v].__aenter__() for v in order}
             for k in range(40):
                 for v in order:

@@ -22,6 +22,7 @@ from mission_runner.bus import (
     MqttBus,
     MqttSettings,
     RangeMessage,
+    Sender,
     StepMessage,
     TargetObservation,
     TlsSettings,
@@ -30,7 +31,13 @@ from mission_runner.bus import (
     lost_vehicle_will,
     open_bus,
 )
-from tests.mosquitto import MosquittoBroker, free_loopback_port, make_test_certificates
+from tests.mosquitto import (
+    TEST_BUS_KEY,
+    MosquittoBroker,
+    bus_test_key,
+    free_loopback_port,
+    make_test_certificates,
+)
 
 pytestmark = pytest.mark.mqtt
 
@@ -46,7 +53,7 @@ def make_bus(broker: MosquittoBroker, client_id: str, **overrides: object) -> Mq
         "reconnect_max_s": 0.25,
     }
     options.update(overrides)
-    return MqttBus(broker.host, broker.port, **options)  # type: ignore[arg-type]
+    return MqttBus(broker.host, broker.port, key=bus_test_key(), **options)  # type: ignore[arg-type]
 
 
 def step(vehicle_id: int, k: int) -> StepMessage:
@@ -255,7 +262,7 @@ async def test_refused_credentials_fail_fast_with_a_clear_error(
     with pytest.raises(BusConnectionError, match="refused the credentials") as raised:
         async with bus:
             pytest.fail("connected with refused credentials")
-    assert "bus.mqtt.username and bus.mqtt.password" in str(raised.value)
+    assert "check the broker login: --bus-credentials" in str(raised.value)
     assert time.monotonic() - started < 2.0  # no retrying what cannot succeed
     assert bus.connect_count == 0
 
@@ -263,7 +270,7 @@ async def test_refused_credentials_fail_fast_with_a_clear_error(
 @pytest.mark.asyncio
 async def test_no_broker_fails_after_the_connect_timeout(tmp_path: Path) -> None:
     port = free_loopback_port()  # nothing listens there
-    bus = MqttBus("127.0.0.1", port, client_id="x", connect_timeout_s=0.5)
+    bus = MqttBus("127.0.0.1", port, key=bus_test_key(), client_id="x", connect_timeout_s=0.5)
     started = time.monotonic()
     with pytest.raises(BusConnectionError, match=r"no connection within 0.5 s.*refused"):
         async with bus:
@@ -276,7 +283,9 @@ async def test_no_broker_fails_after_the_connect_timeout(tmp_path: Path) -> None
 async def test_a_failing_connection_task_surfaces_from_start_up(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    bus = MqttBus("127.0.0.1", free_loopback_port(), client_id="x", connect_timeout_s=5.0)
+    bus = MqttBus(
+        "127.0.0.1", free_loopback_port(), key=bus_test_key(), client_id="x", connect_timeout_s=5.0
+    )
 
     def broken_client() -> None:
         raise RuntimeError("client construction failed")
@@ -341,7 +350,9 @@ async def test_a_broker_that_never_answers_times_out_and_each_attempt_is_closed(
     # The TCP connect succeeds but CONNACK never comes. Every attempt must time out and
     # close its socket at once, not leave it open until keep-alive notices.
     async with SilentServer() as server:
-        bus = MqttBus("127.0.0.1", server.port, client_id="x", connect_timeout_s=0.5)
+        bus = MqttBus(
+            "127.0.0.1", server.port, key=bus_test_key(), client_id="x", connect_timeout_s=0.5
+        )
         with pytest.raises(BusConnectionError, match=r"no connection within 0\.5 s"):
             async with bus:
                 pass
@@ -372,11 +383,13 @@ async def test_last_will_announces_a_crashed_vehicle(
 ) -> None:
     script = f"""
 import asyncio, sys
-from mission_runner.bus import MqttBus, Topics, lost_vehicle_will
+from mission_runner.bus import BusKey, MqttBus, Sender, Topics, lost_vehicle_will
 async def main():
     topics = Topics({TOPICS.prefix!r})
     will = lost_vehicle_will(topics, 3, time_s=1.5)
-    async with MqttBus("127.0.0.1", {mosquitto.port}, client_id="vehicle-3", will=will):
+    key = BusKey.from_text({TEST_BUS_KEY!r}, "test")
+    async with MqttBus("127.0.0.1", {mosquitto.port}, key=key, sender=Sender.vehicle(3),
+                       client_id="vehicle-3", will=will):
         print("connected", flush=True)
         await asyncio.Event().wait()
 asyncio.run(main())
@@ -417,7 +430,7 @@ async def test_a_clean_close_does_not_trigger_the_last_will(mosquitto: Mosquitto
 @pytest.mark.asyncio
 async def test_open_bus_builds_an_mqtt_bus_from_settings(mosquitto: MosquittoBroker) -> None:
     settings = BusSettings(kind="mqtt", mqtt=MqttSettings(port=mosquitto.port))
-    bus = open_bus(settings, client_id="from-settings")
+    bus = open_bus(settings, sender=Sender.ground(), client_id="from-settings")
     assert isinstance(bus, MqttBus)
     async with bus, bus.subscribe(TOPICS.control()) as control:
         await bus.publish(TOPICS.control(), b"{}", timeout=2.0)
@@ -457,10 +470,12 @@ async def test_tls_hostname_check_can_be_turned_off(tmp_path: Path) -> None:
     try:
         strict = TlsSettings(ca_file=files.ca_file)
         with pytest.raises(BusConnectionError, match=r"CERTIFICATE_VERIFY_FAILED|hostname"):
-            async with MqttBus("localhost", broker.port, tls=strict, connect_timeout_s=1.0):
+            async with MqttBus(
+                "localhost", broker.port, key=bus_test_key(), tls=strict, connect_timeout_s=1.0
+            ):
                 pass
         lenient = TlsSettings(ca_file=files.ca_file, check_hostname=False)
-        async with MqttBus("localhost", broker.port, tls=lenient) as bus:
+        async with MqttBus("localhost", broker.port, key=bus_test_key(), tls=lenient) as bus:
             assert bus.connected
     finally:
         await broker.astop()
@@ -470,5 +485,5 @@ async def test_tls_hostname_check_can_be_turned_off(tmp_path: Path) -> None:
 async def test_missing_tls_files_are_reported_before_connecting(tmp_path: Path) -> None:
     tls = TlsSettings(ca_file=tmp_path / "missing-ca.crt")
     with pytest.raises(BusConnectionError, match=r"cannot load the TLS files.*bus\.mqtt\.tls"):
-        async with MqttBus("127.0.0.1", 1, client_id="x", tls=tls):
+        async with MqttBus("127.0.0.1", 1, key=bus_test_key(), client_id="x", tls=tls):
             pass

@@ -3,24 +3,34 @@
 from __future__ import annotations
 
 import random
+from pathlib import Path
 
 import pytest
 import yaml
 from pydantic import BaseModel, ValidationError
 
 from mission_runner.bus import (
+    AuthSettings,
     Backoff,
+    BusAuthError,
     BusSettings,
     InProcessBus,
     LinkModel,
     LinkSettings,
     MqttBus,
     MqttSettings,
+    Sender,
     TlsSettings,
     open_bus,
 )
 
-MODELS: list[type[BaseModel]] = [BusSettings, MqttSettings, TlsSettings, LinkSettings]
+MODELS: list[type[BaseModel]] = [
+    BusSettings,
+    MqttSettings,
+    TlsSettings,
+    LinkSettings,
+    AuthSettings,
+]
 
 
 @pytest.mark.parametrize("model", MODELS, ids=lambda model: model.__name__)
@@ -34,7 +44,7 @@ def test_defaults_are_an_in_process_bus_under_the_mission_prefix() -> None:
     settings = BusSettings()
     assert settings.kind == "inprocess"
     assert settings.topics("demo").prefix == "enclosing/demo"
-    assert isinstance(open_bus(settings), InProcessBus)
+    assert isinstance(open_bus(settings, sender=None), InProcessBus)
 
 
 def test_a_scenario_yaml_section_validates() -> None:
@@ -45,8 +55,7 @@ def test_a_scenario_yaml_section_validates() -> None:
         mqtt:
           host: 192.168.1.10
           port: 8883
-          username: vehicle
-          password: change-me
+          credentials_file: /etc/mission_runner/credentials
           qos: 1
           tls:
             ca_file: /etc/mission_runner/ca.crt
@@ -56,7 +65,14 @@ def test_a_scenario_yaml_section_validates() -> None:
     assert settings.topics("ignored").prefix == "field/test-3"
     assert settings.mqtt.tls is not None
     assert str(settings.mqtt.tls.ca_file) == "/etc/mission_runner/ca.crt"
-    assert "change-me" not in repr(settings)  # secrets stay out of logs
+    assert str(settings.mqtt.credentials_file) == "/etc/mission_runner/credentials"
+
+
+def test_passwords_and_keys_are_not_scenario_settings() -> None:
+    sections = [{"mqtt": {"password": "x"}}, {"mqtt": {"username": "x"}}, {"auth": {"key": "x"}}]
+    for section in sections:
+        with pytest.raises(ValidationError, match="Extra inputs are not permitted"):
+            BusSettings.model_validate(section)
 
 
 @pytest.mark.parametrize(
@@ -67,7 +83,8 @@ def test_a_scenario_yaml_section_validates() -> None:
         ({"mqtt": {"hots": "x"}}, ("mqtt", "hots")),
         ({"mqtt": {"qos": 3}}, ("mqtt", "qos")),
         ({"mqtt": {"reconnect_initial_s": 2.0, "reconnect_max_s": 1.0}}, ("mqtt",)),
-        ({"mqtt": {"password": "x"}}, ("mqtt",)),
+        ({"auth": {"time_window_s": 0}}, ("auth", "time_window_s")),
+        ({"auth": {"max_message_bytes": 10}}, ("auth", "max_message_bytes")),
         ({"mqtt": {"tls": {"key_file": "k.pem"}}}, ("mqtt", "tls")),
         ({"topic_prefix": "a/+/b"}, ("topic_prefix",)),
         ({"link": {"loss_probability": 1.5}}, ("link", "loss_probability")),
@@ -83,7 +100,9 @@ def test_invalid_settings_name_the_offending_path(
     assert raised.value.errors()[0]["loc"] == location
 
 
-def test_open_bus_passes_mqtt_settings_through() -> None:
+def test_open_bus_passes_mqtt_settings_through(tmp_path: Path) -> None:
+    credentials = tmp_path / "credentials"
+    credentials.write_text("ground:g-pass\nvehicle-4:v4-pass\n")
     settings = BusSettings(
         kind="mqtt",
         queue_size=32,
@@ -91,13 +110,12 @@ def test_open_bus_passes_mqtt_settings_through() -> None:
             host="broker.local",
             port=1884,
             client_id="from-config",
-            username="vehicle",
-            password="s3cret",
+            credentials_file=credentials,
             qos=1,
             keepalive_s=7,
         ),
     )
-    bus = open_bus(settings)
+    bus = open_bus(settings, sender=Sender.ground())
     assert isinstance(bus, MqttBus)
     assert (bus.endpoint, bus.client_id, bus.qos, bus.keepalive_s, bus.queue_size) == (
         "broker.local:1884",
@@ -106,19 +124,28 @@ def test_open_bus_passes_mqtt_settings_through() -> None:
         7,
         32,
     )
-    assert open_bus(settings, client_id="vehicle-4").client_id == "vehicle-4"  # type: ignore[attr-defined]
+    assert (bus._username, bus._password) == ("ground", "g-pass")
+    vehicle = open_bus(settings, sender=Sender.vehicle(4), client_id="vehicle-4")
+    assert isinstance(vehicle, MqttBus)
+    assert (vehicle.client_id, vehicle._username, vehicle._password) == (
+        "vehicle-4",
+        "vehicle-4",
+        "v4-pass",
+    )
+    with pytest.raises(BusAuthError, match="no user 'vehicle-2'"):
+        open_bus(settings, sender=Sender.vehicle(2))
 
 
 def test_generated_client_ids_differ() -> None:
     settings = BusSettings(kind="mqtt")
-    first, second = open_bus(settings), open_bus(settings)
+    first, second = open_bus(settings, sender=None), open_bus(settings, sender=None)
     assert isinstance(first, MqttBus) and isinstance(second, MqttBus)
     assert first.client_id != second.client_id
 
 
 def test_open_bus_builds_the_link_model_for_the_in_process_bus() -> None:
     settings = BusSettings(link=LinkSettings(latency_s=0.05, loss_probability=0.1, seed=4))
-    bus = open_bus(settings)
+    bus = open_bus(settings, sender=None)
     assert isinstance(bus, InProcessBus)
     assert bus.link == LinkModel(latency_s=0.05, loss_probability=0.1, seed=4)
 

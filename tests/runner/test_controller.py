@@ -258,7 +258,7 @@ async def rig(scenario=None, *, path=wandering, truth=None, **settings):
     topics = scenario.bus.topics(scenario.name)
     vehicle = next(v for v in scenario.vehicles if v.id == OWN)
     async with (
-        open_bus(scenario.bus) as bus,
+        open_bus(scenario.bus, sender=None) as bus,
         bus.subscribe(topics.step(OWN)) as own_steps,
         bus.subscribe(topics.status(OWN)) as own_status,
     ):
@@ -689,3 +689,42 @@ async def test_displacement_tracking_pushes_a_vehicle_that_lags_within_its_bound
         scale = np.minimum(1.0, limit / np.maximum(gain_1_s * np.hypot(*shortfall.T), 1e-12))
         np.testing.assert_allclose(corrections, gain_1_s * shortfall * scale[:, None], atol=1e-9)
     assert [r.state for r in tracked] == ["following"] * 12
+
+
+# --- impossible ranges ---------------------------------------------------------------------------
+
+
+@pytest.mark.asyncio
+async def test_impossible_ranges_never_reach_the_estimator_and_are_counted():
+    """The issue's forged ranges (40 m for every pair), arriving after the true ones of each
+    step: the controller flies exactly as if they had never been sent."""
+    steps = 8
+    async with rig() as flight:
+        honest = flight.neighbours.at
+
+        async def with_forgeries(time_s):
+            await honest(time_s)
+            k = round((time_s - START_S) / T)
+            for peer in PEERS:
+                forged = RangeMessage(OWN, peer, t_(k), 40.0, step=k)
+                await flight.neighbours.bus.publish_message(
+                    flight.neighbours.topics.range(OWN, peer), forged, timeout=1.0
+                )
+            beyond = RangeMessage(OWN, 1, t_(k), 5000.0, step=k)
+            await flight.neighbours.bus.publish_message(
+                flight.neighbours.topics.range(OWN, 1), beyond, timeout=1.0
+            )
+
+        flight.clock.on_wake = with_forgeries
+        records = await flight.fly(steps)
+        delivered = flight.neighbours.on_time
+        gate = flight.controller.range_gate
+
+    expected = law_alone(flight.scenario, delivered, steps)
+    for record, (_, command) in zip(records, expected, strict=True):
+        for peer in PEERS:
+            np.testing.assert_allclose(
+                record.estimates_m[peer], command.estimates_m[peer], atol=1e-9
+            )
+    assert gate is not None
+    assert gate.rejected == {"invalid": 0, "beyond_reach": steps, "jump": 2 * steps}

@@ -19,6 +19,7 @@ from mission_runner.config import validate_scenario
 from mission_runner.runner.ranges import run_range_provider
 from sitl.config import ClockConfig, EmulatorConfig
 from sitl.emulator import Emulator
+from tests.mosquitto import bus_test_key
 from tests.sitl.helpers import free_port_config, free_truth_stream
 
 from .flying import load
@@ -53,7 +54,7 @@ async def fly_aid(mosquitto, *, source, truth=False):
     topics = mission.bus.topics(mission.name)
     async with (
         Emulator(config),
-        MqttBus(mosquitto.host, mosquitto.port, client_id="listener") as bus,
+        MqttBus(mosquitto.host, mosquitto.port, key=bus_test_key(), client_id="listener") as bus,
         bus.subscribe(topics.all_ranges(), queue_size=10_000) as ranges,
         bus.subscribe(topics.all_targets(), queue_size=10_000) as targets,
     ):

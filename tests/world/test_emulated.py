@@ -19,6 +19,7 @@ from mission_runner.bus import (
     TargetObservation,
     Topics,
 )
+from tests.mosquitto import bus_test_key
 from tests.runner.flying import CONFIGS
 from tests.sitl.helpers import free_port_config
 
@@ -61,7 +62,9 @@ async def test_world_process_publishes_ranges_on_the_unix_step_grid_after_start(
     topics = Topics("enclosing/world_process")
     try:
         async with (
-            MqttBus(mosquitto.host, mosquitto.port, client_id="test-ground") as bus,
+            MqttBus(
+                mosquitto.host, mosquitto.port, key=bus_test_key(), client_id="test-ground"
+            ) as bus,
             bus.subscribe(topics.all_ranges(), queue_size=10_000) as ranges,
             bus.subscribe(topics.all_targets(), queue_size=10_000) as targets,
         ):

@@ -1,0 +1,216 @@
+"""The broker side of a secured bus: mosquitto's configuration for one mission, and the broker
+credentials each process logs in with.
+
+``write_broker_config`` (``mission-runner broker-config CONFIG --out DIR``) writes into DIR:
+
+- ``mosquitto.conf``: one listener (optionally TLS, with certificate files the operator gives),
+  no anonymous access, the password file and the ACL below;
+- ``passwords``: one user per role (``ground``, ``vehicle-<id>``, ``ranges``) with a random
+  password, hashed as mosquitto 2 stores them (``$7$``: PBKDF2-SHA512, 101 iterations, 12-byte
+  salt; computed here, so no password appears on a command line);
+- ``acl``: each vehicle publishes only its own topics, only the ground station publishes on
+  ``control``, the range aid only ranges and target observations; everyone reads the mission;
+- ``credentials`` (mode 0600): the users' ``user:password`` lines, for ``--bus-credentials``
+  (give each machine only its own line);
+- ``bus.key`` (mode 0600): a fresh random message key for ``--bus-key-file`` (every process).
+
+mosquitto enforces the ACL per user, whatever the message says: a vehicle's credentials cannot
+publish a ``start``, even with the bus key. A denied publish is dropped by the broker silently
+(MQTT 3.1.1 has no way to say so at QoS 0).
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import os
+import secrets
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from mission_runner.bus.auth import Sender
+from mission_runner.bus.errors import BusAuthError
+from mission_runner.bus.topics import Topics
+
+USERNAME_ENV = "MISSION_BUS_USERNAME"
+PASSWORD_ENV = "MISSION_BUS_PASSWORD"
+#: mosquitto 2's password hash: PBKDF2-SHA512 with this many iterations (mosquitto_passwd's
+#: default) and a 12-byte salt.
+MOSQUITTO_ITERATIONS = 101
+_SALT_BYTES = 12
+
+
+def mosquitto_password_hash(
+    password: str, *, salt: bytes | None = None, iterations: int = MOSQUITTO_ITERATIONS
+) -> str:
+    """``password`` as a mosquitto 2 password file stores it: ``$7$<iterations>$<salt>$<hash>``
+    (base64), what ``mosquitto_passwd -b`` writes."""
+    salt = secrets.token_bytes(_SALT_BYTES) if salt is None else salt
+    digest = hashlib.pbkdf2_hmac("sha512", password.encode("utf-8"), salt, iterations)
+    encode = base64.b64encode
+    return f"$7${iterations}${encode(salt).decode()}${encode(digest).decode()}"
+
+
+def read_credentials(path: Path) -> dict[str, str]:
+    """The ``user:password`` lines of ``path`` (blank lines and ``#`` comments skipped).
+    Raises BusAuthError when it cannot be read or a line is not ``user:password``."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise BusAuthError(
+            f"cannot read the broker credentials file {path}: {error}",
+            hint="give a readable file with --bus-credentials or bus.mqtt.credentials_file",
+        ) from None
+    users: dict[str, str] = {}
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        user, colon, password = line.partition(":")
+        if not colon or not user or not password:
+            raise BusAuthError(f"{path}:{number}: expected 'user:password'")
+        users[user] = password
+    return users
+
+
+def broker_login(
+    credentials_file: Path | None, sender: Sender, environ: Mapping[str, str] | None = None
+) -> tuple[str | None, str | None]:
+    """``(user, password)`` for ``sender``'s connection: the environment's
+    ``MISSION_BUS_USERNAME``/``MISSION_BUS_PASSWORD`` if set, else ``credentials_file``'s line
+    for the sender's role user (``str(sender)``) or its only line, else ``(None, None)``
+    (anonymous)."""
+    environ = os.environ if environ is None else environ
+    if environ.get(USERNAME_ENV):
+        return environ[USERNAME_ENV], environ.get(PASSWORD_ENV)
+    if credentials_file is None:
+        return None, None
+    users = read_credentials(credentials_file)
+    wanted = str(sender)
+    if wanted in users:
+        return wanted, users[wanted]
+    if len(users) == 1:
+        ((user, password),) = users.items()
+        return user, password
+    raise BusAuthError(
+        f"the broker credentials file {credentials_file} has no user {wanted!r}",
+        hint=f"this process signs as {wanted}; broker-config writes one user per role",
+    )
+
+
+@dataclass(frozen=True)
+class TlsListener:
+    """PEM files of the broker's TLS listener (the operator's; nothing is generated)."""
+
+    cert_file: Path
+    key_file: Path
+    ca_file: Path | None = None
+
+
+@dataclass(frozen=True)
+class BrokerFiles:
+    """What :func:`write_broker_config` wrote."""
+
+    config: Path
+    passwords: Path
+    acl: Path
+    credentials: Path
+    bus_key: Path
+    users: tuple[str, ...]
+
+
+def acl_text(topics: Topics, vehicle_ids: Sequence[int]) -> str:
+    """mosquitto ACL of a mission: who may write which topic (everyone reads the mission)."""
+    prefix = topics.prefix
+    lines = [
+        "# mission-runner broker ACL: who may publish what (mosquitto drops anything else).",
+        f"# Mission topics under {prefix}/",
+        "",
+        "user ground",
+        f"topic write {topics.control()}",
+        f"topic read {topics.everything()}",
+        "",
+        "user ranges",
+        f"topic write {prefix}/vehicle/+/range/+",
+        f"topic write {prefix}/vehicle/+/target",
+        f"topic read {topics.everything()}",
+    ]
+    for vehicle_id in vehicle_ids:
+        lines += [
+            "",
+            f"user {Sender.vehicle(vehicle_id)}",
+            f"topic write {topics.step(vehicle_id)}",
+            f"topic write {topics.status(vehicle_id)}",
+            f"topic write {prefix}/vehicle/{vehicle_id}/range/+",
+            f"topic write {topics.target(vehicle_id)}",
+            f"topic read {topics.everything()}",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` readable by its owner only (also when it existed)."""
+    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(descriptor, "w", encoding="utf-8") as handle:
+        os.fchmod(handle.fileno(), 0o600)
+        handle.write(text)
+
+
+def write_broker_config(
+    out_dir: Path,
+    topics: Topics,
+    vehicle_ids: Sequence[int],
+    *,
+    port: int = 1883,
+    bind_address: str | None = None,
+    tls: TlsListener | None = None,
+    write_bus_key: bool = True,
+) -> BrokerFiles:
+    """Write a mosquitto configuration for the mission (see the module docstring)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = out_dir.resolve()
+    users = ("ground", "ranges", *(str(Sender.vehicle(i)) for i in vehicle_ids))
+    passwords = {user: secrets.token_urlsafe(24) for user in users}
+    files = BrokerFiles(
+        config=out_dir / "mosquitto.conf",
+        passwords=out_dir / "passwords",
+        acl=out_dir / "acl",
+        credentials=out_dir / "credentials",
+        bus_key=out_dir / "bus.key",
+        users=users,
+    )
+    # The hashes are not secret the way the passwords are, but mosquitto 2 warns about a
+    # world-readable password file, and nobody else needs to read it.
+    _write_private(
+        files.passwords,
+        "".join(f"{user}:{mosquitto_password_hash(passwords[user])}\n" for user in users),
+    )
+    _write_private(
+        files.credentials,
+        "# broker logins, one per role: give each machine only its own line\n"
+        + "".join(f"{user}:{passwords[user]}\n" for user in users),
+    )
+    if write_bus_key:
+        _write_private(files.bus_key, secrets.token_hex(32) + "\n")
+    files.acl.write_text(acl_text(topics, vehicle_ids), encoding="utf-8")
+    listener = f"listener {port}" + (f" {bind_address}" if bind_address else "")
+    lines = [
+        "# mosquitto configuration of a mission-runner mission (mission-runner broker-config).",
+        "# Start: mosquitto -c " + str(files.config),
+        "per_listener_settings false",
+        listener,
+    ]
+    if tls is not None:
+        lines += [f"certfile {tls.cert_file.resolve()}", f"keyfile {tls.key_file.resolve()}"]
+        if tls.ca_file is not None:
+            lines.append(f"cafile {tls.ca_file.resolve()}")
+    lines += [
+        "allow_anonymous false",
+        f"password_file {files.passwords}",
+        f"acl_file {files.acl}",
+        # Without it Nagle's algorithm holds step messages to subscribers by up to 40 ms.
+        "set_tcp_nodelay true",
+    ]
+    files.config.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return files

@@ -1,0 +1,102 @@
+"""Physically impossible ranges, rejected where they enter a controller, before the estimator.
+
+A range the radio cannot have measured (negative, NaN, beyond its reach) or one that changed
+more since the last accepted range of the same pair than the two could have moved apart or
+together (relative speed bound times the time between them, plus the noise margin) is dropped,
+counted by reason and logged (rate-limited). The estimator then treats it as a missing range: its
+next update spans the gap (:mod:`mission_runner.enclosing.rlse`).
+
+This is a check of physics at the message boundary, not outlier gating of the estimate (that
+belongs to the estimator). The band widens with time since the last accepted range, so a pair
+whose true range really did change while ranges were rejected is accepted again once the time
+allows that change; a source that keeps lying consistently is beyond any plausibility check,
+which is why the bus authenticates who sent a range (:mod:`mission_runner.bus.auth`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+from ..bus.auth import RateLimitedWarnings
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RangeLimits:
+    """What a range can physically be.
+
+    max_range_m: the radio's reach. max_relative_speed_m_s: how fast two members (or a member
+    and the target) can approach or separate. margin_m: what noise may add to a change."""
+
+    max_range_m: float
+    max_relative_speed_m_s: float
+    margin_m: float
+
+    def __post_init__(self) -> None:
+        for name in ("max_range_m", "max_relative_speed_m_s", "margin_m"):
+            value = getattr(self, name)
+            if not math.isfinite(value) or value < 0:
+                raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+
+
+@dataclass
+class RangeGate:
+    """Accepts or rejects one vehicle's ranges, pair by pair (peer 0: the target).
+
+    ``rejected`` counts by reason: ``invalid`` (negative or not finite), ``beyond_reach``,
+    ``jump``."""
+
+    limits: RangeLimits
+    vehicle_id: int = 0
+    rejected: dict[str, int] = field(
+        default_factory=lambda: {"invalid": 0, "beyond_reach": 0, "jump": 0}
+    )
+    _last: dict[int, tuple[float, float]] = field(default_factory=dict)
+    _warnings: RateLimitedWarnings = field(
+        default_factory=lambda: RateLimitedWarnings(logger), repr=False
+    )
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
+
+    def accept(self, peer_id: int, range_m: float, time_s: float) -> bool:
+        """Whether the range ``range_m`` to ``peer_id`` measured at ``time_s`` (seconds, the
+        sender's mission clock) is possible; a possible one becomes the pair's reference."""
+        limits = self.limits
+        if not math.isfinite(range_m) or range_m < 0 or not math.isfinite(time_s):
+            return self._reject("invalid", peer_id, range_m, "negative or not a number")
+        if range_m > limits.max_range_m:
+            return self._reject(
+                "beyond_reach", peer_id, range_m, f"beyond the radio's {limits.max_range_m:g} m"
+            )
+        last = self._last.get(peer_id)
+        if last is not None:
+            last_range_m, last_time_s = last
+            allowed_m = limits.max_relative_speed_m_s * abs(time_s - last_time_s) + limits.margin_m
+            if abs(range_m - last_range_m) > allowed_m:
+                return self._reject(
+                    "jump",
+                    peer_id,
+                    range_m,
+                    f"{abs(range_m - last_range_m):.2f} m from {last_range_m:.2f} m in "
+                    f"{abs(time_s - last_time_s):.3f} s (at most {allowed_m:.2f} m)",
+                )
+        self._last[peer_id] = (range_m, time_s)
+        return True
+
+    def _reject(self, reason: str, peer_id: int, range_m: float, why: str) -> bool:
+        self.rejected[reason] += 1
+        self._warnings.warn(
+            reason,
+            "vehicle %s: range to %s of %r m rejected before the estimator: %s; %d rejected so far",
+            self.vehicle_id,
+            "the target" if peer_id == 0 else f"vehicle {peer_id}",
+            range_m,
+            why,
+            self.rejected_total,
+        )
+        return False

@@ -1,0 +1,232 @@
+"""``mission-runner broker-config``'s mosquitto configuration, run by a real mosquitto: per-role
+logins, the ACL, and what a receiving bus drops of what gets through the broker."""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import re
+import stat
+import subprocess
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import aiomqtt
+import pytest
+import pytest_asyncio
+
+from mission_runner.bus import (
+    BusConnectionError,
+    BusKey,
+    ControlCommand,
+    MessageAuth,
+    MissionControl,
+    MqttBus,
+    RangeMessage,
+    Sender,
+    StepMessage,
+    Topics,
+)
+from mission_runner.bus.broker import (
+    BrokerFiles,
+    TlsListener,
+    mosquitto_password_hash,
+    read_credentials,
+    write_broker_config,
+)
+from tests.mosquitto import MosquittoBroker, bus_test_key, mosquitto_passwd_binary, secured_broker
+
+TOPICS = Topics.for_mission("acl-test")
+VEHICLES = [1, 2]
+
+
+def test_the_password_hash_is_the_one_mosquitto_passwd_writes(tmp_path: Path) -> None:
+    passwd = mosquitto_passwd_binary()
+    if passwd is None:
+        pytest.skip("mosquitto_passwd is not installed")
+    path = tmp_path / "passwords"
+    path.touch(mode=0o600)
+    subprocess.run([passwd, "-b", str(path), "alice", "s3cret"], check=True, timeout=10)
+    line = path.read_text().strip()
+    salt = base64.b64decode(line.split("$")[3])
+    assert line == "alice:" + mosquitto_password_hash("s3cret", salt=salt)
+
+
+def test_a_password_hash_has_a_fresh_salt_and_verifies() -> None:
+    first, second = mosquitto_password_hash("pw"), mosquitto_password_hash("pw")
+    assert first != second
+    match = re.fullmatch(r"\$7\$101\$([A-Za-z0-9+/=]+)\$([A-Za-z0-9+/=]+)", first)
+    assert match is not None
+    salt, digest = (base64.b64decode(part) for part in match.groups())
+    assert len(salt) == 12
+    assert hashlib.pbkdf2_hmac("sha512", b"pw", salt, 101) == digest
+
+
+def test_the_files_written(tmp_path: Path) -> None:
+    cert, key = tmp_path / "server.crt", tmp_path / "server.key"
+    files = write_broker_config(
+        tmp_path / "out", TOPICS, [1, 3], port=8883, tls=TlsListener(cert, key, None)
+    )
+    for secret in (files.passwords, files.credentials, files.bus_key):
+        assert stat.S_IMODE(secret.stat().st_mode) == 0o600, secret
+    users = read_credentials(files.credentials)
+    assert sorted(users) == ["ground", "ranges", "vehicle-1", "vehicle-3"]
+    assert len(set(users.values())) == 4 and all(len(p) >= 24 for p in users.values())
+    assert not any(password in files.passwords.read_text() for password in users.values())
+    assert len(BusKey.from_file(files.bus_key).secret) == 64
+    config = files.config.read_text().splitlines()
+    assert "listener 8883" in config and "allow_anonymous false" in config
+    assert f"certfile {cert}" in config and f"keyfile {key}" in config
+    acl = files.acl.read_text()
+    assert "user ground\ntopic write enclosing/acl-test/control\n" in acl
+    assert "user vehicle-3\ntopic write enclosing/acl-test/vehicle/3/step\n" in acl
+    assert acl.count("topic write enclosing/acl-test/control") == 1
+
+
+@pytest.fixture
+def broker(tmp_path: Path) -> AsyncIterator[tuple[MosquittoBroker, BrokerFiles]]:
+    broker, files = secured_broker(tmp_path, TOPICS, VEHICLES)
+    broker.start()
+    try:
+        yield broker, files
+    finally:
+        broker.stop()
+
+
+def client(
+    broker: MosquittoBroker,
+    files: BrokerFiles,
+    user: str,
+    *,
+    sender: Sender | None = None,
+    key: BusKey | None = None,
+    password: str | None = None,
+) -> MqttBus:
+    """A bus logged in as ``user`` (signing as ``sender``, default: that role)."""
+    users = read_credentials(files.credentials)
+    return MqttBus(
+        broker.host,
+        broker.port,
+        key=key or bus_test_key(),
+        sender=sender or Sender.parse(user),
+        client_id=f"test-{user}",
+        username=user,
+        password=password if password is not None else users[user],
+        connect_timeout_s=3.0,
+        qos=1,  # the broker's acknowledgement orders what follows on other connections
+    )
+
+
+pytestmark = pytest.mark.mqtt
+
+
+@pytest.mark.asyncio
+async def test_every_role_logs_in_and_strangers_do_not(
+    broker: tuple[MosquittoBroker, BrokerFiles],
+) -> None:
+    server, files = broker
+    for user in files.users:
+        async with client(server, files, user) as bus:
+            assert bus.connected
+    for password in ("wrong", ""):
+        with pytest.raises(BusConnectionError, match="refused the credentials"):
+            async with client(server, files, "ground", password=password):
+                pass
+
+
+@pytest.mark.asyncio
+async def test_a_vehicles_credentials_cannot_publish_a_control_message(
+    broker: tuple[MosquittoBroker, BrokerFiles],
+) -> None:
+    """Even with the bus key and signing as the ground station, vehicle 2's broker login cannot
+    command: mosquitto drops its start. Its own step goes through, in order, after it."""
+    server, files = broker
+    forged_start = MissionControl(ControlCommand.START, 1000.0, mission_id="m")
+    async with (
+        client(server, files, "vehicle-1") as vehicle_1,
+        vehicle_1.subscribe(TOPICS.everything()) as everything,
+        client(server, files, "vehicle-2", sender=Sender.ground()) as as_ground,
+        client(server, files, "vehicle-2") as vehicle_2,
+    ):
+        await as_ground.publish_message(TOPICS.control(), forged_start, timeout=5.0)
+        await vehicle_2.publish_message(TOPICS.control(), forged_start, timeout=5.0)
+        await vehicle_2.publish_message(TOPICS.step(1), StepMessage(1, 0, 0, 0, 0, 0), timeout=5)
+        await vehicle_2.publish_message(TOPICS.step(2), StepMessage(2, 0, 0, 0, 0, 0), timeout=5)
+        topic, _ = await everything.receive(timeout=5.0)
+    assert topic == TOPICS.step(2)  # the start and vehicle 1's step never left the broker
+    assert vehicle_1.auth_counters.rejected == 0  # nothing even reached the bus to be dropped
+
+
+@pytest.mark.asyncio
+async def test_the_range_aid_publishes_ranges_only_and_the_ground_commands(
+    broker: tuple[MosquittoBroker, BrokerFiles],
+) -> None:
+    server, files = broker
+    hold = MissionControl(ControlCommand.HOLD, 1.0, mission_id="m")
+    async with (
+        client(server, files, "vehicle-1") as vehicle_1,
+        vehicle_1.subscribe(TOPICS.everything()) as everything,
+        client(server, files, "ranges", sender=Sender.vehicle(2)) as ranges_as_vehicle,
+        client(server, files, "ranges") as ranges,
+        client(server, files, "ground") as ground,
+    ):
+        await ranges_as_vehicle.publish_message(
+            TOPICS.step(2), StepMessage(2, 0, 0, 0, 0, 0), timeout=5
+        )
+        await ranges.publish_message(TOPICS.range(1, 2), RangeMessage(1, 2, 0.0, 4.0), timeout=5)
+        await ground.publish_message(TOPICS.control(), hold, timeout=5.0)
+        received = [(await everything.receive(timeout=5.0))[0] for _ in range(2)]
+    assert sorted(received) == sorted([TOPICS.range(1, 2), TOPICS.control()])
+
+
+@pytest_asyncio.fixture
+async def attacker(
+    broker: tuple[MosquittoBroker, BrokerFiles],
+) -> AsyncIterator[aiomqtt.Client]:
+    """A raw MQTT client with the range aid's broker login (stolen) but not the bus key."""
+    server, files = broker
+    users = read_credentials(files.credentials)
+    async with aiomqtt.Client(
+        server.host, server.port, username="ranges", password=users["ranges"], identifier="evil"
+    ) as raw:
+        yield raw
+
+
+@pytest.mark.asyncio
+async def test_forged_replayed_oversized_and_malformed_ranges_are_dropped_and_counted(
+    broker: tuple[MosquittoBroker, BrokerFiles], attacker: aiomqtt.Client
+) -> None:
+    """Everything comes through the broker (the login may publish ranges); the vehicle's bus
+    drops all but the genuine messages, and counts each kind."""
+    server, files = broker
+    topic = TOPICS.range(1, 2)
+    forty = RangeMessage(1, 2, 0.0, 40.0).to_payload()
+    genuine = MessageAuth(bus_test_key())  # what the real range aid signs
+    first = genuine.seal(Sender.ranges(), topic, RangeMessage(1, 2, 0.0, 4.0).to_payload())
+    wrong_key = MessageAuth(BusKey.from_text("x" * 64, "attacker"))
+    async with (
+        client(server, files, "vehicle-1") as vehicle_1,
+        vehicle_1.subscribe(TOPICS.all_ranges(1)) as ranges,
+    ):
+        for payload in [
+            forty,  # the issue's forged ranges: unsigned
+            wrong_key.seal(Sender.ranges(), topic, forty),  # signed with a guessed key
+            first,
+            first,  # replayed
+            b"MR1 " + b"x" * 20000,  # oversized
+            b"\x00\xff garbage",  # malformed
+            genuine.seal(Sender.ranges(), topic, RangeMessage(1, 2, 0.125, 4.1).to_payload()),
+        ]:
+            await attacker.publish(topic, payload)
+        got = [(await ranges.receive_message(RangeMessage, timeout=5.0))[1] for _ in range(2)]
+        counters = vehicle_1.auth_counters.as_dict()
+    assert [message.range_m for message in got] == [4.0, 4.1]
+    assert counters == {
+        "accepted": 2,
+        "oversized": 1,
+        "malformed": 2,
+        "forged": 1,
+        "unauthorised": 0,
+        "stale": 0,
+        "replayed": 1,
+    }
