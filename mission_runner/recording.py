@@ -126,6 +126,19 @@ VEHICLE_STATE_SCHEMA: dict[str, Any] = {
         "position_east_m": _NUMBER,
         "slot_north_m": {**_NUMBER, "description": "desired place on the circle"},
         "slot_east_m": _NUMBER,
+        "ranges": {
+            "type": "array",
+            "description": "the (horizontal) ranges the law was given at step k (peer 0: target); "
+            "gated: rejected by the estimator as an outlier (flights only)",
+            "items": {
+                "type": "object",
+                "properties": {
+                    "peer": {"type": "integer"},
+                    "range_m": {"type": "number"},
+                    "gated": {"type": "boolean"},
+                },
+            },
+        },
         "estimates": {
             "type": "array",
             "description": "phat_ij = p_i - p_j as estimated by this vehicle (peer 0: target)",
@@ -220,6 +233,8 @@ class VehicleView:
     position_m: NDArray[np.float64] | None = None
     slot_m: NDArray[np.float64] | None = None
     estimates_m: Mapping[int, NDArray[np.float64]] | None = None
+    ranges_m: Mapping[int, float] | None = None
+    gated: tuple[int, ...] = ()
 
     def document(self) -> dict[str, Any]:
         """The ``mission_runner.VehicleState`` message (NaN as null)."""
@@ -248,6 +263,11 @@ class VehicleView:
             "position_east_m": finite_or_none(position[1]),
             "slot_north_m": finite_or_none(slot[0]),
             "slot_east_m": finite_or_none(slot[1]),
+            "ranges": [
+                {"peer": peer, "range_m": float(value), "gated": peer in self.gated}
+                for peer, value in sorted((self.ranges_m or {}).items())
+                if math.isfinite(value)
+            ],
             "estimates": [
                 {"peer": peer, "north_m": float(value[0]), "east_m": float(value[1])}
                 for peer, value in sorted((self.estimates_m or {}).items())
@@ -273,6 +293,8 @@ def view_of_record(record: StepRecord, vehicle_id: int, *, live: bool) -> Vehicl
         setpoint_lateness_s=lateness if math.isfinite(lateness) else None,
         odometry_m=odometry if all(math.isfinite(v) for v in odometry) else None,
         estimates_m=record.estimates_m,
+        ranges_m=record.ranges_m,
+        gated=record.gated,
     )
 
 

@@ -144,6 +144,12 @@ def flight_records(result, *, start_s, holding=None):
                     {p: e for p, e in estimates.items() if np.all(np.isfinite(e))},
                     setpoint_sent_s=time_s + 0.001 * (k % 7),
                     odometry_m=(0.0, 0.0, -5.0),
+                    gated=(1,) if k == 3 else (),
+                    ranges_m={
+                        p: float(np.hypot(*e))
+                        for p, e in estimates.items()
+                        if np.all(np.isfinite(e))
+                    },
                 )
             )
     return records
@@ -169,6 +175,9 @@ def test_a_flight_records_its_controllers_on_the_mission_clock(tmp_path):
     assert states[30]["state"] == "holding"
     assert states[3]["consensus_north_m_s"] == 0.1
     assert states[3]["neighbours_used"] == [1, 3, 4]
+    ranges = {r["peer"]: (r["range_m"], r["gated"]) for r in states[3]["ranges"]}
+    assert set(ranges) == {1, 3, 4} and ranges[1][1] and not ranges[3][1]
+    assert ranges[3][0] == pytest.approx(np.hypot(*records[2][3].estimates_m[3]))
     events = [m for m in read_recording(tmp_path / RECORDING, ["/mission/events"])]
     changed = next(m for m in events if "following -> holding" in m.message.message)
     assert changed.time_s == pytest.approx(start_s + 25 * 0.125)

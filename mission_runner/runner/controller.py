@@ -26,7 +26,7 @@ import contextlib
 import logging
 import math
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -99,6 +99,7 @@ class StepRecord:
     step's lateness, for timing figures only (NaN if not measured). odometry_m: the own odometry
     (north, east, down) sampled at t_k (NaN if none). estimates_m: phat_ij ``(2,)`` [m] by peer
     id (0 = target). gated: peer ids whose range the estimator rejected as an outlier.
+    ranges_m: the (horizontal) ranges the law was given, by peer id (0 = target).
     """
 
     step: int
@@ -112,6 +113,7 @@ class StepRecord:
     setpoint_sent_s: float = math.nan
     odometry_m: tuple[float, float, float] = (math.nan, math.nan, math.nan)
     gated: tuple[int, ...] = ()
+    ranges_m: dict[int, float] = field(default_factory=dict)
 
 
 class VehicleController:
@@ -345,17 +347,18 @@ class VehicleController:
             self._reference = None
             self._previous_command = None
             self._tracking_integral = np.zeros(2)
-            used, estimates, consensus = (), {}, (0.0, 0.0)
+            used, estimates, consensus, ranges = (), {}, (0.0, 0.0), {}
             self._turn_oscillator(k)
         else:
             self.state = "following"
+            ranges = self._horizontal_ranges(data, odometry)
             command = self.law.step(
                 own_odometry_m=odometry[:2],
                 neighbours={
                     peer: NeighbourReport(m.phase_rad, (m.odometry_north_m, m.odometry_east_m))
                     for peer, m in data.neighbours.items()
                 },
-                ranges_m=self._horizontal_ranges(data, odometry),
+                ranges_m=ranges,
                 target=self._target_report(data, observation),
                 members=data.members,
                 shape_now=self.shape(k),
@@ -384,6 +387,7 @@ class VehicleController:
             sent_s,
             (math.nan, math.nan, math.nan) if odometry is None else odometry,
             gated,
+            ranges,
         )
         self.records.append(record)
         await self._publish_status(k, t_k)
