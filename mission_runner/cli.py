@@ -66,6 +66,7 @@ if TYPE_CHECKING:
     from .bus import VehicleStatus
     from .config import Scenario
     from .live import LiveServer
+    from .outputs import RunSummary
     from .replay import ReplayFiles
     from .runner.controller import StepRecord
     from .runner.mission import Progress
@@ -899,12 +900,11 @@ def _ground(arguments: argparse.Namespace) -> int:
             print(f"ground: {line}", flush=True)
         result = _run_async(wait_and_merge(scenario, mission_dir, outcome))
         if result is None:
-            record.finish("passed", "no truth (no simulator): expectations not checked")
             print(
                 f"ground: no truth in {mission_dir}/truth/ (no simulator): tracking and estimate "
                 "errors unavailable; per-vehicle results in the vehicles' folders"
             )
-            return EXIT_OK
+            return _score_without_truth(scenario, record, outcome.statuses)
         document = record.write_results(
             result,
             figures=not arguments.no_figures,
@@ -919,6 +919,36 @@ def _ground(arguments: argparse.Namespace) -> int:
         )
     print(_summary_text(document, mission_dir))
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
+
+
+def _score_without_truth(
+    scenario: Scenario, record: RunSummary, statuses: Mapping[int, VehicleStatus]
+) -> int:
+    """A mission without truth (real vehicles) is scored on what the ground station saw: how
+    many vehicles finished in the formation (reported ``done``). Expectations that need the
+    truth are listed as not checked, and the status says so: ``unchecked``, never ``passed``."""
+    from .sim.metrics import check_expectations  # noqa: PLC0415
+
+    observed = {"vehicles_in_formation_at_end": sum(s.state == "done" for s in statuses.values())}
+    checkable = {name: bound for name, bound in scenario.expect.items() if name in observed}
+    failures = check_expectations(checkable, observed)
+    unchecked = sorted(set(scenario.expect) - set(observed))
+    record.finish(
+        "failed" if failures else "unchecked" if unchecked else "passed",
+        "no truth (no simulator): expectations on errors not checked",
+        metrics=observed,
+        expectations={
+            "checked": sorted(checkable),
+            "passed": not failures,
+            "failures": failures,
+            "not_checked": unchecked,
+        },
+    )
+    for failure in failures:
+        print(f"ground: expectation failed: {failure}")
+    if unchecked:
+        print(f"ground: not checked without truth: {', '.join(unchecked)}")
+    return EXIT_EXPECTATION_FAILED if failures else EXIT_OK
 
 
 def _control(arguments: argparse.Namespace) -> int:

@@ -43,7 +43,9 @@ logger = logging.getLogger(__name__)
 PathName = str | os.PathLike[str]
 
 #: How a run ended, as ``summary.json`` says (``running`` until it ends).
-Status = Literal["running", "passed", "failed", "interrupted", "error"]
+#: unchecked: the run ended and nothing that could be checked failed, but some expectations
+#: need what the run could not measure (the truth of a real flight).
+Status = Literal["running", "passed", "failed", "unchecked", "interrupted", "error"]
 
 #: What ``simulate``, ``run`` and ``ground`` write into their folder (fnmatch patterns relative to
 #: it). A new run removes these first, so its results never sit beside an earlier run's (the
@@ -519,16 +521,20 @@ class RunSummary:
         )
         return self.document
 
-    def finish(self, status: Status, detail: str = "") -> None:
-        """Write a summary without results: ``status``, ``detail`` and what is known."""
-        self.document = self._write(status, detail)
+    def finish(self, status: Status, detail: str = "", **known: Any) -> None:
+        """Write a summary without results: ``status``, ``detail`` and what is known (``known``:
+        more top-level entries, e.g. the metrics and expectations that could be checked)."""
+        self.document = self._write(status, detail, known)
 
-    def _write(self, status: Status, detail: str) -> dict[str, Any]:
+    def _write(
+        self, status: Status, detail: str, known: Mapping[str, Any] | None = None
+    ) -> dict[str, Any]:
         document = {
             "status": status,
             "detail": detail,
             **_about(self._scenario, self._config_path, self._runs),
             "steps_done": self.steps_done,
+            **(known or {}),
             **_provenance(self._scenario),
         }
         write_atomic(self.out_dir / "summary.json", json.dumps(document, indent=2) + "\n")

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from mission_runner.bus import VehicleStatus
 from mission_runner.cli import (
     EXIT_BAD_INPUT,
     EXIT_EXPECTATION_FAILED,
@@ -21,9 +22,11 @@ from mission_runner.cli import (
     EXIT_OK,
     EXIT_RUNTIME_FAILURE,
     EXIT_TERMINATED,
+    _score_without_truth,
     main,
 )
-from mission_runner.outputs import RUN_FILES
+from mission_runner.config import load_scenario
+from mission_runner.outputs import RUN_FILES, RunSummary
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -510,3 +513,25 @@ def test_a_bus_key_file_that_is_missing_or_short_is_refused(tmp_path, capsys):
     short.write_text("abc\n")
     assert main(["ground", config, "--bus-key-file", str(short)]) == EXIT_BAD_INPUT
     assert "at least 32" in capsys.readouterr().err
+
+
+def test_a_ground_station_without_truth_scores_only_what_it_saw(tmp_path):
+    # A real flight: no truth, so bounds on errors cannot be checked; one vehicle was taken over.
+    scenario = load_scenario(CONFIGS / "px4_sih_tracking.yaml")
+    ends = {1: "done", 2: "done", 3: "done", 4: "taken_over"}
+    statuses = {i: VehicleStatus(i, 10.0, state, 600, False) for i, state in ends.items()}
+    with RunSummary(tmp_path, scenario, config_path=None) as record:
+        code = _score_without_truth(scenario, record, statuses)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert code == EXIT_EXPECTATION_FAILED
+    assert summary["status"] == "failed"
+    assert summary["metrics"] == {"vehicles_in_formation_at_end": 3}
+    assert summary["expectations"]["failures"] == ["vehicles_in_formation_at_end = 3 < min 4"]
+    assert "tail_tracking_error_rms_m" in summary["expectations"]["not_checked"]
+
+    statuses[4] = VehicleStatus(4, 10.0, "done", 600, False)
+    with RunSummary(tmp_path, scenario, config_path=None) as record:
+        code = _score_without_truth(scenario, record, statuses)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert code == EXIT_OK
+    assert summary["status"] == "unchecked"  # never "passed" on what it could not see
