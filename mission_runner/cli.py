@@ -70,6 +70,7 @@ if TYPE_CHECKING:
     from .replay import ReplayFiles
     from .runner.controller import StepRecord
     from .runner.mission import Progress
+    from .runner.operator import OperatorConsole
 
 P = ParamSpec("P")
 T = TypeVar("T")
@@ -426,7 +427,9 @@ def _parser() -> argparse.ArgumentParser:
         "return or stop, for every vehicle or one",
     )
     operate.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
-    operate.add_argument("command", choices=("hold", "resume", "land", "return", "stop"))
+    from .runner.operator import OPERATOR_COMMANDS  # noqa: PLC0415 - one vocabulary
+
+    operate.add_argument("command", choices=[command.value for command in OPERATOR_COMMANDS])
     operate.add_argument(
         "--vehicle", type=argtypes.positive_int, default=None, help="one vehicle's id"
     )
@@ -865,7 +868,12 @@ def _ground(arguments: argparse.Namespace) -> int:
         capture.attached(),
         contextlib.ExitStack() as stack,
     ):
-        ground = run_ground(scenario, start_delay_s=arguments.start_delay, on_status=on_status)
+        ground = run_ground(
+            scenario,
+            start_delay_s=arguments.start_delay,
+            on_status=on_status,
+            console=_operator_console("ground"),
+        )
         server = _live_server(arguments, scenario)
         if server is None:
             outcome = _run_async(ground)
@@ -954,17 +962,32 @@ def _score_without_truth(
 def _control(arguments: argparse.Namespace) -> int:
     import asyncio  # noqa: PLC0415
 
-    from .bus import ControlCommand  # noqa: PLC0415
     from .runner.process import send_control  # noqa: PLC0415
 
     scenario = with_bus_access(load_scenario(arguments.config), arguments)
-    command = ControlCommand(arguments.command)
     mission_id = asyncio.run(
-        send_control(scenario, command, vehicle_id=arguments.vehicle, reason=arguments.reason)
+        send_control(
+            scenario, arguments.command, vehicle_id=arguments.vehicle, reason=arguments.reason
+        )
     )
     who = f"vehicle {arguments.vehicle}" if arguments.vehicle else "every vehicle"
-    print(f"control: {command.value} sent to {who} of mission {mission_id}")
+    print(f"control: {arguments.command} sent to {who} of mission {mission_id}")
     return EXIT_OK
+
+
+def _operator_console(prefix: str) -> OperatorConsole:
+    """The operator's typed commands on stdin: what was sent on stdout, mistakes on stderr."""
+    from .runner.operator import HELP, OperatorConsole  # noqa: PLC0415
+
+    def say(text: str) -> None:
+        print(f"{prefix}: {text}", flush=True)
+
+    def complain(text: str) -> None:
+        print(f"{prefix}: error: {text}", file=sys.stderr, flush=True)
+
+    if sys.stdin is not None and sys.stdin.isatty():
+        say(f"type a command and Enter. {HELP}")
+    return OperatorConsole(say, complain)
 
 
 def _broker_config(arguments: argparse.Namespace) -> int:

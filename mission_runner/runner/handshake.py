@@ -18,9 +18,10 @@ import math
 import time
 from collections.abc import Callable, Collection
 
-from ..bus import ControlCommand, MissionControl, Subscription
+from ..bus import ControlCommand, MissionControl
 from ..bus.auth import RateLimitedWarnings
 from .errors import RunnerError, RunnerTimeoutError
+from .ports import MessageSource
 
 logger = logging.getLogger(__name__)
 
@@ -56,7 +57,7 @@ def start_problem(command: MissionControl, unix_now_s: float) -> str | None:
 
 
 async def next_command(
-    control: Subscription,
+    control: MessageSource,
     commands: Collection[ControlCommand],
     *,
     mission_id: str | None = None,
@@ -94,6 +95,8 @@ async def next_command(
     raise RunnerError("the bus closed while waiting for the ground station")
 
 
-async def start_command(control: Subscription, *, timeout_s: float | None = None) -> MissionControl:
+async def start_command(
+    control: MessageSource, *, timeout_s: float | None = None
+) -> MissionControl:
     """The next ``start``, whichever mission it belongs to (for aids that follow any mission)."""
     return await next_command(control, {ControlCommand.START}, timeout_s=timeout_s)

@@ -139,6 +139,11 @@ class MappedTrack:
         return self._track.at(boot_s)
 
 
+#: How long the runner waits for a vehicle in the air to reach a safe state (landed and
+#: disarmed, or in RTL or hold) when its mission ends abnormally [s].
+SAFE_STATE_TIMEOUT_S = 30.0
+
+
 class MavsdkVehicle:
     """One PX4 vehicle. An async context manager that owns its telemetry tasks.
 

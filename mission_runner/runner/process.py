@@ -30,9 +30,9 @@ import logging
 import math
 import time
 import uuid
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -48,13 +48,21 @@ from ..bus import (
     lost_vehicle_will,
     open_bus,
 )
-from ..tasks import first_completed
 from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
 from .controller import StepRecord, VehicleController, build_controller
 from .errors import RunnerError, RunnerTimeoutError
 from .handshake import next_command
-from .links import MavsdkVehicle, connected_vehicles
+from .links import SAFE_STATE_TIMEOUT_S, MavsdkVehicle, connected_vehicles
+from .operator import (
+    ENDING_ACTIONS,
+    OperatorCommand,
+    OperatorConsole,
+    fly_obeying,
+    operator_command,
+    publish_operator,
+    serving,
+)
 from .timesync import ClockMapping, MissionTime
 
 if TYPE_CHECKING:
@@ -69,8 +77,6 @@ logger = logging.getLogger(__name__)
 FINAL_STATES = ("lost", "failed", "aborted", "taken_over")
 
 DEFAULT_API_PORT_BASE = 14540
-#: How long a vehicle in the air waits to be commanded when its mission ends abnormally.
-SAFE_STATE_TIMEOUT_S = 30.0
 
 
 class MissionAbortedError(RunnerError):
@@ -248,16 +254,16 @@ async def _fly(  # noqa: PLR0917
         run.clock_rate, run.start_s = rate, command.time_s
         controller.mission_id = run.mission_id
         start.set_result(command.time_s)
-    # Whichever ends first: the controller's last step, or the ground station's land, return or
-    # stop for this vehicle (a controller failure propagates and lands it, see run_vehicle).
-    watch = f"vehicle-{run.vehicle_id}-watch"
-    contenders: dict[str, Awaitable[object]] = {
-        f"vehicle-{run.vehicle_id}-fly": controller.run(run.start_s, steps),
-        watch: _operate(control, controller, run),
-    }
-    ended_by, ended_with = await first_completed(contenders)
-    if ended_by == watch:
-        await _abort(vehicle, report, run, scenario, cast(MissionControl, ended_with))
+    # The controller flies its steps unless the operator's land, return or stop for this vehicle
+    # ends them (a controller failure propagates and lands it, see run_vehicle).
+    ending = await fly_obeying(
+        controller,
+        controller.run(run.start_s, steps),
+        control,
+        mission_id=run.mission_id,
+    )
+    if ending is not None:
+        await _abort(vehicle, report, run, scenario, ending)
         return
     last = controller.records[-1].step if controller.records else 0
     if controller.state == "taken_over":
@@ -271,36 +277,6 @@ async def _fly(  # noqa: PLR0917
         return
     await vehicle.finish(scenario.flight.end_action)
     await report("done", step=len(controller.records))
-
-
-#: What each mission-ending command makes the vehicle do.
-ENDING_ACTIONS = {
-    ControlCommand.LAND: "land",
-    ControlCommand.RETURN: "return",
-    ControlCommand.STOP: "hold",
-}
-
-
-async def _operate(
-    control: Subscription, controller: VehicleController, run: VehicleRun
-) -> MissionControl:
-    """The operator's commands for this vehicle (or all) during the mission: ``hold`` and
-    ``resume`` act on the controller from its next step; the first ``land``, ``return`` or
-    ``stop`` is returned (it ends this vehicle's mission)."""
-    wanted = {ControlCommand.HOLD, ControlCommand.RESUME, *ENDING_ACTIONS}
-    while True:
-        command = await next_command(control, wanted, mission_id=run.mission_id)
-        if command.vehicle_id not in (None, run.vehicle_id):
-            continue
-        if command.command in ENDING_ACTIONS:
-            return command
-        controller.operator_hold = command.command is ControlCommand.HOLD
-        logger.warning(
-            "vehicle %s: %s by the ground station%s",
-            run.vehicle_id,
-            "holding" if controller.operator_hold else "resuming",
-            f" ({command.reason})" if command.reason else "",
-        )
 
 
 async def _abort(
@@ -369,10 +345,12 @@ async def run_ground(
     start_delay_s: float = 2.0,
     ready_timeout_s: float = 180.0,
     on_status: Callable[[VehicleStatus], None] | None = None,
+    console: OperatorConsole | None = None,
 ) -> GroundOutcome:
     """Prepare, start and watch a mission of vehicle processes. Returns a :class:`GroundOutcome`
     once every vehicle is done or lost; raises :class:`MissionAbortedError` (after commanding
-    every vehicle to land) when a vehicle failed or not all were ready in time."""
+    every vehicle to land) when a vehicle failed or not all were ready in time. ``console``:
+    the operator's typed commands, sent to this mission while it runs."""
     if scenario.bus.kind != "mqtt":
         raise RunnerError("the ground station talks to vehicle processes over MQTT")
     ids = {v.id for v in scenario.vehicles}
@@ -423,59 +401,67 @@ async def run_ground(
         def states(*wanted: str) -> set[int]:
             return {i for i, s in latest.items() if s.state in wanted}
 
+        async def send(command: OperatorCommand) -> None:
+            await publish_operator(bus, topics, command, mission_id)
+
         try:
-            await control(ControlCommand.PREPARE, time.time())
-            logger.info(
-                "ground: mission %s prepared; waiting for %d vehicles", mission_id, len(ids)
-            )
-            try:
-                await until(
-                    lambda: bool(states("failed")) or ids <= states("ready"),
-                    ready_timeout_s,
-                    "every vehicle ready",
+            # Typed commands from the prepare on: vehicles obey land, return and stop before
+            # the start too.
+            async with serving(console, ids, send):
+                await control(ControlCommand.PREPARE, time.time())
+                logger.info(
+                    "ground: mission %s prepared; waiting for %d vehicles", mission_id, len(ids)
                 )
-            except RunnerTimeoutError as error:
-                missing = sorted(ids - states("ready"))
-                await control(ControlCommand.LAND, time.time(), reason=f"not ready: {missing}")
-                raise MissionAbortedError(
-                    f"mission aborted, every vehicle told to land: vehicles {missing} not ready "
-                    f"within {ready_timeout_s:g} s"
-                ) from error
-            failed = sorted(states("failed"))
-            if failed:
-                reasons = "; ".join(latest[i].detail for i in failed)
-                await control(
-                    ControlCommand.LAND, time.time(), reason=f"vehicle(s) {failed} failed"
-                )
-                raise MissionAbortedError(f"mission aborted, every vehicle told to land: {reasons}")
-            rate = MissionTime.rate_for([latest[i].clock_rate or 1.0 for i in ids])
-            reference_s = time.time()
-            start_s = math.ceil((reference_s + start_delay_s * rate) / step_s) * step_s
-            started["at"] = start_s
-            await control(
-                ControlCommand.START,
-                start_s,
-                clock_rate=rate,
-                clock_reference_s=reference_s,
-            )
-            logger.info(
-                "ground: mission %s starts at %.3f (clock rate %.4f)", mission_id, start_s, rate
-            )
-            try:
-                await until(
-                    lambda: ids <= states("done", *FINAL_STATES),
-                    (start_delay_s + duration_s) / rate + 120.0,
-                    "every vehicle done",
-                )
-            except asyncio.CancelledError:
-                # Ctrl-C / SIGTERM at the ground station lands the swarm (a second one while
-                # this is sent leaves the vehicles to their offboard-loss failsafe).
-                with contextlib.suppress(BusError):
-                    await asyncio.shield(
-                        control(ControlCommand.LAND, time.time(), reason="ground station stopped")
+                try:
+                    await until(
+                        lambda: bool(states("failed")) or ids <= states("ready"),
+                        ready_timeout_s,
+                        "every vehicle ready",
                     )
-                logger.warning("ground: interrupted; every vehicle told to land")
-                raise
+                except RunnerTimeoutError as error:
+                    missing = sorted(ids - states("ready"))
+                    await control(ControlCommand.LAND, time.time(), reason=f"not ready: {missing}")
+                    raise MissionAbortedError(
+                        f"mission aborted, every vehicle told to land: vehicles {missing} not "
+                        f"ready within {ready_timeout_s:g} s"
+                    ) from error
+                failed = sorted(states("failed"))
+                if failed:
+                    reasons = "; ".join(latest[i].detail for i in failed)
+                    await control(
+                        ControlCommand.LAND, time.time(), reason=f"vehicle(s) {failed} failed"
+                    )
+                    raise MissionAbortedError(
+                        f"mission aborted, every vehicle told to land: {reasons}"
+                    )
+                rate = MissionTime.rate_for([latest[i].clock_rate or 1.0 for i in ids])
+                reference_s = time.time()
+                start_s = math.ceil((reference_s + start_delay_s * rate) / step_s) * step_s
+                started["at"] = start_s
+                await control(
+                    ControlCommand.START,
+                    start_s,
+                    clock_rate=rate,
+                    clock_reference_s=reference_s,
+                )
+                logger.info(
+                    "ground: mission %s starts at %.3f (clock rate %.4f)", mission_id, start_s, rate
+                )
+                try:
+                    await until(
+                        lambda: ids <= states("done", *FINAL_STATES),
+                        (start_delay_s + duration_s) / rate + 120.0,
+                        "every vehicle done",
+                    )
+                except asyncio.CancelledError:
+                    # Ctrl-C / SIGTERM at the ground station lands the swarm. Not shielded: a
+                    # second one cancels this send too, and the ground station stops at once.
+                    with contextlib.suppress(BusError):
+                        await control(
+                            ControlCommand.LAND, time.time(), reason="ground station stopped"
+                        )
+                    logger.warning("ground: interrupted; every vehicle told to land")
+                    raise
         finally:
             # The prepare must not start the next vehicle process that connects.
             with contextlib.suppress(BusError):
@@ -521,7 +507,7 @@ async def wait_and_merge(
 
 async def send_control(
     scenario: Scenario,
-    command: ControlCommand,
+    command: ControlCommand | str,
     *,
     vehicle_id: int | None = None,
     reason: str | None = None,
@@ -529,13 +515,11 @@ async def send_control(
 ) -> str:
     """Send an operator command (hold, resume, land, return, stop) to the running mission of
     ``scenario`` (its id from the ground station's retained ``prepare``), for one vehicle or
-    all. Returns the mission id; raises :class:`RunnerError` if no mission is running."""
-    if command in (ControlCommand.PREPARE, ControlCommand.START):
-        raise RunnerError(
-            f"'{command.value}' is the ground station's; use hold, resume, land, return or stop"
-        )
-    if vehicle_id is not None and vehicle_id not in {v.id for v in scenario.vehicles}:
-        raise RunnerError(f"vehicle {vehicle_id} is not in the scenario")
+    all. Returns the mission id; raises :class:`RunnerError` if no mission is running
+    (:class:`.operator.OperatorInputError` if the command is not one)."""
+    operator = operator_command(
+        command, [v.id for v in scenario.vehicles], vehicle_id=vehicle_id, reason=reason
+    )
     topics = scenario.bus.topics(scenario.name)
     async with (
         # The operator's commands are the ground station's: same role, same broker user.
@@ -553,12 +537,5 @@ async def send_control(
                 f"no mission of {scenario.name} is running (no ground station's prepare on "
                 f"{topics.control()} within {timeout_s:g} s)"
             ) from None
-        message = MissionControl(
-            command,
-            time.time(),
-            reason=reason,
-            mission_id=prepare.mission_id,
-            vehicle_id=vehicle_id,
-        )
-        await bus.publish_message(topics.control(), message, timeout=timeout_s)
+        await publish_operator(bus, topics, operator, prepare.mission_id, timeout_s=timeout_s)
     return prepare.mission_id or ""
