@@ -746,6 +746,7 @@ def _run(arguments: argparse.Namespace) -> int:
                         emulator_overrides={"tlog_dir": str(tlogs)},
                         on_step=_every(step_callbacks),
                         on_progress=_every(progress_callbacks),
+                        console=_operator_console("run"),
                     )
                 )
             finally:
@@ -1057,15 +1058,18 @@ def _ranges(arguments: argparse.Namespace) -> int:
 
 
 class _FlightView:
-    """Live view of a flight: a line per second of mission time (or a bar on a terminal)."""
+    """Live view of a flight: a line per second of mission time and at every change of a
+    vehicle's state (an operator sees a hold take effect), or a bar on a terminal."""
 
     def __init__(self, scenario: Scenario) -> None:
         self._every = max(1, round(1.0 / scenario.timing.step_s))
         self._bar = _Progress(scenario.timing.steps, False, scenario.name)
+        self._states: dict[int, str] = {}
 
     def __call__(self, progress: Progress) -> None:
         self._bar.update_to(progress.step + 1, progress.steps)
-        if progress.step % self._every and progress.step != progress.steps - 1:
+        changed, self._states = progress.states != self._states, dict(progress.states)
+        if progress.step % self._every and progress.step != progress.steps - 1 and not changed:
             return
         states = " ".join(f"v{i}:{state}" for i, state in progress.states.items())
         line = (

@@ -7,6 +7,13 @@ step grid, streaming setpoints, while OFFBOARD is entered; k = 0 is set on the g
 ``flight.start_delay_s`` later; the controllers fly ``timing.steps`` steps; then every vehicle
 still alive lands (or holds). Scenario events are scheduled relative to k = 0.
 
+The operator commands the swarm as a ground station would (:mod:`.operator`): lines typed into
+the process, and over an MQTT bus ``mission-runner control`` too (the mission is announced with
+a retained ``prepare``, as ``ground`` does). ``hold`` / ``resume`` act on the controllers' next
+step; ``land``, ``return`` and ``stop`` end a vehicle's mission. Whatever ends the flight early
+(Ctrl-C cancelling it, an error) lands every vehicle still in the air first; a second
+cancellation while they land stops at once.
+
 Ground truth (the world's samples at every t_k) is used only to score the flight afterwards, into
 the same :class:`mission_runner.sim.simulator.SimulationResult` the numeric simulator produces.
 """
@@ -18,13 +25,22 @@ import contextlib
 import logging
 import math
 import time
+import uuid
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..bus import Bus, Sender, lost_vehicle_will, open_bus
+from ..bus import (
+    Bus,
+    BusError,
+    ControlCommand,
+    MissionControl,
+    Sender,
+    lost_vehicle_will,
+    open_bus,
+)
 from ..outputs import bus_security
 from ..sim.metrics import tracking_error
 from ..wiring import altitude_of, autopilot_params, emulator_config, shape_schedule
@@ -32,8 +48,16 @@ from ..world import World
 from .clock import EmulatorClock
 from .controller import StepRecord, VehicleController, build_controller
 from .errors import RunnerError
-from .links import MavsdkVehicle, connected_vehicles
-from .ports import ControllerBus, ControllerClock, ControllerLink
+from .links import SAFE_STATE_TIMEOUT_S, MavsdkVehicle, connected_vehicles
+from .operator import (
+    ENDING_ACTIONS,
+    OperatorCommand,
+    OperatorConsole,
+    fly_obeying,
+    publish_operator,
+    serving,
+)
+from .ports import ControllerBus, ControllerClock, ControllerLink, MessageSource
 from .scoring import score_flight, worst_estimate
 
 if TYPE_CHECKING:
@@ -87,12 +111,18 @@ class _ProgressAggregator:
         self.steps = scenario.timing.steps
         self.world, self.emulator, self.callback = world, emulator, callback
         self.pending: dict[int, dict[int, StepRecord]] = {}  # step -> {vehicle_id: record}
+        #: Vehicles no longer flown (lost, taken over, ended by the operator): no step awaits
+        #: them, though the emulator still has them alive.
+        self.left: set[int] = set()
+
+    def leave(self, vehicle_id: int) -> None:
+        self.left.add(vehicle_id)
 
     def __call__(self, vehicle_id: int, record: StepRecord) -> None:
         step = self.pending.setdefault(record.step, {})
         step[vehicle_id] = record
         alive = {i for i, a in zip(self.ids, self.emulator.truth.alive, strict=True) if a}
-        if not alive <= step.keys():
+        if not alive - self.left <= step.keys():
             return
         records = self.pending.pop(record.step)
         sample = next((s for s in reversed(self.world.samples) if s.step == record.step), None)
@@ -124,7 +154,7 @@ class FlightOutcome:
     mission_wall_time_s: float
     emulator_stats: EmulatorStats
     #: How each vehicle ended, as its controller saw it: ``{id: {"state", "detail"}}`` (state
-    #: ``done``, ``lost`` or ``taken_over``).
+    #: ``done``, ``lost``, ``taken_over``, or ``aborted`` by the operator's land, return or stop).
     vehicles: dict[int, dict[str, str]]
     #: What the bus and the controllers dropped (``outputs.bus_security``).
     bus_security: dict[str, Any] = field(default_factory=dict)
@@ -136,11 +166,12 @@ async def fly(
     emulator_overrides: Mapping[str, Any] | None = None,
     on_step: StepCallback | None = None,
     on_progress: Callable[[Progress], None] | None = None,
+    console: OperatorConsole | None = None,
 ) -> FlightOutcome:
     """Fly ``scenario`` on the bundled emulator. Returns a :class:`FlightOutcome`.
 
     on_step(vehicle_id, record) sees every controller step; on_progress(Progress) every step of
-    the whole swarm.
+    the whole swarm; ``console`` gives the operator's typed commands (:mod:`.operator`).
     """
     from sitl.emulator import Emulator  # noqa: PLC0415 - real-vehicle runs do not need it
 
@@ -161,6 +192,7 @@ async def fly(
     }
     config = emulator_config(scenario, **overrides)
     topics = scenario.bus.topics(scenario.name)
+    mission_id = uuid.uuid4().hex[:12]
     async with contextlib.AsyncExitStack() as stack:
         emulator = await stack.enter_async_context(Emulator(config))
         before_mission = await stack.enter_async_context(contextlib.AsyncExitStack())
@@ -175,6 +207,7 @@ async def fly(
                 client_id=f"{scenario.name}-world",
             )
         )
+        ground = await stack.enter_async_context(_ground_station(bus, scenario, mission_id))
         world = await stack.enter_async_context(
             World.for_scenario(emulator, scenario, bus.as_sender(Sender.ranges()))
         )
@@ -186,73 +219,113 @@ async def fly(
             await stack.enter_async_context(MavsdkVehicle(systems[sysid], sysid))
             for sysid in sysids
         ]
-        params = autopilot_params(scenario)
-        async with asyncio.TaskGroup() as group:
-            for vehicle, vehicle_config in zip(vehicles, scenario.vehicles, strict=True):
-                group.create_task(
-                    _prepare(vehicle, params, altitude_of(scenario, vehicle_config)),
-                    name=f"takeoff-{vehicle.system_id}",
-                )
-
-        callbacks: list[StepCallback] = [on_step] if on_step else []
-        if on_progress is not None:
-            callbacks.append(_ProgressAggregator(scenario, world, emulator, on_progress))
-
-        def step_callback(vehicle_id: int, record: StepRecord) -> None:
-            for callback in callbacks:
-                callback(vehicle_id, record)
-
-        # Over MQTT every vehicle has its own client, as on a real swarm (one companion computer
-        # each, with its last will on its status topic); in-process each has its own view of
-        # the one bus (its own losses and delays under a link model).
-        buses: list[ControllerBus] = [bus.as_sender(Sender.vehicle(i)) for i in ids]
-        receivers: list[Bus] = [bus]  # every bus that checks what it receives
-        if scenario.bus.kind == "mqtt":
-            receivers += [
-                await stack.enter_async_context(
-                    open_bus(
-                        scenario.bus,
-                        sender=Sender.vehicle(vehicle_id),
-                        client_id=f"{scenario.name}-vehicle-{vehicle_id}",
-                        will=lost_vehicle_will(topics, vehicle_id, time_s=emulator.time_s),
+        controllers: list[VehicleController] = []
+        try:
+            params = autopilot_params(scenario)
+            async with asyncio.TaskGroup() as group:
+                for vehicle, vehicle_config in zip(vehicles, scenario.vehicles, strict=True):
+                    group.create_task(
+                        _prepare(vehicle, params, altitude_of(scenario, vehicle_config)),
+                        name=f"takeoff-{vehicle.system_id}",
                     )
-                )
-                for vehicle_id in ids
+
+            callbacks: list[StepCallback] = [on_step] if on_step else []
+            aggregator = None
+            if on_progress is not None:
+                aggregator = _ProgressAggregator(scenario, world, emulator, on_progress)
+                callbacks.append(aggregator)
+
+            def step_callback(vehicle_id: int, record: StepRecord) -> None:
+                for callback in callbacks:
+                    callback(vehicle_id, record)
+
+            # Over MQTT every vehicle has its own client, as on a real swarm (one companion
+            # computer each, with its last will on its status topic); in-process each has its
+            # own view of the one bus (its own losses and delays under a link model).
+            buses: list[ControllerBus] = [bus.as_sender(Sender.vehicle(i)) for i in ids]
+            receivers: list[Bus] = [bus]  # every bus that checks what it receives
+            if scenario.bus.kind == "mqtt":
+                receivers += [
+                    await stack.enter_async_context(
+                        open_bus(
+                            scenario.bus,
+                            sender=Sender.vehicle(vehicle_id),
+                            client_id=f"{scenario.name}-vehicle-{vehicle_id}",
+                            will=lost_vehicle_will(topics, vehicle_id, time_s=emulator.time_s),
+                        )
+                    )
+                    for vehicle_id in ids
+                ]
+                buses = list(receivers[1:])
+            # Each vehicle hears the operator as a vehicle process does: on its control topic.
+            controls = [
+                await stack.enter_async_context(b.subscribe(topics.control())) for b in buses
             ]
-            buses = list(receivers[1:])
-        # Each controller's own view of the emulator's clock: a lockstep participant while its
-        # controller flies.
-        clocks = [EmulatorClock(emulator.clock, f"vehicle-{i}") for i in ids]
-        controllers = _controllers(scenario, vehicles, buses, clocks, step_callback)
-        start: asyncio.Future[float] = asyncio.get_running_loop().create_future()
-        async with asyncio.TaskGroup() as group:
-            flying = [
-                group.create_task(
-                    _fly_one(controller, clock, start, scenario.timing.steps),
-                    name=f"controller-{controller.vehicle_id}",
+            # Each controller's own view of the emulator's clock: a lockstep participant while
+            # its controller flies.
+            clocks = [EmulatorClock(emulator.clock, f"vehicle-{i}") for i in ids]
+            controllers += _controllers(scenario, vehicles, buses, clocks, step_callback)
+            start: asyncio.Future[float] = asyncio.get_running_loop().create_future()
+
+            async def fly_vehicle(
+                controller: VehicleController,
+                vehicle: MavsdkVehicle,
+                clock: EmulatorClock,
+                control: MessageSource,
+            ) -> MissionControl | None:
+                ending = await _fly_one(
+                    controller, clock, start, scenario.timing.steps, control, mission_id
                 )
-                for controller, clock in zip(controllers, clocks, strict=True)
-            ]
-            async with asyncio.TaskGroup() as entering:
+                if aggregator is not None:
+                    aggregator.leave(controller.vehicle_id)
+                if ending is not None:
+                    await _end_by_operator(emulator.clock, vehicle, ending)
+                return ending
+
+            async def send(command: OperatorCommand) -> None:
+                await publish_operator(ground, topics, command, mission_id)
+
+            async with serving(console, ids, send), asyncio.TaskGroup() as group:
+                flying = [
+                    group.create_task(
+                        fly_vehicle(controller, vehicle, clock, control),
+                        name=f"controller-{controller.vehicle_id}",
+                    )
+                    for controller, vehicle, clock, control in zip(
+                        controllers, vehicles, clocks, controls, strict=True
+                    )
+                ]
+                async with asyncio.TaskGroup() as entering:
+                    for vehicle, controller in zip(vehicles, controllers, strict=True):
+                        entering.create_task(
+                            _enter_offboard(vehicle, controller.altitude_m),
+                            name=f"offboard-{vehicle.system_id}",
+                        )
+                start_s = math.ceil((emulator.time_s + flight.start_delay_s) / step_s) * step_s
+                world.start(start_s)
+                _schedule_events(scenario, emulator, world, start_s)
+                mission_started = time.perf_counter()
+                start.set_result(start_s)
+                await before_mission.aclose()  # from here on the controllers pace the clock
+            endings = {
+                c.vehicle_id: task.result() for c, task in zip(controllers, flying, strict=True)
+            }
+            records = {c.vehicle_id: c.records for c in controllers}
+            mission_wall = time.perf_counter() - mission_started
+            async with _paced(emulator.clock), asyncio.TaskGroup() as group:
                 for vehicle, controller in zip(vehicles, controllers, strict=True):
-                    entering.create_task(
-                        _enter_offboard(vehicle, controller.altitude_m),
-                        name=f"offboard-{vehicle.system_id}",
-                    )
-            start_s = math.ceil((emulator.time_s + flight.start_delay_s) / step_s) * step_s
-            world.start(start_s)
-            _schedule_events(scenario, emulator, world, start_s)
-            mission_started = time.perf_counter()
-            start.set_result(start_s)
-            await before_mission.aclose()  # from here on the controllers pace the clock
-        records = {c.vehicle_id: task.result() for c, task in zip(controllers, flying, strict=True)}
-        mission_wall = time.perf_counter() - mission_started
-        async with _paced(emulator.clock), asyncio.TaskGroup() as group:
-            for vehicle, controller in zip(vehicles, controllers, strict=True):
-                if controller.state not in ("lost", "taken_over"):  # leave those be
+                    if controller.state in ("lost", "taken_over"):  # leave those be
+                        continue
+                    if endings[controller.vehicle_id] is not None:  # the operator's already
+                        continue
                     group.create_task(
                         vehicle.finish(flight.end_action), name=f"finish-{vehicle.system_id}"
                     )
+        except BaseException as error:
+            # Never leave a vehicle in the air undriven: whatever ended the flight (Ctrl-C
+            # cancelling it, a failure), land every vehicle still ours first.
+            await _land_everyone(emulator.clock, vehicles, controllers, error)
+            raise
         stats = emulator.stats()
         disarmed = int(np.sum(~np.asarray(emulator.truth.armed)))
         result = score_flight(
@@ -271,10 +344,7 @@ async def fly(
         {c.vehicle_id: c.range_gate.rejected for c in controllers if c.range_gate is not None},
     )
     ended = {
-        controller.vehicle_id: {
-            "state": controller.state if controller.state in ("lost", "taken_over") else "done",
-            "detail": vehicle.control_lost or "",
-        }
+        controller.vehicle_id: _how_it_ended(controller, vehicle, endings[controller.vehicle_id])
         for controller, vehicle in zip(controllers, vehicles, strict=True)
     }
     return FlightOutcome(
@@ -287,6 +357,88 @@ async def fly(
         ended,
         security,
     )
+
+
+def _how_it_ended(
+    controller: VehicleController, vehicle: MavsdkVehicle, ending: MissionControl | None
+) -> dict[str, str]:
+    if ending is not None:
+        reason = f" ({ending.reason})" if ending.reason else ""
+        return {"state": "aborted", "detail": f"{ending.command.value} by the operator{reason}"}
+    if controller.state in ("lost", "taken_over"):
+        return {"state": controller.state, "detail": vehicle.control_lost or ""}
+    return {"state": "done", "detail": ""}
+
+
+@contextlib.asynccontextmanager
+async def _ground_station(
+    bus: Bus, scenario: Scenario, mission_id: str
+) -> AsyncIterator[ControllerBus]:
+    """Where the operator's commands are published from, signed as the ground station: this
+    process's bus in-process; over MQTT a client of the ground's own (its broker login), which
+    announces the mission with a retained ``prepare`` (how ``mission-runner control`` finds its
+    id) and clears it at the end."""
+    if scenario.bus.kind == "inprocess":
+        yield bus.as_sender(Sender.ground())
+        return
+    topics = scenario.bus.topics(scenario.name)
+    async with open_bus(
+        scenario.bus, sender=Sender.ground(), client_id=f"{scenario.name}-ground"
+    ) as ground:
+        prepare = MissionControl(ControlCommand.PREPARE, time.time(), mission_id=mission_id)
+        await ground.publish_message(topics.control(), prepare, retain=True, timeout=5.0)
+        try:
+            yield ground
+        finally:
+            with contextlib.suppress(BusError):
+                await ground.publish(topics.control(), b"", retain=True, timeout=2.0)
+
+
+async def _end_by_operator(clock: Clock, vehicle: MavsdkVehicle, ending: MissionControl) -> None:
+    """The operator ended this vehicle's mission: command what they asked for. Its controller
+    has left the lockstep clock; while it lands, time is paced for MAVSDK as at take-off."""
+    action = ENDING_ACTIONS[ending.command]
+    async with _paced(clock, name=f"pace-{vehicle.system_id}"):
+        try:
+            await vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S)
+        except RunnerError as error:
+            logger.warning("vehicle %s: %s not done: %s", vehicle.system_id, action, error)
+
+
+async def _land_everyone(
+    clock: Clock,
+    vehicles: Sequence[MavsdkVehicle],
+    controllers: Sequence[VehicleController],
+    error: BaseException,
+) -> None:
+    """Land every vehicle seen armed that is still the runner's (not taken over, not lost),
+    each at most :data:`SAFE_STATE_TIMEOUT_S`. A cancellation while they land ends this at once:
+    the vehicles are left to PX4's offboard-loss failsafe."""
+    gone = {c.vehicle_id for c in controllers if c.state in ("lost", "taken_over")}
+    landing = [
+        v for v in vehicles if v.armed and v.control_lost is None and v.system_id not in gone
+    ]
+    if not landing:
+        return
+    why = "interrupted" if isinstance(error, asyncio.CancelledError) else f"{error!r}"
+    logger.warning(
+        "flight ended (%s): landing vehicles %s", why, ", ".join(str(v.system_id) for v in landing)
+    )
+
+    landed: list[int] = []
+
+    async def land(vehicle: MavsdkVehicle) -> None:
+        try:
+            await vehicle.finish("land", timeout_s=SAFE_STATE_TIMEOUT_S)
+        except RunnerError as failure:
+            logger.warning("vehicle %s: not landed: %s", vehicle.system_id, failure)
+        else:
+            landed.append(vehicle.system_id)
+
+    async with _paced(clock, name="pace-landing"), asyncio.TaskGroup() as group:
+        for vehicle in landing:
+            group.create_task(land(vehicle), name=f"land-{vehicle.system_id}")
+    logger.warning("flight ended: landed and disarmed: %s", ", ".join(map(str, sorted(landed))))
 
 
 async def _enter_offboard(vehicle: MavsdkVehicle, altitude_m: float) -> None:
@@ -304,7 +456,9 @@ async def _prepare(
 
 
 @contextlib.asynccontextmanager
-async def _paced(clock: Clock, speed: float = PACED_SPEED) -> AsyncIterator[None]:
+async def _paced(
+    clock: Clock, speed: float = PACED_SPEED, *, name: str = "pace"
+) -> AsyncIterator[None]:
     """While the block runs, lockstep time advances at most ``speed`` x wall time (a clock
     participant releasing ``speed * PACE_PERIOD_S`` beyond the current time every period; a late
     period slows it down, never bursts it). A no-op in real time."""
@@ -321,7 +475,7 @@ async def _paced(clock: Clock, speed: float = PACED_SPEED) -> AsyncIterator[None
 
     # The group owns the pacer: should it fail (a ClockError: dropped after a stall), the block
     # is cancelled and the error raised, not lost with the task while time runs unpaced.
-    async with clock.participant("pace") as participant, asyncio.TaskGroup() as group:
+    async with clock.participant(name) as participant, asyncio.TaskGroup() as group:
         task = group.create_task(pace(participant), name="lockstep-pace")
         try:
             yield
@@ -329,18 +483,23 @@ async def _paced(clock: Clock, speed: float = PACED_SPEED) -> AsyncIterator[None
             task.cancel()
 
 
-async def _fly_one(
+async def _fly_one(  # noqa: PLR0917
     controller: VehicleController,
     clock: EmulatorClock,
     start: asyncio.Future[float],
     steps: int,
-) -> list[StepRecord]:
-    """One controller from hover to the end; it leaves the mission clock (``clock``, the one it
-    was built with) as soon as it is done, so a lost vehicle never holds the others' lockstep
-    time."""
+    control: MessageSource,
+    mission_id: str,
+) -> MissionControl | None:
+    """One controller from hover to the end, obeying the operator from k = 0; returns the land,
+    return or stop that ended it early, if any. It leaves the mission clock (``clock``, the one
+    it was built with) as soon as it is done, so a lost vehicle (or one the operator ended)
+    never holds the others' lockstep time."""
     async with clock:
         start_s = await controller.hover_until(start)
-        return await controller.run(start_s, steps)
+        return await fly_obeying(
+            controller, controller.run(start_s, steps), control, mission_id=mission_id
+        )
 
 
 def _controllers(
