@@ -28,8 +28,11 @@ Exit codes:
 - 3: a runtime failure: a vehicle refused, was lost or the mission was aborted, a port is taken
   (the message names the setting that moves it), results could not be written; also an
   unexpected error (its traceback is printed, to be reported);
-- 130: interrupted by SIGINT (Ctrl-C), 143: by SIGTERM. Both stop the same way: a flight lands
-  first, and ``summary.json`` is written with ``status: interrupted``.
+- 130: interrupted by SIGINT (Ctrl-C), 143: by SIGTERM (the last one received). Both stop the
+  same way: a flight lands first (``run``: every vehicle in the air; ``ground``: land sent to
+  every vehicle), and ``summary.json`` is written with ``status: interrupted``. A second signal
+  stops at once, without waiting for the landing: the vehicles are left to PX4's offboard-loss
+  failsafe.
 
 ``--out``: a run first removes the earlier run's own files from the folder (summary.json,
 timeseries.csv, batch.csv, the figures, tlogs/vehicle_*.tlog: ``outputs.RUN_FILES``), so results
@@ -48,6 +51,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Coroutine, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
@@ -115,15 +119,42 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 class _StopSignals:
-    """Process-wide, as signal handlers are: which stop signal arrived, and how to stop the
-    asyncio main task that runs (see :func:`_run_async`)."""
+    """Process-wide, as signal handlers are: which stop signal arrived last, and how to stop
+    the asyncio main task that runs (see :func:`_run_async`)."""
 
     def __init__(self) -> None:
         self.received = "SIGINT"
-        self.cancel_main: Callable[[], None] | None = None
+        #: Called (in the signal handler) with the signal's name while an asyncio main runs.
+        self.cancel_main: Callable[[str], None] | None = None
 
 
 _signals = _StopSignals()
+
+
+@dataclass(frozen=True)
+class _Stopping:
+    """What a command says when a stop signal arrives (``{signal}``: its name): the first
+    cancels its main task (where a flight lands), ``again`` cancels it a second time (the
+    landing is not waited for)."""
+
+    first: str = ""
+    again: str = "{signal} again: stopping at once"
+
+
+#: ``run`` lands its swarm on the first stop signal; on a second the process ends, and so does
+#: the emulator in it.
+_RUN_STOPPING = _Stopping(
+    "run: {signal}: landing every vehicle ({signal} again: stop at once)",
+    "run: {signal} again: stopping at once, vehicles left to PX4's offboard-loss failsafe "
+    "(the emulated ones end with this process)",
+)
+#: ``ground`` sends land on the first; a second does not wait for the send: vehicle processes
+#: that did not get it fly on, and PX4's offboard-loss failsafe takes any whose process ends.
+_GROUND_STOPPING = _Stopping(
+    "ground: {signal}: telling every vehicle to land ({signal} again: stop at once)",
+    "ground: {signal} again: stopping at once; a vehicle that did not get the land flies on "
+    "under its own process, PX4's offboard-loss failsafe takes it if that process stops",
+)
 
 
 @contextlib.contextmanager
@@ -138,7 +169,7 @@ def _terminate_as_interrupt() -> Iterator[None]:
     def on_terminate(number: int, frame: FrameType | None) -> None:
         _signals.received = "SIGTERM"
         if _signals.cancel_main is not None:
-            _signals.cancel_main()
+            _signals.cancel_main("SIGTERM")
         else:
             raise KeyboardInterrupt
 
@@ -149,36 +180,55 @@ def _terminate_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
-def _run_async(coroutine: Coroutine[Any, Any, T]) -> T:
-    """``asyncio.run(coroutine)``; SIGTERM cancels its main task as asyncio does on Ctrl-C (so a
-    flight lands), then raises KeyboardInterrupt. Also when SIGINT is ignored, as in a
-    background job, where asyncio does not install its own handler."""
+def _run_async(coroutine: Coroutine[Any, Any, T], stopping: _Stopping = _Stopping()) -> T:
+    """``asyncio.run(coroutine)``; SIGINT and SIGTERM cancel its main task (so a flight lands),
+    then raise KeyboardInterrupt. A second signal cancels it again, which ends the landing
+    too, never raising inside the event loop (as asyncio's own second Ctrl-C would). SIGTERM
+    also where SIGINT is ignored, as in a background job (SIGINT then stays ignored).
+    ``stopping`` says what each signal does, on stderr."""
     import asyncio  # noqa: PLC0415 - simulate does without
 
-    cancelled = False
+    stops = 0
 
     async def main() -> T:
         task, loop = asyncio.current_task(), asyncio.get_running_loop()
 
-        def cancel() -> None:
-            nonlocal cancelled
-            cancelled = True
+        def say(text: str) -> None:
+            print(text, file=sys.stderr, flush=True)
+
+        def cancel(name: str) -> None:  # in a signal handler: only hand work to the loop
+            nonlocal stops
+            stops += 1
+            _signals.received = name
+            message = stopping.first if stops == 1 else stopping.again
+            if message:
+                loop.call_soon_threadsafe(say, message.format(signal=name))
             if task is not None:
                 loop.call_soon_threadsafe(task.cancel)  # wakes the loop, as asyncio's handler
 
+        previous_sigint = None
+        if (
+            threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
+        ):
+            previous_sigint = signal.signal(signal.SIGINT, lambda number, frame: cancel("SIGINT"))
         _signals.cancel_main = cancel
         try:
             return await coroutine
         finally:
             _signals.cancel_main = None
+            if previous_sigint is not None:
+                signal.signal(signal.SIGINT, previous_sigint)
 
     try:
         result = asyncio.run(main())
-    except asyncio.CancelledError:
-        if cancelled:
-            raise KeyboardInterrupt from None
-        raise
-    if cancelled:  # the coroutine ended on its own terms, but the user asked it to stop
+    except BaseException as error:
+        if not stops:
+            raise
+        if not isinstance(error, asyncio.CancelledError):  # what went wrong while stopping
+            logging.getLogger(__name__).warning("while stopping: %r", error)
+        raise KeyboardInterrupt from None
+    if stops:  # the coroutine ended on its own terms, but the user asked it to stop
         raise KeyboardInterrupt
     return result
 
@@ -747,7 +797,8 @@ def _run(arguments: argparse.Namespace) -> int:
                         on_step=_every(step_callbacks),
                         on_progress=_every(progress_callbacks),
                         console=_operator_console("run"),
-                    )
+                    ),
+                    _RUN_STOPPING,
                 )
             finally:
                 if view is not None:
@@ -877,7 +928,7 @@ def _ground(arguments: argparse.Namespace) -> int:
         )
         server = _live_server(arguments, scenario)
         if server is None:
-            outcome = _run_async(ground)
+            outcome = _run_async(ground, _GROUND_STOPPING)
         else:
             from .live import LiveLog, alongside  # noqa: PLC0415
 
@@ -891,7 +942,8 @@ def _ground(arguments: argparse.Namespace) -> int:
                     server.channels,
                     client_id=f"{scenario.name}-ground-view",
                     on_time=live_log.stamp,
-                )
+                ),
+                _GROUND_STOPPING,
             )
             stack.close()  # the live view ends with the mission, before the merge
         done = len(outcome.statuses) - len(outcome.lost)

@@ -412,6 +412,68 @@ def test_sigterm_cancels_the_asyncio_main_task_even_where_sigint_is_ignored(tmp_
     assert process.returncode == 0
 
 
+SECOND_STOP = """
+import asyncio
+from mission_runner import cli
+
+
+async def fly():
+    try:
+        print("flying", flush=True)
+        await asyncio.sleep(3600)
+    except asyncio.CancelledError:
+        print("landing", flush=True)
+        try:
+            await asyncio.sleep(3600)  # a landing that takes its time
+        except asyncio.CancelledError:
+            print("landing abandoned", flush=True)
+            raise
+
+
+with cli._terminate_as_interrupt():
+    try:
+        cli._run_async(fly(), cli._RUN_STOPPING)
+    except KeyboardInterrupt:
+        print("KeyboardInterrupt", cli._signals.received, flush=True)
+"""
+
+
+@pytest.mark.parametrize(
+    ("first", "second"),
+    [
+        (signal.SIGINT, signal.SIGINT),
+        (signal.SIGTERM, signal.SIGTERM),
+        (signal.SIGINT, signal.SIGTERM),
+    ],
+)
+def test_a_second_signal_abandons_the_landing_and_says_so(first, second, tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    process = subprocess.Popen(
+        [sys.executable, "-c", SECOND_STOP],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(root)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert process.stdout.readline() == "flying\n"
+        process.send_signal(first)
+        assert process.stdout.readline() == "landing\n"
+        process.send_signal(second)
+        output, error = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    # No KeyboardInterrupt raised inside the event loop (asyncio's own second Ctrl-C): the
+    # landing sees a cancellation, the caller one interrupt, named after the last signal.
+    assert output == f"landing abandoned\nKeyboardInterrupt {second.name}\n"
+    assert error.splitlines() == [
+        f"run: {first.name}: landing every vehicle ({first.name} again: stop at once)",
+        f"run: {second.name} again: stopping at once, vehicles left to PX4's offboard-loss "
+        "failsafe (the emulated ones end with this process)",
+    ]
+
+
 @pytest.mark.mavsdk
 @pytest.mark.slow
 @pytest.mark.timeout(300)
