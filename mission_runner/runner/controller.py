@@ -173,6 +173,9 @@ class VehicleController:
         #: The operator's hold (ground station ``hold`` until ``resume``): hover in place, keep
         #: the oscillator on the grid, publish nothing of the law.
         self.operator_hold = False
+        #: The last step whose command was chosen (where ``operator_hold`` is read): a change
+        #: of the hold is first seen by the step after it.
+        self.decided_step = -1
         self._missed_odometry = 0
         self._known_target_velocity: tuple[int, tuple[float, float]] | None = None
         self.skipped_steps = 0
@@ -339,6 +342,7 @@ class VehicleController:
         # Hold on stale data, and while the vehicle is not seen armed in OFFBOARD.
         stale_s = now - self._last_fresh_s
         holding = stale_s > settings.silence_timeout_s or not self.link.in_control
+        self.decided_step = k
         if odometry is None or holding or self.operator_hold:
             velocity = (0.0, 0.0)
             self.state = "held" if self.operator_hold and not holding else "holding"

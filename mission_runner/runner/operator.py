@@ -173,23 +173,26 @@ async def obey(
         command = await next_command(control, wanted, mission_id=mission_id)
         if command.vehicle_id not in (None, vehicle_id):
             continue
-        last = controller.records[-1].step if controller.records else -1
+        # The step being flown is the last the controller decided (or is deciding) under the
+        # old command; the next one is the first under this command.
+        first = controller.decided_step + 1
+        note = f" ({command.reason})" if command.reason else ""
         if command.command in ENDING_ACTIONS:
             logger.warning(
-                "vehicle %s: %s by the operator after step %d%s",
+                "vehicle %s: %s by the operator, no step from %d%s",
                 vehicle_id,
                 command.command.value,
-                last,
-                f" ({command.reason})" if command.reason else "",
+                first,
+                note,
             )
             return command
         controller.operator_hold = command.command is ControlCommand.HOLD
         logger.warning(
-            "vehicle %s: %s by the operator after step %d%s",
+            "vehicle %s: %s by the operator, from step %d%s",
             vehicle_id,
-            "hold" if controller.operator_hold else "resume",
-            last,
-            f" ({command.reason})" if command.reason else "",
+            command.command.value,
+            first,
+            note,
         )
 
 
