@@ -37,15 +37,24 @@ def free_ports(scenario):
     return {"ports": free_port_config(len(scenario.vehicles), gcs=False).model_dump()}
 
 
-def start(*arguments):
-    """``python -m <arguments>`` as a child process, output (both streams) as text lines."""
+def start(*arguments, stdin=subprocess.DEVNULL):
+    """``python -m <arguments>`` as a child process, output (both streams) as text lines; its
+    stdin /dev/null (never the terminal of whoever runs the tests) unless ``stdin`` says (PIPE:
+    the test types commands into ``process.stdin``)."""
     return subprocess.Popen(
         [sys.executable, "-m", *arguments],
+        stdin=stdin,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
         text=True,
     )
+
+
+def type_line(process, line):
+    """Type ``line`` (and Enter) into ``process``'s stdin."""
+    process.stdin.write(line + "\n")
+    process.stdin.flush()
 
 
 def wait_for(process, pattern, seen):
@@ -79,10 +88,11 @@ class Swarm:
 
 
 @contextlib.contextmanager
-def swarm(scenario, tmp_path, vehicles=4, ground_arguments=()):
+def swarm(scenario, tmp_path, vehicles=4, ground_arguments=(), ground_stdin=subprocess.DEVNULL):
     """``mission-runner emulate`` (emulator and world, on free ports), then a ``ground`` station
-    and one ``vehicle`` process per drone, all on the scenario's bus. Processes still running
-    at the end are killed, the world is stopped and its output kept in ``world_output``."""
+    (its stdin ``ground_stdin``) and one ``vehicle`` process per drone, all on the scenario's
+    bus. Processes still running at the end are killed, the world is stopped and its output
+    kept in ``world_output``."""
     ports = free_port_config(vehicles, gcs=False)
     world = start(
         "mission_runner.cli",
@@ -97,7 +107,9 @@ def swarm(scenario, tmp_path, vehicles=4, ground_arguments=()):
     flying = Swarm(world)
     try:
         wait_for(world, "world on the mqtt bus", [])
-        flying.ground = start("mission_runner.cli", "ground", scenario, *ground_arguments)
+        flying.ground = start(
+            "mission_runner.cli", "ground", scenario, *ground_arguments, stdin=ground_stdin
+        )
         flying.vehicles = [
             start(
                 "mission_runner.cli",
