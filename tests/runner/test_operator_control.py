@@ -1,13 +1,14 @@
 """The operator's commands during a mission of vehicle processes (over a real mosquitto, against
-the emulator): ``hold`` then ``resume`` for the whole swarm, then ``land`` for one vehicle; and
-the ground station told to stop lands everyone."""
+the emulator): ``hold`` from ``mission-runner control``, then ``resume`` and ``land`` for one
+vehicle typed into the ground station; and the ground station told to stop lands everyone."""
 
 import re
 import signal
+import subprocess
 
 import pytest
 
-from .flying import mqtt_scenario_file, start, swarm, wait_for
+from .flying import mqtt_scenario_file, start, swarm, type_line, wait_for
 
 pytestmark = [pytest.mark.mavsdk, pytest.mark.mqtt, pytest.mark.slow]
 
@@ -25,15 +26,22 @@ def control(scenario, *arguments):
 def test_hold_resume_and_landing_one_vehicle_from_the_operator(tmp_path, mosquitto):
     scenario = mqtt_scenario_file(tmp_path, mosquitto, "operator_control", STEPS)
     seen = []
-    with swarm(scenario, tmp_path, ground_arguments=["--no-figures"]) as flying:
+    with swarm(
+        scenario, tmp_path, ground_arguments=["--no-figures"], ground_stdin=subprocess.PIPE
+    ) as flying:
         ground, vehicles = flying.ground, flying.vehicles
         wait_for(ground, r"vehicle 1: following", seen)
         assert "hold sent to every vehicle" in control(scenario, "hold", "--reason", "test")
         for number in range(1, 5):
             wait_for(ground, rf"vehicle {number}: held", seen)
-        control(scenario, "resume")
+        # The same commands typed into the ground station go out as control sends them.
+        type_line(ground, "land 9")
+        wait_for(ground, r"ground: error: vehicle 9 is not in the mission", seen)
+        type_line(ground, "resume")
+        wait_for(ground, r"ground: resume sent to every vehicle", seen)
         wait_for(ground, r"vehicle \d: following", seen)
-        assert "land sent to vehicle 4" in control(scenario, "land", "--vehicle", "4")
+        type_line(ground, "land 4")
+        wait_for(ground, r"ground: land sent to vehicle 4", seen)
         wait_for(ground, r"vehicle 4: aborted", seen)
         rest, _ = ground.communicate(timeout=200)
         ground_out = "".join(seen) + rest
