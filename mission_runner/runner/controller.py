@@ -373,7 +373,8 @@ class VehicleController:
             used, estimates, gated = command.neighbours_used, command.estimates_m, command.gated
             consensus = (float(command.consensus_m_s[0]), float(command.consensus_m_s[1]))
         vertical = self._altitude_hold(odometry)
-        await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
+        async with self.clock.commanding(t_k + settings.release_s):
+            await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
         sent_s = self.clock.now_s()
         record = StepRecord(
             k,

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
 import time
@@ -222,7 +223,16 @@ async def fly(
             buses = list(receivers[1:])
         # Each controller's own view of the emulator's clock: a lockstep participant while its
         # controller flies.
-        clocks = [EmulatorClock(emulator.clock, f"vehicle-{i}") for i in ids]
+        clocks = [
+            EmulatorClock(
+                emulator.clock,
+                f"vehicle-{vehicle_id}",
+                setpoints_in=functools.partial(
+                    getattr, emulator.autopilot(index), "accepted_setpoints"
+                ),
+            )
+            for index, vehicle_id in enumerate(ids)
+        ]
         controllers = _controllers(scenario, vehicles, buses, clocks, step_callback)
         start: asyncio.Future[float] = asyncio.get_running_loop().create_future()
         async with asyncio.TaskGroup() as group:

@@ -146,6 +146,10 @@ class FakeClock:
     def release(self, time_s):
         self.released.append(time_s)
 
+    @contextlib.asynccontextmanager
+    async def commanding(self, released_s):
+        yield
+
     async def sleep_until(self, time_s):
         self.now = max(self.now, time_s)
         if self.on_wake is not None:
