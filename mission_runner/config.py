@@ -285,6 +285,14 @@ class AlgorithmConfig(Model):
         title="Estimator settings",
         description="Noise model and outlier gate of the ekf estimator.",
     )
+    shared_ranges: bool = Field(
+        False,
+        title="Shared ranges",
+        description="Vehicles share their measured ranges in their step messages and estimate "
+        "each pair from the mean of both ends' ranges (one end's where the other's is missing): "
+        "the two estimates of a pair are then exactly opposite, so range noise cancels in the "
+        "formation centre, and each sees half the range variance. false: the paper's own ranges.",
+    )
     shape: ShapeConfig = Field(ShapeConfig(), title="Shape", description="Affine shaping.")
 
 

@@ -46,6 +46,7 @@ def algorithm_params(scenario: Scenario) -> EnclosingParams:
         initial_gain=algorithm.initial_gain,
         estimator=algorithm.estimator,
         filter=filter_settings(scenario) if algorithm.estimator == "ekf" else None,
+        shared_ranges=algorithm.shared_ranges,
     )
 
 

@@ -161,12 +161,14 @@ def filter_update(
     step: int,
     settings: FilterSettings,
     initial_gain: float = 1.0,
+    readings: NDArray[np.float64] | None = None,
 ) -> tuple[FilterEdges, NDArray[np.bool_]]:
     """One update of every edge whose range and relative odometry are known at ``step``.
 
     Arguments as :func:`.rlse.rlse_update`; ``initial_gain``: the regression's Gamma(0) scale, as
-    given to :meth:`FilterEdges.initial`. Returns the new state and the ``(..., R, S)`` mask of
-    ranges rejected by the gate at this step.
+    given to :meth:`FilterEdges.initial`. readings: ``(..., R, S)`` how many independent ranges
+    each ``range_m`` averages (both ends of a pair: 2, its variance is halved); None: one each.
+    Returns the new state and the ``(..., R, S)`` mask of ranges rejected by the gate at this step.
     """
     measured = np.isfinite(range_m) & np.isfinite(relative_north_m) & np.isfinite(relative_east_m)
     old = edges.filter
@@ -189,7 +191,10 @@ def filter_update(
     # looks, to a filter fed exact ranges, like evidence against every range after the first.
     along = h_n * ph_n + h_e * ph_e
     across = np.maximum(c_nn + c_ee - along, 0.0) / np.maximum(predicted, 1e-12)
-    innovation_variance = along + settings.range_variance_m2 + 0.5 * across * across
+    range_variance: float | NDArray[np.float64] = settings.range_variance_m2
+    if readings is not None:
+        range_variance = range_variance / np.maximum(readings, 1.0)
+    innovation_variance = along + range_variance + 0.5 * across * across
     innovation = range_m - (predicted + 0.5 * across)
     tested = measured & edges.engaged
     gated = np.zeros_like(tested)
