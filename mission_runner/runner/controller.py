@@ -691,7 +691,7 @@ def build_controller(
     """The controller of ``vehicle`` flying ``link`` on ``bus`` and ``clock``."""
     ids = [v.id for v in scenario.vehicles]
     law = VehicleEnclosing(
-        algorithm_params(scenario),
+        algorithm_params(scenario, flown=True),
         vehicle.id,
         ids,
         vehicle.initial_phase_rad,
