@@ -202,8 +202,9 @@ class ShapeConfig(Model):
 class EstimatorSettingsConfig(Model):
     """The filter estimator's noise model and outlier gate (``algorithm.estimator: ekf``).
 
-    The noise figures default to the scenario's ``sensors:`` model; on real hardware give the
-    ranging radio's and the odometry's own figures here."""
+    The noise figures default to the scenario's model of the sensors (``sensors:``; a flight's
+    odometry: ``flight.emulator.odometry``); on real hardware give the ranging radio's and the
+    odometry's own figures here."""
 
     range_noise_std_m: NonNegativeFloat | None = Field(
         None,
@@ -215,7 +216,8 @@ class EstimatorSettingsConfig(Model):
         title="Displacement noise",
         description="Per-axis std of one vehicle's displacement over one step [m] the filter "
         "assumes (default: sensors.displacement_noise_std_m, with sensors.displacement_drift_m_s "
-        "x timing.step_s added in quadrature).",
+        "x timing.step_s added in quadrature; flown, from the emulator's odometry model "
+        "flight.emulator.odometry; on real autopilots give it here).",
     )
     gate_chi2: PositiveFloat | None = Field(
         10.83,
@@ -284,6 +286,14 @@ class AlgorithmConfig(Model):
         EstimatorSettingsConfig(),
         title="Estimator settings",
         description="Noise model and outlier gate of the ekf estimator.",
+    )
+    shared_ranges: bool = Field(
+        False,
+        title="Shared ranges",
+        description="Vehicles share their measured ranges in their step messages and estimate "
+        "each pair from the mean of both ends' ranges (one end's where the other's is missing): "
+        "the two estimates of a pair are then exactly opposite, so range noise cancels in the "
+        "formation centre, and each sees half the range variance. false: the paper's own ranges.",
     )
     shape: ShapeConfig = Field(ShapeConfig(), title="Shape", description="Affine shaping.")
 

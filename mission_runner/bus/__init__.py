@@ -75,6 +75,7 @@ from mission_runner.bus.messages import (
     StepMessage,
     TargetObservation,
     VehicleStatus,
+    shared_range,
 )
 from mission_runner.bus.mqtt import Backoff, LastWill, MqttBus, lost_vehicle_will
 from mission_runner.bus.settings import (
@@ -143,6 +144,7 @@ __all__ = [
     "VehicleStatus",
     "lost_vehicle_will",
     "open_bus",
+    "shared_range",
     "topic_matches",
     "validate_pattern",
     "validate_topic",

@@ -57,6 +57,8 @@ def _check_value(name: str, value: Any, annotation: Any) -> Any:
         if value is None and NoneType in options:
             return None
         (annotation,) = (option for option in options if option is not NoneType)
+    if typing.get_origin(annotation) is tuple:
+        return _check_tuple(name, value, typing.get_args(annotation))
     if annotation is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ValueError(f"{name} must be a number, got {type(value).__name__}")
@@ -82,6 +84,20 @@ def _check_value(name: str, value: Any, annotation: Any) -> Any:
             allowed = ", ".join(repr(member.value) for member in annotation)
             raise ValueError(f"{name} must be one of {allowed}, got {value!r}") from None
     raise TypeError(f"unsupported field annotation {annotation!r} for {name}")
+
+
+def _check_tuple(name: str, value: Any, items: tuple[Any, ...]) -> tuple[Any, ...]:
+    """``value`` (a JSON array) checked against ``tuple[X, ...]`` or ``tuple[X, Y]``."""
+    if not isinstance(value, list | tuple):
+        raise ValueError(f"{name} must be an array, got {type(value).__name__}")
+    if len(items) == 2 and items[1] is Ellipsis:
+        items = (items[0],) * len(value)
+    elif len(value) != len(items):
+        raise ValueError(f"{name} must have {len(items)} entries, got {len(value)}")
+    return tuple(
+        _check_value(f"{name}[{index}]", entry, item)
+        for index, (entry, item) in enumerate(zip(value, items, strict=True))
+    )
 
 
 def _require(condition: bool, problem: str) -> None:
@@ -178,6 +194,18 @@ class Message:
         return cls.from_dict(data)
 
 
+#: Shared ranges travel rounded to this many decimals of a metre (0.1 mm: far below any radio's
+#: noise, and about 7 bytes a range instead of a float's 18).
+SHARED_RANGE_DECIMALS = 4
+#: At most this many shared ranges in one step message (the scenario's largest swarm).
+MAX_SHARED_RANGES = 4096
+
+
+def shared_range(range_m: float) -> float:
+    """``range_m`` as a step message carries it (rounded to SHARED_RANGE_DECIMALS)."""
+    return round(range_m, SHARED_RANGE_DECIMALS)
+
+
 @dataclass(frozen=True, slots=True)
 class StepMessage(Message):
     """What vehicle ``vehicle_id`` broadcasts at step ``step`` (time kT) of the algorithm.
@@ -192,6 +220,11 @@ class StepMessage(Message):
     velocity. They are all None when this vehicle does not sense the target, and all set
     otherwise. ``odometry_down_m`` is the sender's height (down, from its odometry origin on
     the ground) at t_k, with which a receiver takes the height difference out of a 3-D range.
+
+    ``ranges_m`` (``algorithm.shared_ranges``) are the sender's own step-k ranges to its
+    neighbours as ``(peer id, range [m])`` pairs, 3-D as measured, rounded by
+    :func:`shared_range` (the sender uses the rounded values itself, so both ends of a pair
+    average the same two numbers).
     """
 
     vehicle_id: int
@@ -205,6 +238,7 @@ class StepMessage(Message):
     target_velocity_north_m_s: float | None = None
     target_velocity_east_m_s: float | None = None
     odometry_down_m: float | None = None
+    ranges_m: tuple[tuple[int, float], ...] | None = None
 
     @property
     def has_target(self) -> bool:
@@ -224,6 +258,19 @@ class StepMessage(Message):
             all(value is None for value in target) or all(value is not None for value in target),
             "the target_* fields must be all set (vehicle senses the target) or all None",
         )
+        if self.ranges_m is not None:
+            peers = [peer for peer, _ in self.ranges_m]
+            _require(
+                len(peers) <= MAX_SHARED_RANGES,
+                f"ranges_m has {len(peers)} entries, at most {MAX_SHARED_RANGES}",
+            )
+            _require(len(set(peers)) == len(peers), "ranges_m names a peer twice")
+            for peer, range_m in self.ranges_m:
+                _require(
+                    peer >= 1 and peer != self.vehicle_id,
+                    f"ranges_m: peer must be another vehicle's id (>= 1), got {peer}",
+                )
+                _require(range_m >= 0.0, f"ranges_m: range to {peer} must be >= 0, got {range_m}")
 
 
 @dataclass(frozen=True, slots=True)

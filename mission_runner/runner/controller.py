@@ -7,7 +7,8 @@ Each step k (t_k = start + kT on the mission clock):
 
 1. wait for t_k; sample the own odometry at exactly t_k (interpolated between telemetry samples);
    integrate the target's observed velocity into its odometry if this vehicle senses it;
-2. publish the step message (phase theta_i(k), odometry, target relay);
+2. publish the step message (phase theta_i(k), odometry, target relay; with
+   ``algorithm.shared_ranges`` its own step-k ranges too, awaited until the step's deadline);
 3. wait until every member's step-k message and this vehicle's step-k ranges are in, or the step
    deadline passes; a neighbour that is late or lost drops out of this step only;
 4. run the law (:class:`mission_runner.enclosing.VehicleEnclosing`), clamp the velocity to the
@@ -23,6 +24,7 @@ following the law and holds (zero velocity), resuming when data is fresh again.
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 from collections.abc import Callable, Iterable, Sequence
@@ -39,6 +41,7 @@ from ..bus import (
     TargetObservation,
     Topics,
     VehicleStatus,
+    shared_range,
 )
 from ..config import Scenario, VehicleConfig
 from ..enclosing import NeighbourReport, TargetReport, VehicleEnclosing
@@ -310,8 +313,9 @@ class VehicleController:
         observation = None
         if odometry is not None:
             self._missed_odometry = 0
-            # The target observation of step k is usually in by now; wait briefly if not.
-            observation = await self._target_observation(k, t_k)
+            # The target observation (and, to share, the ranges) of step k are usually in by
+            # now; wait briefly if not.
+            observation, shared = await self._own_measurements(k, t_k)
             message = self._with_target(
                 StepMessage(
                     self.vehicle_id,
@@ -321,6 +325,7 @@ class VehicleController:
                     odometry[0],
                     odometry[1],
                     odometry_down_m=float(odometry[2]),
+                    ranges_m=shared,
                 ),
                 observation,
             )
@@ -363,6 +368,7 @@ class VehicleController:
                 members=data.members,
                 shape_now=self.shape(k),
                 shape_next=self.shape(k + 1),
+                peer_ranges_m=self._peer_ranges(data, odometry) if self._sharing else None,
             )
             wanted = self._lead(command.velocity_m_s) + self._tracking(
                 command.velocity_m_s, odometry
@@ -472,15 +478,37 @@ class VehicleController:
             return None
         return sample
 
-    async def _target_observation(self, k: int, t_k: float) -> TargetObservation | None:
-        """This vehicle's step-k target observation, awaited no longer than the step's own
-        deadline: one that never comes must not cost more than the step has."""
-        if not self.senses_target:
-            return None
-        await self.inbox.wait_for(
-            lambda: self.inbox.pending_target(k) is not None, self._wait_s(t_k)
-        )
-        return self.inbox.pending_target(k)
+    @property
+    def _sharing(self) -> bool:
+        """Whether step messages carry ranges both ways (``algorithm.shared_ranges``)."""
+        return self.law.params.shared_ranges
+
+    async def _own_measurements(
+        self, k: int, t_k: float
+    ) -> tuple[TargetObservation | None, tuple[tuple[int, float], ...] | None]:
+        """What this vehicle's step message relays of its own step-k measurements: the target
+        observation (if it senses the target) and, when sharing, its ranges to the other vehicles
+        (as :func:`.bus.shared_range` rounds them). Awaited no longer than the step's own
+        deadline: what never comes must not cost more than the step has; when sharing, no longer
+        than half of it, since a dropped range never comes and the neighbours stop waiting for
+        this message at the deadline (measured: waiting the whole deadline, a flight with 2 %
+        dropouts lost neighbours' messages, and the phases never settled). Ranges that come later
+        are still the law's, only not shared."""
+        if not (self.senses_target or self._sharing):
+            return None, None
+
+        def in_() -> bool:
+            target = not self.senses_target or self.inbox.pending_target(k) is not None
+            return target and (not self._sharing or self.inbox.own_ranges_in(k))
+
+        await self.inbox.wait_for(in_, self._wait_s(t_k) / (2.0 if self._sharing else 1.0))
+        shared = None
+        if self._sharing:
+            ranges = self.inbox.pending_ranges(k)
+            shared = tuple(
+                (peer, shared_range(ranges[peer])) for peer in sorted(ranges) if peer != 0
+            )
+        return self.inbox.pending_target(k), shared
 
     def _wait_s(self, t_k: float) -> float:
         """Wall seconds left until step k's deadline (in lockstep, where the mission clock
@@ -505,18 +533,12 @@ class VehicleController:
                 self._target_odometry + 0.5 * (last_velocity + velocity) * elapsed
             )
         self._last_target = (observation.time_s, velocity)
-        return StepMessage(
-            message.vehicle_id,
-            message.step,
-            message.time_s,
-            message.phase_rad,
-            message.odometry_north_m,
-            message.odometry_east_m,
+        return dataclasses.replace(
+            message,
             target_odometry_north_m=float(self._target_odometry[0]),
             target_odometry_east_m=float(self._target_odometry[1]),
             target_velocity_north_m_s=float(velocity[0]),
             target_velocity_east_m_s=float(velocity[1]),
-            odometry_down_m=message.odometry_down_m,
         )
 
     async def _wait_inputs(self, k: int, t_k: float) -> None:
@@ -531,19 +553,39 @@ class VehicleController:
         the neighbour's step message; both odometry origins on the ground) is taken out:
         h = sqrt(d^2 - dz^2). It cancels out of the cosine law only while constant, and a real
         altitude hold wanders by decimetres (PX4 SIH: 0.11-0.14 m RMS), which between vehicles
-        3 m apart in height is worth ~0.1 m of range error. The target's range is horizontal."""
+        3 m apart in height is worth ~0.1 m of range error. The target's range is horizontal.
+        When sharing, the ranges are rounded as the step message carries them."""
         ranges: dict[int, float] = {}
         for peer, measured_m in data.ranges_m.items():
-            if peer == 0:
-                continue
-            neighbour = data.neighbours.get(peer)
-            height_m = 0.0
-            if neighbour is not None and neighbour.odometry_down_m is not None:
-                height_m = odometry[2] - neighbour.odometry_down_m
-            ranges[peer] = math.sqrt(max(measured_m * measured_m - height_m * height_m, 0.0))
+            if peer != 0:
+                own_m = shared_range(measured_m) if self._sharing else measured_m
+                ranges[peer] = self._horizontal(own_m, data.neighbours.get(peer), odometry)
         if data.target is not None:
             ranges[0] = data.target.range_m
         return ranges
+
+    def _peer_ranges(
+        self, data: StepData, odometry: tuple[float, float, float]
+    ) -> dict[int, float]:
+        """d_ji(k): the ranges the neighbours heard this step measured to this vehicle, from
+        their step messages, made horizontal with the same height difference as the own range
+        (a neighbour whose message is missing shares nothing: the own range stands alone)."""
+        ranges: dict[int, float] = {}
+        for peer, message in data.neighbours.items():
+            for to_id, measured_m in message.ranges_m or ():
+                if to_id == self.vehicle_id:
+                    ranges[peer] = self._horizontal(measured_m, message, odometry)
+        return ranges
+
+    @staticmethod
+    def _horizontal(
+        measured_m: float, neighbour: StepMessage | None, odometry: tuple[float, float, float]
+    ) -> float:
+        """A 3-D range to ``neighbour`` (its step message, if heard) made horizontal."""
+        height_m = 0.0
+        if neighbour is not None and neighbour.odometry_down_m is not None:
+            height_m = odometry[2] - neighbour.odometry_down_m
+        return math.sqrt(max(measured_m * measured_m - height_m * height_m, 0.0))
 
     def _target_report(
         self, data: StepData, observation: TargetObservation | None
@@ -653,7 +695,7 @@ def build_controller(
     """The controller of ``vehicle`` flying ``link`` on ``bus`` and ``clock``."""
     ids = [v.id for v in scenario.vehicles]
     law = VehicleEnclosing(
-        algorithm_params(scenario),
+        algorithm_params(scenario, flown=True),
         vehicle.id,
         ids,
         vehicle.initial_phase_rad,

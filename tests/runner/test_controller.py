@@ -16,7 +16,7 @@ import math
 import numpy as np
 import pytest
 
-from mission_runner.bus import RangeMessage, StepMessage, VehicleStatus, open_bus
+from mission_runner.bus import RangeMessage, StepMessage, VehicleStatus, open_bus, shared_range
 from mission_runner.config import validate_scenario
 from mission_runner.enclosing import NeighbourReport, TargetReport, VehicleEnclosing
 from mission_runner.runner.controller import build_controller
@@ -38,7 +38,7 @@ def t_(k):
     return START_S + k * T
 
 
-def make_scenario(*, flight=None, speed_limit_m_s=10.0):
+def make_scenario(*, flight=None, speed_limit_m_s=10.0, **algorithm):
     vehicles = [
         {
             "id": vehicle_id,
@@ -60,6 +60,7 @@ def make_scenario(*, flight=None, speed_limit_m_s=10.0):
                 "forgetting_factor": 0.7,
                 "omega_rad_s": OMEGA,
                 "radius_m": 4.0,
+                **algorithm,
             },
             "target": {"path": {"kind": "line", "start_m": [0.0, 0.0], "velocity_m_s": [0.8, 0]}},
             "vehicles": vehicles,
@@ -179,6 +180,7 @@ class Neighbours:
         self.heights = True  # step messages carry odometry_down_m
         self.ranges_3d = True  # ranges as UWB measures them (else already horizontal)
         self.on_time = {}  # step -> {peer: Delivered}
+        self.shared = None  # peer -> what its radio reads more than vehicle 2's (shared ranges)
         self._held_back = []
 
     def inputs(self, k, peer):
@@ -208,6 +210,9 @@ class Neighbours:
             north - ORIGINS[peer][0],
             east - ORIGINS[peer][1],
             odometry_down_m=down if self.heights else None,
+            ranges_m=None
+            if self.shared is None
+            else ((OWN, shared_range(measured + self.shared[peer])),),
             **relay,
         )
         return message, RangeMessage(OWN, peer, t_(k), measured, step=k), horizontal
@@ -732,3 +737,42 @@ async def test_impossible_ranges_never_reach_the_estimator_and_are_counted():
             )
     assert gate is not None
     assert gate.rejected == {"invalid": 0, "beyond_reach": steps, "jump": 2 * steps}
+
+
+# --- shared ranges -------------------------------------------------------------------------------
+
+
+@pytest.mark.asyncio
+async def test_shared_ranges_go_out_in_the_step_message_and_come_back_to_the_law():
+    """With ``algorithm.shared_ranges`` vehicle 2 publishes its step-k ranges (rounded as
+    carried) and hands the law, beside its own, the ranges its neighbours measured to it; a
+    neighbour whose message is missing leaves the own range alone."""
+    given = []
+
+    def setup(flight):
+        flight.neighbours.shared = {1: 0.1, 3: -0.05}
+        flight.neighbours.lost = {3: {1}}
+        flight.neighbours.ranges_3d = flight.neighbours.heights = False
+        law_step = flight.controller.law.step
+
+        def spy(**kwargs):
+            given.append(kwargs)
+            return law_step(**kwargs)
+
+        flight.controller.law.step = spy
+
+    async with rig(make_scenario(shared_ranges=True, estimator="ekf")) as flight:
+        setup(flight)
+        records = await flight.fly(5)
+        published = flight.published_steps()
+        delivered = flight.neighbours.on_time
+
+    for k, (message, inputs) in enumerate(zip(published, given, strict=True)):
+        measured = {peer: d.horizontal_range_m for peer, d in delivered[k].items()}
+        own = {peer: shared_range(value) for peer, value in measured.items()}
+        assert message.ranges_m == tuple(sorted(own.items()))
+        assert inputs["ranges_m"] == own == records[k].ranges_m
+        offsets = flight.neighbours.shared
+        expected = {peer: shared_range(measured[peer] + offsets[peer]) for peer in measured}
+        assert inputs["peer_ranges_m"] == pytest.approx(expected, abs=1e-12)
+    assert sorted(given[3]["peer_ranges_m"]) == [3]
