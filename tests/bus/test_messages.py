@@ -143,7 +143,7 @@ def test_every_topic_kind_has_a_message_type() -> None:
         (lambda: StepMessage(1, 0, "0", 0.0, 0.0, 0.0), "time_s must be a number"),
         (
             lambda: StepMessage(1, 0, 0.0, 0.0, 0.0, 0.0, target_odometry_north_m=1.0),
-            "all set",
+            "set as a pair",
         ),
         (lambda: RangeMessage(1, 1, 0.0, 1.0), "peer_id must differ"),
         (lambda: RangeMessage(1, -1, 0.0, 1.0), "peer_id must be >= 0"),
