@@ -491,6 +491,7 @@ SimulationMetricName = Literal[
     "final_live_vehicles",
     "gated_ranges",
     "target_lost_step",
+    "max_tracking_error_after_convergence_m",
 ]
 FlightMetricName = Literal[
     "vehicles_disarmed_at_end",

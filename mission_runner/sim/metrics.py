@@ -36,6 +36,16 @@ def first_step(flag: NDArray[np.bool_]) -> NDArray[np.int_]:
     return np.where(flag.any(axis=-1), np.argmax(flag, axis=-1), -1)
 
 
+def max_after_first(error: NDArray[np.float64], tolerance: float) -> NDArray[np.float64]:
+    """Largest ``error`` ``(B, K)`` from the first step it is <= tolerance on (how far a run that
+    had converged strays later: an occlusion, a hand-over); NaN where it never gets there."""
+    reached = error <= tolerance
+    first = np.where(reached.any(axis=-1), np.argmax(reached, axis=-1), error.shape[-1])
+    after = np.arange(error.shape[-1]) >= first[..., None]
+    worst = np.where(after, error, -np.inf).max(axis=-1)
+    return np.where(reached.any(axis=-1), worst, np.nan)
+
+
 #: Metrics whose -1 means "never", which no bound accepts.
 NEVER_IS_NO_VALUE = (
     "tracking_converged_step",
@@ -76,6 +86,9 @@ def run_metrics(result: SimulationResult) -> dict[str, NDArray[Any]]:
         "final_live_vehicles": result.live[:, -1].sum(axis=-1),
         "gated_ranges": result.gated_ranges.sum(axis=-1),
         "target_lost_step": first_step(result.target_status == LOST),
+        "max_tracking_error_after_convergence_m": max_after_first(
+            result.tracking_error_m, tolerances.tracking_tolerance_m
+        ),
     }
     # Flight-only metrics (e.g. vehicles disarmed at the end) come with the result; a simulated
     # run has none, and an expectation on them then fails with "no value".
