@@ -121,6 +121,8 @@ def controller_settings(scenario: Scenario, vehicle: VehicleConfig) -> Controlle
         min_separation_m=scenario.safety.min_separation_m,
         separation_gain_1_s=scenario.safety.separation_gain_1_s,
         range_limits=range_limits(scenario),
+        target_lost_after_s=scenario.algorithm.target_lost_after_s,
+        target_on_lost=scenario.algorithm.target_on_lost,
     )
 
 

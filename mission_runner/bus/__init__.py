@@ -67,6 +67,7 @@ from mission_runner.bus.errors import (
 )
 from mission_runner.bus.inprocess import InProcessBus, LinkModel
 from mission_runner.bus.messages import (
+    FORMATION_STATES,
     MESSAGE_TYPES,
     ControlCommand,
     Message,
@@ -100,6 +101,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "DEFAULT_QUEUE_SIZE",
+    "FORMATION_STATES",
     "MESSAGE_TYPES",
     "AuthCounters",
     "AuthPolicy",

@@ -169,7 +169,7 @@ def test_every_topic_kind_has_a_message_type() -> None:
         (lambda: StepMessage(1, 0, "0", 0.0, 0.0, 0.0), "time_s must be a number"),
         (
             lambda: StepMessage(1, 0, 0.0, 0.0, 0.0, 0.0, target_odometry_north_m=1.0),
-            "all set",
+            "set as a pair",
         ),
         (lambda: StepMessage(2, 0, 0.0, 0.0, 0.0, 0.0, ranges_m=((2, 1.0),)), "another vehicle"),
         (lambda: StepMessage(2, 0, 0.0, 0.0, 0.0, 0.0, ranges_m=((0, 1.0),)), "another vehicle"),

@@ -16,7 +16,14 @@ import math
 import numpy as np
 import pytest
 
-from mission_runner.bus import RangeMessage, StepMessage, VehicleStatus, open_bus, shared_range
+from mission_runner.bus import (
+    RangeMessage,
+    StepMessage,
+    TargetObservation,
+    VehicleStatus,
+    open_bus,
+    shared_range,
+)
 from mission_runner.config import validate_scenario
 from mission_runner.enclosing import NeighbourReport, TargetReport, VehicleEnclosing
 from mission_runner.runner.controller import build_controller
@@ -38,13 +45,13 @@ def t_(k):
     return START_S + k * T
 
 
-def make_scenario(*, flight=None, speed_limit_m_s=10.0, **algorithm):
+def make_scenario(*, flight=None, speed_limit_m_s=10.0, sensing=(1,), **algorithm):
     vehicles = [
         {
             "id": vehicle_id,
             "initial_position_m": list(ORIGINS[vehicle_id]),
             "initial_phase_rad": PHASES[vehicle_id],
-            "senses_target": vehicle_id == 1,
+            "senses_target": vehicle_id in sensing,
             "altitude_m": ALTITUDES[vehicle_id],
         }
         for vehicle_id in (1, 2, 3)
@@ -182,6 +189,14 @@ class Neighbours:
         self.on_time = {}  # step -> {peer: Delivered}
         self.shared = None  # peer -> what its radio reads more than vehicle 2's (shared ranges)
         self._held_back = []
+        # k -> vehicle 1's relay fields at step k (default: it observes the target itself).
+        self.relay = lambda k: {
+            "target_odometry_north_m": TARGET_VELOCITY[0] * k * T,
+            "target_odometry_east_m": TARGET_VELOCITY[1] * k * T,
+            "target_velocity_north_m_s": TARGET_VELOCITY[0],
+            "target_velocity_east_m_s": TARGET_VELOCITY[1],
+        }
+        self.own_tracker = None  # k -> vehicle 2's TargetObservation at t_k, if it has a tracker
 
     def inputs(self, k, peer):
         """Neighbour ``peer``'s step-k message and vehicle 2's range to it, and the horizontal
@@ -194,14 +209,7 @@ class Neighbours:
         )
         down = -ALTITUDES[peer]
         measured = math.hypot(horizontal, own_down - down) if self.ranges_3d else horizontal
-        relay = {}
-        if peer == 1:
-            relay = {
-                "target_odometry_north_m": TARGET_VELOCITY[0] * s,
-                "target_odometry_east_m": TARGET_VELOCITY[1] * s,
-                "target_velocity_north_m_s": TARGET_VELOCITY[0],
-                "target_velocity_east_m_s": TARGET_VELOCITY[1],
-            }
+        relay = self.relay(k) if peer == 1 else {}
         message = StepMessage(
             peer,
             k,
@@ -223,6 +231,10 @@ class Neighbours:
         for topic, message in self._held_back:
             await self.bus.publish_message(topic, message, timeout=1.0)
         self._held_back.clear()
+        if self.own_tracker is not None:
+            observation = self.own_tracker(k)
+            if observation is not None:
+                await self.bus.publish_message(self.topics.target(OWN), observation, timeout=1.0)
         if k in self.silent:
             return
         for peer in PEERS:
@@ -776,3 +788,96 @@ async def test_shared_ranges_go_out_in_the_step_message_and_come_back_to_the_law
         expected = {peer: shared_range(measured[peer] + offsets[peer]) for peer in measured}
         assert inputs["peer_ranges_m"] == pytest.approx(expected, abs=1e-12)
     assert sorted(given[3]["peer_ranges_m"]) == [3]
+
+
+# --- the target hidden ---------------------------------------------------------------------------
+
+
+def relayed_since(step):
+    """Vehicle 1's relay when it last saw the target at ``step``: the freshest observation."""
+    return {
+        "target_velocity_north_m_s": TARGET_VELOCITY[0],
+        "target_velocity_east_m_s": TARGET_VELOCITY[1],
+        "target_observed_step": step,
+    }
+
+
+def own_observation(k, *, seen):
+    """Vehicle 2's tracker at t_k: the target (on the scenario's line) seen, or not."""
+    if not seen:
+        return TargetObservation.not_seen(OWN, t_(k))
+    s = k * T
+    north, east, _ = wandering(s)
+    gap = (ORIGINS[OWN][0] + north - TARGET_VELOCITY[0] * s, ORIGINS[OWN][1] + east)
+    return TargetObservation(OWN, t_(k), math.hypot(*gap), *TARGET_VELOCITY)
+
+
+@pytest.mark.asyncio
+async def test_a_target_nobody_sees_is_predicted_then_declared_lost_and_held_for():
+    steps = 16
+    async with rig(target_lost_after_s=1.0) as flight:
+        seen = flight.neighbours.relay
+        flight.neighbours.relay = lambda k: seen(k) if k < 5 else relayed_since(4)
+        records = await flight.fly(steps)
+        statuses = flight.statuses()
+        published = flight.published_steps()
+        delivered = flight.neighbours.on_time
+
+    # Last seen at step 4: predicted while unseen for at most 1 s (steps 5-12), then lost.
+    assert [r.target for r in records] == ["observed"] * 5 + ["predicted"] * 8 + ["lost"] * 3
+    assert [r.state for r in records] == ["following"] * 13 + ["target_lost"] * 3
+    # Predicted at constant velocity: the same commands as with the target in sight.
+    expected = law_alone(flight.scenario, delivered, 13)
+    for setpoint, (_, command) in zip(flight.link.setpoints, expected, strict=False):
+        np.testing.assert_allclose(horizontal(setpoint), command.velocity_m_s, atol=1e-9)
+    # Lost: it holds (target_on_lost: hold) and never says it follows.
+    assert all(
+        horizontal(setpoint).tolist() == [0.0, 0.0] for setpoint in flight.link.setpoints[13:]
+    )
+    assert [s.state for s in statuses[13:]] == ["target_lost"] * 3
+    assert not any(s.tracking_ok for s in statuses[13:])
+    assert statuses[13].detail == f"target not seen for {9 * T:.2f} s"
+    # It relays the freshest observation it knows of, so every vehicle predicts alike.
+    assert published[0].relayed_target is None  # nothing heard yet when it sends step 0
+    assert [m.relayed_target for m in published[1:]] == [
+        (min(k - 1, 4), TARGET_VELOCITY) for k in range(1, steps)
+    ]
+
+
+@pytest.mark.asyncio
+async def test_vehicle_1_lost_hands_the_target_over_to_vehicle_2_which_sees_it_by_then():
+    steps = 14
+    async with rig(make_scenario(sensing=(1, 2))) as flight:
+        flight.neighbours.own_tracker = lambda k: own_observation(k, seen=k >= 3)
+        flight.neighbours.lost = {k: {1} for k in range(6, steps)}
+        records = await flight.fly(steps)
+        published = flight.published_steps()
+
+    assert [r.target for r in records] == ["observed"] * steps
+    assert [r.state for r in records] == ["following"] * steps
+    assert all(0 in r.ranges_m for r in records[3:]) and not any(
+        0 in r.ranges_m for r in records[:3]
+    )
+    assert all(0 in r.estimates_m for r in records[3:])  # its own edge to the target
+    # From step 3 it relays its own observations (with the target's odometry in its frame).
+    assert [m.has_target for m in published] == [False] * 3 + [True] * (steps - 3)
+    assert [m.relayed_target for m in published[3:]] == [
+        (k, TARGET_VELOCITY) for k in range(3, steps)
+    ]
+    np.testing.assert_allclose(
+        [m.target_odometry_north_m - published[3].target_odometry_north_m for m in published[3:]],
+        [TARGET_VELOCITY[0] * (k - 3) * T for k in range(3, steps)],
+        atol=1e-12,
+    )
+
+
+@pytest.mark.asyncio
+async def test_in_lockstep_a_not_seen_observation_is_not_waited_for():
+    # An hour's wall deadline: waiting for an observation that is known not to come would hang.
+    async with rig(make_scenario(sensing=(1, 2)), wall_deadline_s=3600.0) as flight:
+        flight.clock.lockstep = True
+        flight.neighbours.own_tracker = lambda k: own_observation(k, seen=False)
+        async with asyncio.timeout(60):
+            records = await flight.fly(6)
+    assert [r.target for r in records] == ["observed"] * 6  # vehicle 1 still sees it
+    assert not any(0 in r.ranges_m for r in records)
