@@ -7,8 +7,9 @@ nothing.
 For each noise level (range std / per-step displacement std): the paper's RLSE (beta_f = 0.7),
 the RLSE at its best forgetting factor (of a grid), the filter (``algorithm.estimator: ekf``) and
 the floor; each as the median and p95 over runs of the per-edge RMS error over the last quarter,
-and of the tail tracking RMS. Then the filter with 5 % NLOS outliers, with and without its gate,
-and the noise-free convergence.
+and of the tail tracking RMS; then the RLSE (paper's and best beta_f) and the filter with shared
+ranges (``algorithm.shared_ranges``: each pair from the mean of both ends' ranges). Then the
+filter with 5 % NLOS outliers, with and without its gate, and the noise-free convergence.
 
 The floor is the same filter started at the truth but claiming to know nothing of it (estimate
 p_ij(0), covariance 1 m^2, no gate) on the trajectories the filter's closed loop flew, with fresh
@@ -39,7 +40,9 @@ LEVELS = [(0.1, 0.005), (0.02, 0.005), (0.1, 0.0)]
 GRID = (0.9, 0.95, 0.98, 0.99, 0.995)
 
 
-def scenario(range_std, displacement_std, estimator="rlse", forgetting=0.7, **extra):
+def scenario(
+    range_std, displacement_std, estimator="rlse", forgetting=0.7, *, shared=False, **extra
+):
     data = load_scenario(ROOT / "configs" / "paper_tracking.yaml").model_dump(mode="json")
     data["sensors"] = {
         "range_noise_std_m": range_std,
@@ -49,6 +52,7 @@ def scenario(range_std, displacement_std, estimator="rlse", forgetting=0.7, **ex
     data["algorithm"]["estimator"] = estimator
     data["algorithm"]["forgetting_factor"] = forgetting
     data["algorithm"]["estimator_settings"] = extra
+    data["algorithm"]["shared_ranges"] = shared
     data["expect"] = {}
     return validate_scenario(data)
 
@@ -154,16 +158,33 @@ def main():
             f"   filter / floor {filtered[0] / floor_median:.2f} (median), "
             f"{filtered[1] / floor_p95:.2f} (p95)"
         )
+        for name, setting in [
+            ("RLSE beta_f 0.7, shared", scenario(range_std, displacement_std, shared=True)),
+            (
+                f"RLSE beta_f {best}, shared",
+                scenario(range_std, displacement_std, forgetting=best, shared=True),
+            ),
+            ("filter, shared ranges", scenario(range_std, displacement_std, "ekf", shared=True)),
+        ]:
+            row(name, figures(simulate(setting, runs)))
 
     print("\nNLOS outliers (5 %, bias 0.3-3 m), range noise 0.1 m, displacement noise 0.005 m")
-    for name, extra in [("filter, gated", {}), ("filter, no gate", {"gate_chi2": None})]:
+    for name, extra in [
+        ("filter, gated", {}),
+        ("filter, no gate", {"gate_chi2": None}),
+        ("filter, shared, gated", {"shared": True}),
+    ]:
         outlying = scenario(0.1, 0.005, "ekf", sensors={"range_outlier_probability": 0.05}, **extra)
         row(name, figures(simulate(outlying, runs)))
     paper = scenario(0.1, 0.005, forgetting=0.99, sensors={"range_outlier_probability": 0.05})
     row("RLSE beta_f 0.99", figures(simulate(paper, runs)))
 
     print("\nnoise-free: max relative-localization error over runs at step k")
-    for name, setting in [("RLSE beta_f 0.7", scenario(0, 0)), ("filter", scenario(0, 0, "ekf"))]:
+    for name, setting in [
+        ("RLSE beta_f 0.7", scenario(0, 0)),
+        ("filter", scenario(0, 0, "ekf")),
+        ("filter, shared", scenario(0, 0, "ekf", shared=True)),
+    ]:
         error = simulate(setting, runs).localization_error_m
         steps = "  ".join(
             f"k={k}: {error[:, k].max():.1e} (median {np.median(error[:, k]):.1e})"

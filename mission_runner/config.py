@@ -202,8 +202,9 @@ class ShapeConfig(Model):
 class EstimatorSettingsConfig(Model):
     """The filter estimator's noise model and outlier gate (``algorithm.estimator: ekf``).
 
-    The noise figures default to the scenario's ``sensors:`` model; on real hardware give the
-    ranging radio's and the odometry's own figures here."""
+    The noise figures default to the scenario's model of the sensors (``sensors:``; a flight's
+    odometry: ``flight.emulator.odometry``); on real hardware give the ranging radio's and the
+    odometry's own figures here."""
 
     range_noise_std_m: NonNegativeFloat | None = Field(
         None,
@@ -215,7 +216,8 @@ class EstimatorSettingsConfig(Model):
         title="Displacement noise",
         description="Per-axis std of one vehicle's displacement over one step [m] the filter "
         "assumes (default: sensors.displacement_noise_std_m, with sensors.displacement_drift_m_s "
-        "x timing.step_s added in quadrature).",
+        "x timing.step_s added in quadrature; flown, from the emulator's odometry model "
+        "flight.emulator.odometry; on real autopilots give it here).",
     )
     gate_chi2: PositiveFloat | None = Field(
         10.83,
@@ -285,7 +287,28 @@ class AlgorithmConfig(Model):
         title="Estimator settings",
         description="Noise model and outlier gate of the ekf estimator.",
     )
+    shared_ranges: bool = Field(
+        False,
+        title="Shared ranges",
+        description="Vehicles share their measured ranges in their step messages and estimate "
+        "each pair from the mean of both ends' ranges (one end's where the other's is missing): "
+        "the two estimates of a pair are then exactly opposite, so range noise cancels in the "
+        "formation centre, and each sees half the range variance. false: the paper's own ranges.",
+    )
     shape: ShapeConfig = Field(ShapeConfig(), title="Shape", description="Affine shaping.")
+    target_lost_after_s: PositiveFloat = Field(
+        10.0,
+        title="Target lost after",
+        description="While nobody senses the target every vehicle predicts it (constant "
+        "velocity, from the freshest observation); after this long without an observation the "
+        "formation declares it lost [s].",
+    )
+    target_on_lost: Literal["hold", "orbit"] = Field(
+        "hold",
+        title="On target lost",
+        description="What the formation does once the target is lost: hold (every vehicle "
+        "hovers in place) or orbit (the law goes on around the target's last estimate).",
+    )
 
 
 class TimingConfig(Model):
@@ -364,6 +387,20 @@ class SensorConfig(Model):
         title="Flow drift",
         description="Magnitude of a constant odometry drift per vehicle, random direction [m/s].",
     )
+    target_sensing_range_m: PositiveFloat | None = Field(
+        None,
+        title="Target sensing range",
+        description="A tracker sees the target only within this horizontal distance [m]: as "
+        "the formation turns, who senses it changes (default: at any distance).",
+    )
+    target_dropout_probability: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        title="Target dropout",
+        description="Probability that a tracker misses the target at a step (randomly "
+        "intermittent sensing).",
+    )
 
     @field_validator("range_outlier_bias_m")
     @classmethod
@@ -375,26 +412,33 @@ class SensorConfig(Model):
 
 #: Events only a flight can play (they need real links, sensors or autopilots); the numeric
 #: simulator refuses a scenario with any of them.
-FLIGHT_ONLY_EVENTS = frozenset({"link_lost", "sensor_lost", "taken_over"})
+FLIGHT_ONLY_EVENTS = frozenset({"link_lost", "taken_over"})
+#: Sensors whose loss only a flight can play (the numeric model has no flow odometry to fail).
+FLIGHT_ONLY_SENSORS = frozenset({"flow"})
 
 
 class EventConfig(Model):
     """Something that happens to a vehicle at a step (or a time)."""
 
-    kind: Literal["vehicle_lost", "vehicle_joins", "link_lost", "sensor_lost", "taken_over"] = (
-        Field(
-            title="Kind",
-            description="vehicle_lost: dies for good; vehicle_joins: absent until then "
-            "(simulate only); link_lost: its MAVLink link drops (flying only); sensor_lost: a "
-            "sensor stops (flying only); taken_over: a pilot switches it to `mode` by RC "
-            "(flying on the emulator only).",
-        )
+    kind: Literal[
+        "vehicle_lost", "vehicle_joins", "link_lost", "sensor_lost", "taken_over", "target_hidden"
+    ] = Field(
+        title="Kind",
+        description="vehicle_lost: dies for good; vehicle_joins: absent until then "
+        "(simulate only); link_lost: its MAVLink link drops (flying only); sensor_lost: a "
+        "sensor stops (flow: flying only); taken_over: a pilot switches it to `mode` by RC "
+        "(flying on the emulator only); target_hidden: the target is hidden from every tracker "
+        "(or from `vehicle`'s) for `duration_s` (an occlusion).",
     )
-    vehicle: int = Field(title="Vehicle", description="Vehicle id.")
+    vehicle: int | None = Field(
+        None, title="Vehicle", description="Vehicle id (target_hidden: default every vehicle)."
+    )
     at_step: Annotated[int, Field(ge=0)] | None = Field(None, title="Step", description="k.")
     at_s: NonNegativeFloat | None = Field(None, title="Time", description="Time after k = 0 [s].")
     duration_s: PositiveFloat | None = Field(
-        None, title="Duration", description="link_lost / sensor_lost: how long (default: for good)."
+        None,
+        title="Duration",
+        description="link_lost / sensor_lost / target_hidden: how long (default: for good).",
     )
     sensor: Literal["uwb", "flow", "tracker"] | None = Field(
         None, title="Sensor", description="sensor_lost: which sensor stops."
@@ -412,6 +456,12 @@ class EventConfig(Model):
             raise ValueError(f"event {self.kind} of vehicle {self.vehicle}: no at_step or at_s")
         steps = self.at_s / step_s - 1e-9
         return math.ceil(steps) if math.isfinite(steps) else sys.maxsize
+
+    def duration_steps(self, step_s: float) -> int | None:
+        """How many steps a ``duration_s`` window covers from :meth:`step` (None: for good)."""
+        if self.duration_s is None:
+            return None
+        return max(1, math.ceil(self.duration_s / step_s - 1e-9))
 
 
 class BatchConfig(Model):
@@ -450,6 +500,8 @@ SimulationMetricName = Literal[
     "min_separation_m",
     "final_live_vehicles",
     "gated_ranges",
+    "target_lost_step",
+    "max_tracking_error_after_convergence_m",
 ]
 FlightMetricName = Literal[
     "vehicles_disarmed_at_end",
@@ -945,11 +997,13 @@ def _rule_problems(scenario: Scenario) -> list[Problem]:
         if (event.at_step is None) == (event.at_s is None):
             problems.append((where, "give exactly one of at_step or at_s"))
             continue
-        if event.vehicle not in ids:
+        if event.vehicle is None and event.kind != "target_hidden":
+            problems.append((f"{where}.vehicle", f"give the vehicle of {event.kind}"))
+        elif event.vehicle is not None and event.vehicle not in ids:
             problems.append((f"{where}.vehicle", f"no vehicle with id {event.vehicle}"))
         if event.step(step_s) >= scenario.timing.steps:
             problems.append((where, f"happens after the last step ({scenario.timing.steps})"))
-        if event.kind == "vehicle_joins":
+        if event.kind == "vehicle_joins" and event.vehicle is not None:
             joined_later.add(event.vehicle)
         if (event.kind == "sensor_lost") != (event.sensor is not None):
             problems.append((f"{where}.sensor", "give sensor for sensor_lost, and only there"))

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import foxglove
 import numpy as np
 
+from .bus.messages import FORMATION_STATES
 from .enclosing import splay_spacing_error
 from .recording import (
     LogCapture,
@@ -156,7 +157,7 @@ class FlightFeed:
             view_of_record(
                 record,
                 vehicle_id,
-                live=alive.get(vehicle_id, True) and record.state == "following",
+                live=alive.get(vehicle_id, True) and record.state in FORMATION_STATES,
             )
             for vehicle_id, record in sorted(records.items())
         ]
@@ -268,7 +269,7 @@ def _publish_step(channels: MissionChannels, state: _BusState, message: StepMess
         step=message.step,
         time_s=message.time_s,
         state=current,
-        live=current == "following",
+        live=current in FORMATION_STATES,
         phase_rad=message.phase_rad,
         odometry_m=(
             message.odometry_north_m,

@@ -358,9 +358,10 @@ def write_vehicle_run(
 ) -> dict[str, Any]:
     """One vehicle process's outputs: ``steps.csv`` (per step: state, phase, command, consensus,
     neighbours used, lateness of the setpoint, odometry, peers whose range the estimator gated as
-    an outlier, every estimate), ``recording.mcap`` (the same and ``logs``, see
-    :mod:`.recording`) and ``summary.json`` (how the process ended, final state, counts including
-    gated ranges, the autopilot's clock fit, parameters applied). Written atomically."""
+    an outlier, the target as the vehicle knew it, every estimate), ``recording.mcap`` (the same
+    and ``logs``, see :mod:`.recording`) and ``summary.json`` (how the process ended, final
+    state, counts including gated ranges, the autopilot's clock fit, parameters applied).
+    Written atomically."""
     from .recording import RECORDING, write_vehicle_recording  # noqa: PLC0415
 
     out_dir = Path(out_dir)
@@ -385,6 +386,7 @@ def write_vehicle_run(
             "odometry_east_m",
             "odometry_down_m",
             "gated_ranges",
+            "target",
             *(f"estimate_{peer}_{axis}_m" for peer in peers for axis in ("north", "east")),
         ]
     )
@@ -405,6 +407,7 @@ def write_vehicle_run(
                 f"{record.setpoint_sent_s - record.time_s:.6f}",
                 *(f"{v:.6f}" for v in record.odometry_m),
                 " ".join(str(peer) for peer in record.gated),
+                record.target,
                 *estimates,
             ]
         )

@@ -63,7 +63,9 @@ from mcap.decoder import DecoderFactory as McapDecoderFactory
 from mcap.records import Schema as McapSchema
 from numpy.typing import NDArray
 
+from .bus.messages import FORMATION_STATES
 from .enclosing.shape import desired_offsets
+from .enclosing.target import LOST, STATUS_NAMES
 
 if TYPE_CHECKING:
     from .config import Scenario
@@ -106,7 +108,14 @@ VEHICLE_STATE_SCHEMA: dict[str, Any] = {
     "properties": {
         "step": {"type": "integer"},
         "time_s": {"type": "number", "description": "t_k on the mission clock"},
-        "state": {"type": "string", "description": "following, holding, lost, ... (controller)"},
+        "state": {
+            "type": "string",
+            "description": "following, target_lost, holding, lost, ... (controller)",
+        },
+        "target": {
+            "type": ["string", "null"],
+            "description": "the target as the vehicle knew it: observed, predicted or lost",
+        },
         "live": {"type": "boolean", "description": "in the formation at step k"},
         "phase_rad": _NUMBER,
         "command_north_m_s": _NUMBER,
@@ -235,6 +244,7 @@ class VehicleView:
     estimates_m: Mapping[int, NDArray[np.float64]] | None = None
     ranges_m: Mapping[int, float] | None = None
     gated: tuple[int, ...] = ()
+    target: str | None = None
 
     def document(self) -> dict[str, Any]:
         """The ``mission_runner.VehicleState`` message (NaN as null)."""
@@ -247,6 +257,7 @@ class VehicleView:
             "step": self.step,
             "time_s": self.time_s,
             "state": self.state,
+            "target": self.target,
             "live": self.live,
             "phase_rad": finite_or_none(self.phase_rad),
             "command_north_m_s": finite_or_none(command[0]),
@@ -295,6 +306,7 @@ def view_of_record(record: StepRecord, vehicle_id: int, *, live: bool) -> Vehicl
         estimates_m=record.estimates_m,
         ranges_m=record.ranges_m,
         gated=record.gated,
+        target=record.target or None,
     )
 
 
@@ -617,7 +629,7 @@ def write_vehicle_recording(
         backlog = _Backlog(channels, start_s, (), logs)
         for record in records:
             backlog.until(record.time_s)
-            view = view_of_record(record, vehicle_id, live=record.state == "following")
+            view = view_of_record(record, vehicle_id, live=record.state in FORMATION_STATES)
             channels.log_odometry(record.time_s, [view])
             channels.log_vehicle(view)
         backlog.until(math.inf)
@@ -749,11 +761,13 @@ def _vehicle_view(
         row = result.estimates_m[k, index]
         estimates = {peer: row[slot] for slot, peer in enumerate([0, *ids])}
     command = result.commands_m_s[0, k, index]
+    target = int(result.target_status[0, k])
     return VehicleView(
         vehicle_id=vehicle_id,
         step=k,
         time_s=time_s,
-        state="following" if live else "absent",
+        state=("target_lost" if target == LOST else "following") if live else "absent",
+        target=STATUS_NAMES[target] if live else None,
         live=live,
         phase_rad=float(result.phases_rad[0, k, index]),
         command_ned_m_s=(float(command[0]), float(command[1]), 0.0),

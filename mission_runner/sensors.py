@@ -89,6 +89,25 @@ def range_readings(
     return np.where(kept, np.abs(readings), np.nan)
 
 
+def target_seen(
+    distance_m: NDArray[np.float64],
+    sensors: SensorConfig,
+    rng: Rng,
+    *,
+    looking: NDArray[np.bool_],
+) -> NDArray[np.bool_]:
+    """Which trackers see the target: those ``looking`` (``(..., n)`` bool: a tracker that is
+    there, works and is not occluded) whose horizontal distance ``distance_m`` ``(..., n)`` [m]
+    is within ``target_sensing_range_m``, less random misses (``target_dropout_probability``,
+    drawn for every entry, only when set, so that scenarios without it draw as before)."""
+    seen = looking & np.isfinite(distance_m)
+    if sensors.target_sensing_range_m is not None:
+        seen &= distance_m <= sensors.target_sensing_range_m
+    if sensors.target_dropout_probability > 0:
+        seen &= rng.uniform(size=distance_m.shape) >= sensors.target_dropout_probability
+    return seen
+
+
 def odometry_drift(sensors: SensorConfig, rng: Rng, shape: tuple[int, ...]) -> NDArray[np.float64]:
     """A constant drift velocity [m/s] per vehicle, ``shape + (2,)``: ``displacement_drift_m_s``
     in a random direction (zeros without drift)."""

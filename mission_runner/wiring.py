@@ -32,8 +32,9 @@ ShapeSchedule = Callable[[int], NDArray[np.float64]]
 OFFBOARD_LOSS_ACTION = {"return": 3, "land": 4, "hold": 5}
 
 
-def algorithm_params(scenario: Scenario) -> EnclosingParams:
-    """The scenario's :class:`EnclosingParams`."""
+def algorithm_params(scenario: Scenario, *, flown: bool = False) -> EnclosingParams:
+    """The scenario's :class:`EnclosingParams`; ``flown``: for a vehicle's controller (see
+    :func:`filter_settings`), else for the numeric simulator."""
     algorithm = scenario.algorithm
     return EnclosingParams(
         step_s=scenario.timing.step_s,
@@ -45,20 +46,28 @@ def algorithm_params(scenario: Scenario) -> EnclosingParams:
         radius_m=algorithm.radius_m,
         initial_gain=algorithm.initial_gain,
         estimator=algorithm.estimator,
-        filter=filter_settings(scenario) if algorithm.estimator == "ekf" else None,
+        filter=filter_settings(scenario, flown=flown) if algorithm.estimator == "ekf" else None,
+        shared_ranges=algorithm.shared_ranges,
     )
 
 
-def filter_settings(scenario: Scenario) -> FilterSettings:
+def filter_settings(scenario: Scenario, *, flown: bool = False) -> FilterSettings:
     """The filter estimator's settings: ``algorithm.estimator_settings``, with the noise figures
-    it leaves unset taken from the ``sensors:`` model (a drift is a displacement error too: its
-    share of one step is added in quadrature)."""
+    it leaves unset taken from the model of the sensors that produce the measurements: ranges
+    from ``sensors:`` (the UWB model of the simulator and of the emulated world alike);
+    displacements from ``sensors:`` in the simulator, and, ``flown``, from the emulator's
+    odometry model (``flight.emulator.odometry``: what produces a flight's odometry), see
+    :func:`odometry_noise_std_m`. A real autopilot's odometry has no model here: on hardware,
+    give both figures in ``algorithm.estimator_settings``."""
     given, sensors = scenario.algorithm.estimator_settings, scenario.sensors
     range_std = given.range_noise_std_m
     if range_std is None:
         range_std = sensors.range_noise_std_m
     displacement_std = given.displacement_noise_std_m
-    if displacement_std is None:
+    if displacement_std is None and flown:
+        displacement_std = odometry_noise_std_m(scenario)
+    elif displacement_std is None:
+        # A drift is a displacement error too: its share of one step, in quadrature.
         drift_m = sensors.displacement_drift_m_s * scenario.timing.step_s
         displacement_std = math.hypot(sensors.displacement_noise_std_m, drift_m)
     return FilterSettings(
@@ -70,6 +79,21 @@ def filter_settings(scenario: Scenario) -> FilterSettings:
         handover_updates=given.handover_updates,
         handover_std_m=given.handover_std_m,
     )
+
+
+def odometry_noise_std_m(scenario: Scenario) -> float:
+    """Per-axis std of one vehicle's displacement over one step [m] in a flight on the emulator,
+    from its odometry model: white position noise at both ends of the step (sqrt 2 of it; the
+    controller's interpolation to t_k only lessens it), plus one step of the drift velocity, whose
+    random walk is taken at the end of the mission. In quadrature."""
+    odometry = emulator_config(scenario).odometry
+    step_s = scenario.timing.step_s
+    mission_s = scenario.timing.steps * step_s
+    drift_m_s = math.hypot(
+        odometry.drift_bias_std_m_s,
+        odometry.drift_random_walk_m_s_per_sqrt_s * math.sqrt(mission_s),
+    )
+    return math.hypot(math.sqrt(2.0) * odometry.position_noise_std_m, drift_m_s * step_s)
 
 
 def omega_of(scenario: Scenario, vehicle: VehicleConfig) -> float:
@@ -97,6 +121,8 @@ def controller_settings(scenario: Scenario, vehicle: VehicleConfig) -> Controlle
         min_separation_m=scenario.safety.min_separation_m,
         separation_gain_1_s=scenario.safety.separation_gain_1_s,
         range_limits=range_limits(scenario),
+        target_lost_after_s=scenario.algorithm.target_lost_after_s,
+        target_on_lost=scenario.algorithm.target_on_lost,
     )
 
 

@@ -271,6 +271,11 @@ class Px4Autopilot:
         return self._offboard.rejected_setpoints
 
     @property
+    def accepted_setpoints(self) -> int:
+        """Offboard setpoints taken so far (a client can tell when one has arrived)."""
+        return self._offboard.accepted_setpoints
+
+    @property
     def preflight_ready_after_s(self) -> float:
         return self._commander.preflight_ready_after_s
 

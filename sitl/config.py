@@ -12,8 +12,10 @@ parameter protocol at run time.
 
 from __future__ import annotations
 
+import random
+import socket
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 
@@ -119,6 +121,42 @@ class PortsConfig(_Model):
 
     def gcs_local_port(self, index: int) -> int:
         return self.gcs_local_base + index
+
+    @classmethod
+    def free(cls, vehicles: int, *, gcs: bool = True, **overrides: Any) -> PortsConfig:
+        """A layout whose every port (the vehicles' and their clients') is free right now, for
+        running beside PX4 SITL or another emulator (``ports: auto``). Raises OSError if no
+        free range is found."""
+        rng = random.Random()
+        for _ in range(200):
+            api_remote = rng.randrange(20000, 60000 - 4 * (vehicles + 10), 10)
+            api_local = api_remote + vehicles + 5
+            gcs_local = api_local + vehicles + 5
+            gcs_remote = gcs_local + vehicles + 5
+            ports = [*range(api_remote, api_remote + vehicles)]
+            ports += range(api_local, api_local + vehicles)
+            if gcs:
+                ports += [*range(gcs_local, gcs_local + vehicles), gcs_remote]
+            if all(udp_port_free(port) for port in ports):
+                return cls(
+                    api_remote_base=api_remote,
+                    api_local_base=api_local,
+                    gcs_local_base=gcs_local,
+                    gcs_remote_port=gcs_remote,
+                    gcs_enabled=gcs,
+                    **overrides,
+                )
+        raise OSError(f"no free range of UDP ports for {vehicles} vehicle(s)")
+
+
+def udp_port_free(port: int) -> bool:
+    """Whether a UDP socket can bind ``port`` on every address now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind(("0.0.0.0", port))
+        except OSError:
+            return False
+    return True
 
 
 class HomeConfig(_Model):
@@ -758,7 +796,10 @@ class EmulatorConfig(_Model):
         "error, random boot-clock offsets).",
     )
     ports: PortsConfig = Field(
-        default_factory=PortsConfig, title="Ports", description="UDP port layout."
+        default_factory=PortsConfig,
+        title="Ports",
+        description="UDP port layout; 'auto': free ports picked at start (beside PX4 SITL or "
+        "another emulator on PX4's defaults).",
     )
     home: HomeConfig = Field(
         default_factory=HomeConfig, title="Origin", description="Geographic origin."
@@ -850,6 +891,15 @@ class EmulatorConfig(_Model):
     @classmethod
     def _known_params(cls, value: dict[str, float]) -> dict[str, float]:
         return validate_overrides(value)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _free_ports(cls, data: Any) -> Any:
+        """``ports: auto``: pick free ones now, for as many vehicles as configured."""
+        if isinstance(data, dict) and data.get("ports") == "auto":
+            vehicles = data.get("vehicles", cls.model_fields["vehicles"].default)
+            data = {**data, "ports": PortsConfig.free(int(vehicles))}
+        return data
 
     @model_validator(mode="after")
     def _consistent(self) -> EmulatorConfig:

@@ -102,6 +102,7 @@ class Offboard:
         self._setpoint: OffboardSetpoint | None = None
         self._last_setpoint_s = -math.inf
         self.rejected_setpoints = 0
+        self.accepted_setpoints = 0
 
     # ------------------------------------------------------------- messages in
     def on_position_target_local(self, msg: mavlink.MAVLink_message, link: Link) -> None:
@@ -256,6 +257,7 @@ class Offboard:
         state = self._vehicle.state
         self._setpoint = sp
         self._last_setpoint_s = state.now_s
+        self.accepted_setpoints += 1
         if state.mode is FlightMode.OFFBOARD and state.armed:
             self.apply()
 

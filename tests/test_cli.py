@@ -237,18 +237,51 @@ def test_a_speed_that_is_not_a_positive_number_exits_2(speed, capsys):
     assert "argument --speed" in capsys.readouterr().err
 
 
-def test_an_error_during_the_run_leaves_a_summary_saying_so(tmp_path, capsys):
-    # Losing the only vehicle that senses the target is found when the simulator gets there.
-    config = scenario_file(
-        tmp_path, set_value("events", [{"kind": "vehicle_lost", "vehicle": 1, "at_step": 10}])
-    )
+def test_an_error_during_the_run_leaves_a_summary_saying_so(tmp_path, monkeypatch, capsys):
+    # A failure the simulator finds at step 10 (injected: no bundled input fails mid-run).
+    from mission_runner.errors import SimulationError
+    from mission_runner.sim import simulator
+
+    track_target = simulator.track_target
+
+    def failing_at_step_10(track, step, **kwargs):
+        if step == 10:
+            raise SimulationError("step 10: injected failure")
+        return track_target(track, step, **kwargs)
+
+    monkeypatch.setattr(simulator, "track_target", failing_at_step_10)
+    config = scenario_file(tmp_path)
     out = tmp_path / "out"
     assert main(["simulate", str(config), "--out", str(out), "--quiet"]) == EXIT_BAD_INPUT
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "error"
-    assert "no live vehicle senses the target" in summary["detail"]
+    assert "injected failure" in summary["detail"]
     assert summary["steps_done"] == 10
-    assert summary["parameters"]["events"][0]["vehicle"] == 1
+
+
+def test_a_mission_that_loses_its_target_fails_its_expectations(tmp_path, capsys):
+    # Losing the only vehicle that senses the target: predicted, then lost. Exit 1 unless the
+    # scenario bounds target_lost_step (then it is what the scenario means to show).
+    def lose_it(data):
+        data["events"] = [{"kind": "vehicle_lost", "vehicle": 1, "at_step": 10}]
+        data["algorithm"]["target_lost_after_s"] = 2.0
+
+    config = scenario_file(tmp_path, lose_it)
+    out = tmp_path / "out"
+    code = main(["simulate", str(config), "--out", str(out), "--no-figures", "--quiet"])
+    assert code == EXIT_EXPECTATION_FAILED
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed"
+    assert summary["metrics"]["target_lost_step"] == 26
+    assert summary["expectations"]["failures"][0].startswith("target lost at step 26")
+
+    def expect_it(data):
+        lose_it(data)
+        data["expect"] = {"target_lost_step": {"max": 26}}
+
+    config = scenario_file(tmp_path, expect_it)
+    code = main(["simulate", str(config), "--out", str(out), "--no-figures", "--quiet"])
+    assert code == 0
 
 
 @pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning", "ignore:invalid:RuntimeWarning")

@@ -67,6 +67,7 @@ from mission_runner.bus.errors import (
 )
 from mission_runner.bus.inprocess import InProcessBus, LinkModel
 from mission_runner.bus.messages import (
+    FORMATION_STATES,
     MESSAGE_TYPES,
     ControlCommand,
     Message,
@@ -75,6 +76,7 @@ from mission_runner.bus.messages import (
     StepMessage,
     TargetObservation,
     VehicleStatus,
+    shared_range,
 )
 from mission_runner.bus.mqtt import Backoff, LastWill, MqttBus, lost_vehicle_will
 from mission_runner.bus.settings import (
@@ -99,6 +101,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "DEFAULT_QUEUE_SIZE",
+    "FORMATION_STATES",
     "MESSAGE_TYPES",
     "AuthCounters",
     "AuthPolicy",
@@ -143,6 +146,7 @@ __all__ = [
     "VehicleStatus",
     "lost_vehicle_will",
     "open_bus",
+    "shared_range",
     "topic_matches",
     "validate_pattern",
     "validate_topic",

@@ -68,7 +68,7 @@ def with_bus_access(scenario: Scenario, arguments: argparse.Namespace) -> Scenar
         logger.warning("bus: NO AUTHENTICATION (--insecure-bus): anyone can forge messages")
     else:
         logger.info(
-            "bus: messages signed with the key from %s (fingerprint %s)",
+            "bus: messages signed with a key (%s; fingerprint %s)",
             key.source,
             key.fingerprint,
         )

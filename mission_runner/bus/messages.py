@@ -57,6 +57,8 @@ def _check_value(name: str, value: Any, annotation: Any) -> Any:
         if value is None and NoneType in options:
             return None
         (annotation,) = (option for option in options if option is not NoneType)
+    if typing.get_origin(annotation) is tuple:
+        return _check_tuple(name, value, typing.get_args(annotation))
     if annotation is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ValueError(f"{name} must be a number, got {type(value).__name__}")
@@ -82,6 +84,20 @@ def _check_value(name: str, value: Any, annotation: Any) -> Any:
             allowed = ", ".join(repr(member.value) for member in annotation)
             raise ValueError(f"{name} must be one of {allowed}, got {value!r}") from None
     raise TypeError(f"unsupported field annotation {annotation!r} for {name}")
+
+
+def _check_tuple(name: str, value: Any, items: tuple[Any, ...]) -> tuple[Any, ...]:
+    """``value`` (a JSON array) checked against ``tuple[X, ...]`` or ``tuple[X, Y]``."""
+    if not isinstance(value, list | tuple):
+        raise ValueError(f"{name} must be an array, got {type(value).__name__}")
+    if len(items) == 2 and items[1] is Ellipsis:
+        items = (items[0],) * len(value)
+    elif len(value) != len(items):
+        raise ValueError(f"{name} must have {len(items)} entries, got {len(value)}")
+    return tuple(
+        _check_value(f"{name}[{index}]", entry, item)
+        for index, (entry, item) in enumerate(zip(value, items, strict=True))
+    )
 
 
 def _require(condition: bool, problem: str) -> None:
@@ -178,6 +194,18 @@ class Message:
         return cls.from_dict(data)
 
 
+#: Shared ranges travel rounded to this many decimals of a metre (0.1 mm: far below any radio's
+#: noise, and about 7 bytes a range instead of a float's 18).
+SHARED_RANGE_DECIMALS = 4
+#: At most this many shared ranges in one step message (the scenario's largest swarm).
+MAX_SHARED_RANGES = 4096
+
+
+def shared_range(range_m: float) -> float:
+    """``range_m`` as a step message carries it (rounded to SHARED_RANGE_DECIMALS)."""
+    return round(range_m, SHARED_RANGE_DECIMALS)
+
+
 @dataclass(frozen=True, slots=True)
 class StepMessage(Message):
     """What vehicle ``vehicle_id`` broadcasts at step ``step`` (time kT) of the algorithm.
@@ -188,10 +216,19 @@ class StepMessage(Message):
     oscillator phase theta_i(k).
 
     The ``target_*`` fields relay the target (Assumption 2: vehicles that sense the target
-    broadcast it): the target's cumulative displacement in this vehicle's frame and its
-    velocity. They are all None when this vehicle does not sense the target, and all set
-    otherwise. ``odometry_down_m`` is the sender's height (down, from its odometry origin on
+    broadcast it). ``target_velocity_*`` is the velocity of the freshest observation this
+    vehicle knows of (its own, or one relayed to it), made at step ``target_observed_step``
+    (``step`` itself when left out, as older senders do): while nobody sees the target, every
+    vehicle relays the same freshest observation, so all predict it alike. ``target_odometry_*``
+    is the target's cumulative displacement in this vehicle's frame, set only when this vehicle
+    observed the target itself at this step (and then with the velocity). ``odometry_down_m``
+    is the sender's height (down, from its odometry origin on
     the ground) at t_k, with which a receiver takes the height difference out of a 3-D range.
+
+    ``ranges_m`` (``algorithm.shared_ranges``) are the sender's own step-k ranges to its
+    neighbours as ``(peer id, range [m])`` pairs, 3-D as measured, rounded by
+    :func:`shared_range` (the sender uses the rounded values itself, so both ends of a pair
+    average the same two numbers).
     """
 
     vehicle_id: int
@@ -205,25 +242,55 @@ class StepMessage(Message):
     target_velocity_north_m_s: float | None = None
     target_velocity_east_m_s: float | None = None
     odometry_down_m: float | None = None
+    ranges_m: tuple[tuple[int, float], ...] | None = None
+    target_observed_step: int | None = None
 
     @property
     def has_target(self) -> bool:
-        """Whether this message relays the target."""
+        """Whether this vehicle observed the target itself at this step."""
         return self.target_odometry_north_m is not None
+
+    @property
+    def relayed_target(self) -> tuple[int, tuple[float, float]] | None:
+        """The freshest target observation relayed: ``(observed_step, (north, east) m/s)``."""
+        north, east = self.target_velocity_north_m_s, self.target_velocity_east_m_s
+        if north is None or east is None:
+            return None
+        observed = self.step if self.target_observed_step is None else self.target_observed_step
+        return observed, (north, east)
 
     def _check(self) -> None:
         _require(self.vehicle_id >= 1, f"vehicle_id must be >= 1, got {self.vehicle_id}")
         _require(self.step >= 0, f"step must be >= 0, got {self.step}")
-        target = (
-            self.target_odometry_north_m,
-            self.target_odometry_east_m,
-            self.target_velocity_north_m_s,
-            self.target_velocity_east_m_s,
-        )
+        velocity = (self.target_velocity_north_m_s, self.target_velocity_east_m_s)
+        odometry = (self.target_odometry_north_m, self.target_odometry_east_m)
         _require(
-            all(value is None for value in target) or all(value is not None for value in target),
-            "the target_* fields must be all set (vehicle senses the target) or all None",
+            velocity.count(None) in (0, 2) and odometry.count(None) in (0, 2),
+            "target_velocity_* and target_odometry_* must each be set as a pair",
         )
+        relayed = velocity.count(None) == 0
+        _require(
+            relayed or (odometry.count(None) == 2 and self.target_observed_step is None),
+            "target_odometry_* and target_observed_step need target_velocity_*",
+        )
+        observed = self.target_observed_step
+        _require(
+            observed is None or 0 <= observed <= self.step,
+            f"target_observed_step must be in [0, step], got {observed}",
+        )
+        if self.ranges_m is not None:
+            peers = [peer for peer, _ in self.ranges_m]
+            _require(
+                len(peers) <= MAX_SHARED_RANGES,
+                f"ranges_m has {len(peers)} entries, at most {MAX_SHARED_RANGES}",
+            )
+            _require(len(set(peers)) == len(peers), "ranges_m names a peer twice")
+            for peer, range_m in self.ranges_m:
+                _require(
+                    peer >= 1 and peer != self.vehicle_id,
+                    f"ranges_m: peer must be another vehicle's id (>= 1), got {peer}",
+                )
+                _require(range_m >= 0.0, f"ranges_m: range to {peer} must be >= 0, got {range_m}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -253,21 +320,40 @@ class RangeMessage(Message):
 
 @dataclass(frozen=True, slots=True)
 class TargetObservation(Message):
-    """What a target tracker (radar, vision) on vehicle ``vehicle_id`` measured.
+    """What a target tracker (radar, vision) on vehicle ``vehicle_id`` measured at ``time_s``.
 
     ``range_m`` is the vehicle-to-target distance; the velocity is the target's, in the
-    shared north-east orientation.
+    shared north-east orientation. A tracker that looked and did not see the target (out of
+    range, occluded, a miss) says so with all three left out (:attr:`seen` False): the
+    controller then knows the observation of this instant is not coming and does not wait.
     """
 
     vehicle_id: int
     time_s: float
-    range_m: float
-    velocity_north_m_s: float
-    velocity_east_m_s: float
+    range_m: float | None = None
+    velocity_north_m_s: float | None = None
+    velocity_east_m_s: float | None = None
+
+    @property
+    def seen(self) -> bool:
+        """Whether the tracker saw the target (range and velocity are set)."""
+        return self.range_m is not None
+
+    @classmethod
+    def not_seen(cls, vehicle_id: int, time_s: float) -> Self:
+        """The tracker of ``vehicle_id`` looked at ``time_s`` and did not see the target."""
+        return cls(vehicle_id, time_s)
 
     def _check(self) -> None:
         _require(self.vehicle_id >= 1, f"vehicle_id must be >= 1, got {self.vehicle_id}")
-        _require(self.range_m >= 0.0, f"range_m must be >= 0, got {self.range_m}")
+        values = (self.range_m, self.velocity_north_m_s, self.velocity_east_m_s)
+        _require(
+            values.count(None) in (0, 3),
+            "range_m and velocity_* must be all set (target seen) or all left out (not seen)",
+        )
+        _require(
+            self.range_m is None or self.range_m >= 0.0, f"range_m must be >= 0, got {self.range_m}"
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -304,12 +390,19 @@ class MissionControl(Message):
         )
 
 
+#: Controller states (:attr:`VehicleStatus.state`) in which a vehicle flies the law on fresh data
+#: as part of the formation: ``following`` the target (observed, or predicted while hidden), or
+#: ``target_lost`` (no estimate of the target left: it holds or orbits the last estimate).
+FORMATION_STATES = frozenset({"following", "target_lost"})
+
+
 @dataclass(frozen=True, slots=True)
 class VehicleStatus(Message):
     """A vehicle's progress report (retained, and its last will), for progress views.
 
-    ``state`` is the controller's state name (e.g. ``"following"``, ``"holding"``,
-    ``"lost"``); ``tracking_ok`` whether it currently follows the algorithm on fresh data.
+    ``state`` is the controller's state name (e.g. ``"following"``, ``"target_lost"``,
+    ``"holding"``, ``"lost"``); ``tracking_ok`` whether it currently follows the target with
+    the algorithm on fresh data (not while the target is lost).
     ``mission_id`` is the mission it reports for (see :class:`MissionControl`);
     ``clock_rate`` its autopilot's boot-clock seconds per UNIX second, as measured.
     """

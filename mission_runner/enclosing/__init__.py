@@ -18,10 +18,14 @@ from .step import (
     enclosing_step,
 )
 from .swarm import SwarmEnclosing
+from .target import LOST, OBSERVED, PREDICTED, TargetEstimate, TargetTrack, track_target
 from .vehicle import NeighbourReport, TargetReport, VehicleCommand, VehicleEnclosing
 
 __all__ = [
     "IDENTITY",
+    "LOST",
+    "OBSERVED",
+    "PREDICTED",
     "TARGET_SLOT",
     "EnclosingError",
     "EnclosingParams",
@@ -30,11 +34,14 @@ __all__ = [
     "StepInputs",
     "StepOutputs",
     "SwarmEnclosing",
+    "TargetEstimate",
     "TargetReport",
+    "TargetTrack",
     "VehicleCommand",
     "VehicleEnclosing",
     "affine_matrix",
     "desired_offsets",
     "enclosing_step",
     "splay_spacing_error",
+    "track_target",
 ]

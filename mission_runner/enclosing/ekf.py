@@ -22,9 +22,11 @@ and the next update spans the longer interval, as a missing range does for the R
 
 Range-only filters need a starting point away from the symmetric ambiguity; each edge therefore
 first runs the paper's cosine-law RLSE (:func:`.rlse.rlse_update`, with its own forgetting factor)
-and hands over to the filter once that regression is well conditioned: enough updates, and a
-covariance bound small enough (:func:`_regression_covariance`). Until then the edge's estimate is
-the regression's. An edge that gates ``gate_patience`` ranges in a row has lost track (or the world
+and hands over to the filter once that regression is well conditioned: enough updates, a
+covariance bound small enough (:func:`_regression_covariance`), and what is left of its start no
+more than its error from the sensors' noise (so with exact sensors never: the regression is then
+exact, and better than a filter with floored noise). Until then the edge's estimate is the
+regression's. An edge that gates ``gate_patience`` ranges in a row has lost track (or the world
 changed under it); it returns to its regression, which has kept running on the accepted ranges.
 
 Arrays follow :mod:`.rlse`: every field is ``(..., R, S)``, planar quantities as north/east planes
@@ -161,12 +163,14 @@ def filter_update(
     step: int,
     settings: FilterSettings,
     initial_gain: float = 1.0,
+    readings: NDArray[np.float64] | None = None,
 ) -> tuple[FilterEdges, NDArray[np.bool_]]:
     """One update of every edge whose range and relative odometry are known at ``step``.
 
     Arguments as :func:`.rlse.rlse_update`; ``initial_gain``: the regression's Gamma(0) scale, as
-    given to :meth:`FilterEdges.initial`. Returns the new state and the ``(..., R, S)`` mask of
-    ranges rejected by the gate at this step.
+    given to :meth:`FilterEdges.initial`. readings: ``(..., R, S)`` how many independent ranges
+    each ``range_m`` averages (both ends of a pair: 2, its variance is halved); None: one each.
+    Returns the new state and the ``(..., R, S)`` mask of ranges rejected by the gate at this step.
     """
     measured = np.isfinite(range_m) & np.isfinite(relative_north_m) & np.isfinite(relative_east_m)
     old = edges.filter
@@ -189,7 +193,10 @@ def filter_update(
     # looks, to a filter fed exact ranges, like evidence against every range after the first.
     along = h_n * ph_n + h_e * ph_e
     across = np.maximum(c_nn + c_ee - along, 0.0) / np.maximum(predicted, 1e-12)
-    innovation_variance = along + settings.range_variance_m2 + 0.5 * across * across
+    range_variance: float | NDArray[np.float64] = settings.range_variance_m2
+    if readings is not None:
+        range_variance = range_variance / np.maximum(readings, 1.0)
+    innovation_variance = along + range_variance + 0.5 * across * across
     innovation = range_m - (predicted + 0.5 * across)
     tested = measured & edges.engaged
     gated = np.zeros_like(tested)
@@ -233,13 +240,25 @@ def filter_update(
     start_range = np.where(np.isnan(start_range), regression.anchor_range_m, start_range)
 
     # Hand over where the regression is ready (it was updated now, so its anchor is now).
-    variance_nn, variance_ne, variance_ee = _regression_covariance(
+    (variance_nn, variance_ne, variance_ee), bias = _regression_covariance(
         regression, updates, settings, start_range, initial_gain
     )
-    worst = 0.5 * (variance_nn + variance_ee) + np.sqrt(
-        0.25 * (variance_nn - variance_ee) ** 2 + variance_ne * variance_ne
+    worst = _largest_eigenvalue(variance_nn, variance_ne, variance_ee)
+    # The filter is the better estimator on noise, the regression on exact data (the cosine law
+    # is then exact and linear in p): hand over once what is left of the start (bias) is no more
+    # than the regression's error from the noise the sensors are said to have, unfloored. With
+    # noisy sensors that is soon; with nearly exact ones the regression first converges to their
+    # noise; with exact ones it keeps the edge. (Handed an edge decimetres off, a filter whose
+    # noise is floored at 0.1 mm trusts its linearisation too much: measured, one run in 100
+    # gated exact ranges and restarted, and on a conservative covariance the second-order range
+    # term holds it microns off for tens of steps.)
+    forgotten = bias <= _regression_noise(regression, settings) - bias
+    ready = (
+        updated
+        & (updates >= settings.handover_updates)
+        & (worst <= settings.handover_std_m**2)
+        & forgotten
     )
-    ready = updated & (updates >= settings.handover_updates) & (worst <= settings.handover_std_m**2)
     handover = ready & (~edges.engaged | lost)
     engaged = (edges.engaged & ~lost) | handover
     filtered = EdgeEstimates(
@@ -264,14 +283,33 @@ def filter_update(
     return state, gated
 
 
+def _regression_noise(regression: EdgeEstimates, settings: FilterSettings) -> NDArray[np.float64]:
+    """The regression's error variance from the sensors' noise as given (no floors), along its
+    worst direction ``(..., R, S)``: see :func:`_regression_covariance`."""
+    distance = regression.anchor_range_m
+    given = 2.0 * settings.range_noise_std_m**2 + 2.0 * settings.displacement_noise_std_m**2
+    g = _largest_eigenvalue(regression.gain_nn, regression.gain_ne, regression.gain_ee)
+    return distance * distance * given * g
+
+
+def _largest_eigenvalue(
+    nn: NDArray[np.float64], ne: NDArray[np.float64], ee: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Largest eigenvalue of the symmetric 2x2 ``[[nn, ne], [ne, ee]]``, all ``(..., R, S)``."""
+    return 0.5 * (nn + ee) + np.sqrt(0.25 * (nn - ee) ** 2 + ne * ne)
+
+
 def _regression_covariance(
     regression: EdgeEstimates,
     updates: NDArray[np.float64],
     settings: FilterSettings,
     start_range_m: NDArray[np.float64],
     initial_gain: float,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """A covariance bound of the regression's estimate ``(nn, ne, ee)``, each ``(..., R, S)``.
+) -> tuple[
+    tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]
+]:
+    """A covariance bound of the regression's estimate ``(nn, ne, ee)``, each ``(..., R, S)``,
+    and the part of it (on the diagonal) that is the start's bias.
 
     Noise: the cosine law's residual zeta - v.p carries d(b) n(b) - d(a) n(a) from the ranges and
     p.dv from the odometry, about d^2 (2 sigma_r^2 + q) for a range d; the regression's Gamma is
@@ -283,7 +321,7 @@ def _regression_covariance(
     distance = regression.anchor_range_m
     noise = distance * distance * (2.0 * settings.range_variance_m2 + settings.process_variance_m2)
     g_nn, g_ne, g_ee = regression.gain_nn, regression.gain_ne, regression.gain_ee
-    largest = 0.5 * (g_nn + g_ee) + np.sqrt(0.25 * (g_nn - g_ee) ** 2 + g_ne * g_ne)
+    largest = _largest_eigenvalue(g_nn, g_ne, g_ee)
     pull = settings.initial_forgetting_factor**updates / initial_gain
     bias = (2.0 * largest * pull * start_range_m) ** 2
-    return noise * g_nn + bias, noise * g_ne, noise * g_ee + bias
+    return (noise * g_nn + bias, noise * g_ne, noise * g_ee + bias), bias

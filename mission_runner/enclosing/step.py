@@ -42,7 +42,9 @@ class EnclosingParams:
     step_s: T [s]. beta: consensus gain, 0 < beta < 1/T. saturation_m_s: Ubar [m/s].
     forgetting_factor: beta_f in (0, 1]. coupling_gain: K_l for l < n. coupling_gain_last: K_n.
     radius_m: rho. initial_gain: Gamma(0) = initial_gain * I. estimator: ``rlse`` (the paper's)
-    or ``ekf`` (:mod:`.ekf`, which needs ``filter``, its noise model and gate).
+    or ``ekf`` (:mod:`.ekf`, which needs ``filter``, its noise model and gate). shared_ranges:
+    each edge (i, j) is updated with the mean of d_ij and the d_ji that j measured and shared
+    (:func:`pair_ranges`), so that i's and j's estimates of the pair see the same data.
     """
 
     step_s: float
@@ -55,6 +57,7 @@ class EnclosingParams:
     initial_gain: float = 1.0
     estimator: Literal["rlse", "ekf"] = "rlse"
     filter: FilterSettings | None = None
+    shared_ranges: bool = False
 
     def __post_init__(self) -> None:
         rules = [
@@ -110,6 +113,9 @@ class StepInputs:
     target_velocity_m_s: ``(..., 2)`` u_0(k) [m/s]; NaN where unknown (no feed-forward).
     shape_now, shape_next: ``(..., 3, 3)`` affine shape at k and k+1.
     omega_rad_s: ``(..., R)`` each row's natural frequency.
+    reverse_range_m: ``(..., R, S)`` d_ji(k) [m]: the range vehicle j measured to row i and shared
+        in its step message; NaN where not heard (and for the target). None: nothing shared. Used
+        only with ``EnclosingParams.shared_ranges``.
     """
 
     odometry_m: NDArray[np.float64]
@@ -120,6 +126,7 @@ class StepInputs:
     shape_now: NDArray[np.float64]
     shape_next: NDArray[np.float64]
     omega_rad_s: NDArray[np.float64]
+    reverse_range_m: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)
@@ -166,6 +173,9 @@ def enclosing_step(
     relative_north = odometry_north[..., row_slots, None] - odometry_north[..., None, :]
     relative_east = odometry_east[..., row_slots, None] - odometry_east[..., None, :]
     range_m = np.where(not_self, inputs.range_m, np.nan)
+    readings: NDArray[np.float64] | None = None  # one range per edge
+    if params.shared_ranges and inputs.reverse_range_m is not None:
+        range_m, readings = pair_ranges(range_m, np.where(not_self, inputs.reverse_range_m, np.nan))
     edges: EdgeEstimates | FilterEdges
     if isinstance(state.edges, FilterEdges):
         if params.filter is None:
@@ -178,6 +188,7 @@ def enclosing_step(
             step=state.step,
             settings=params.filter,
             initial_gain=params.initial_gain,
+            readings=readings,
         )
     else:
         edges = rlse_update(
@@ -227,3 +238,26 @@ def enclosing_step(
         gated=gated,
     )
     return next_state, outputs
+
+
+def pair_ranges(
+    range_m: NDArray[np.float64], reverse_range_m: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The range of each pair from both ends: ``(d_ij + d_ji) / 2`` where both were measured, the
+    one that was where only one was. Returns the ranges and how many readings each averages
+    (0, 1 or 2), all ``(..., R, S)``.
+
+    i->j and j->i are ranged with independent noise. Each vehicle's estimate carries its own
+    range error, and the formation centre sums the estimates of both directions of every pair:
+    their odometry errors cancel (both follow o_i - o_j) but the range errors would add. Fed the
+    same range, i's and j's estimates of a pair are exactly opposite (the update is odd in the
+    relative odometry), so the range error cancels in the centre as well, and each estimate sees
+    half the range variance. The sum is commutative in floating point, so i and j compute the
+    same number bit for bit.
+    """
+    own, reverse = np.isfinite(range_m), np.isfinite(reverse_range_m)
+    both = own & reverse
+    paired = np.where(
+        both, 0.5 * (range_m + reverse_range_m), np.where(own, range_m, reverse_range_m)
+    )
+    return paired, own.astype(float) + reverse

@@ -43,7 +43,8 @@ class SwarmEnclosing:
 
         odometry_m: ``(..., N+1, 2)`` slot 0 the target; NaN for lost vehicles.
         range_m: ``(..., N, N+1)``. live: ``(..., N)`` bool. Lost vehicles' phases are not heard.
-        Returns :class:`.step.StepOutputs` with R = N.
+        With ``params.shared_ranges`` every vehicle hears every other's ranges to it (the
+        transpose of the vehicle columns). Returns :class:`.step.StepOutputs` with R = N.
         """
         live = np.asarray(live, dtype=bool)
         member = np.concatenate([np.zeros((*live.shape[:-1], 1), dtype=bool), live], axis=-1)
@@ -60,6 +61,14 @@ class SwarmEnclosing:
             shape_now=shape_now,
             shape_next=shape_next,
             omega_rad_s=self.omega_rad_s,
+            reverse_range_m=_transposed(range_m) if self.params.shared_ranges else None,
         )
         self.state, outputs = enclosing_step(self.params, self.rows, self.state, inputs)
         return outputs
+
+
+def _transposed(range_m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(..., N, N+1)`` d_ij by row i and slot j -> d_ji in the same layout (NaN for the target,
+    which ranges to nobody)."""
+    vehicles = np.swapaxes(range_m[..., 1:], -1, -2)
+    return np.concatenate([np.full((*range_m.shape[:-1], 1), np.nan), vehicles], axis=-1)

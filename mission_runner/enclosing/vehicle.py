@@ -101,6 +101,7 @@ class VehicleEnclosing:
         members: Iterable[int],
         shape_now: ArrayLike = IDENTITY,
         shape_next: ArrayLike = IDENTITY,
+        peer_ranges_m: Mapping[int, float] | None = None,
     ) -> VehicleCommand:
         """Advance from step k to k+1 and return the command for step k.
 
@@ -108,6 +109,8 @@ class VehicleEnclosing:
         messages heard from other vehicles, by id. ranges_m: d_ij(k) by peer id (0 = target).
         target: the target's motion at k, or None if unknown. members: ids of the vehicles counted
         as live (including this one). shape_now/shape_next: affine shape at k and k+1.
+        peer_ranges_m: d_ji(k) by peer id, the range each neighbour measured to this vehicle and
+        shared in its step-k message (used with ``params.shared_ranges``).
         """
         n = self._n_slots
         odometry = np.full((n, 2), np.nan)
@@ -121,6 +124,12 @@ class VehicleEnclosing:
             phase[slot] = report.phase_rad
         for peer, distance in ranges_m.items():
             ranges[0, self._slot(peer)] = distance
+        reverse = None
+        if peer_ranges_m is not None:
+            reverse = np.full((1, n), np.nan)
+            for peer, distance in peer_ranges_m.items():
+                if peer != TARGET_SLOT:
+                    reverse[0, self._slot(peer)] = distance
         for peer in members:
             member[self._slot(peer)] = True
         velocity = np.full(2, np.nan)
@@ -136,6 +145,7 @@ class VehicleEnclosing:
             shape_now=np.asarray(shape_now, dtype=float),
             shape_next=np.asarray(shape_next, dtype=float),
             omega_rad_s=self._omega,
+            reverse_range_m=reverse,
         )
         self.state, out = enclosing_step(self.params, self._row, self.state, inputs)
         peers = {slot: peer for peer, slot in self._slot_of.items()}

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
+from collections.abc import AsyncIterator, Callable
 from typing import TYPE_CHECKING, Any, Self
 
 from .timesync import MissionTime
@@ -24,12 +26,26 @@ if TYPE_CHECKING:
     from sitl.clock import Clock as SimulatedClock
     from sitl.clock import Participant
 
+logger = logging.getLogger(__name__)
+
+#: How long (wall seconds) a lockstep command waits to be seen by the emulated vehicle.
+DELIVERY_TIMEOUT_S = 1.0
+
 
 class EmulatorClock:
-    """A participant view of a :class:`sitl.clock.Clock`. Use as ``async with``."""
+    """A participant view of a :class:`sitl.clock.Clock`. Use as ``async with``.
 
-    def __init__(self, clock: SimulatedClock, name: str) -> None:
+    ``setpoints_in``: the emulated vehicle's count of offboard setpoints taken
+    (``Px4Autopilot.accepted_setpoints``). With it, a lockstep command (:meth:`commanding`) is
+    applied at a fixed simulated time: the world waits at the release point until the setpoint
+    has arrived, whatever the MAVSDK server and the machine's load make of its delivery.
+    """
+
+    def __init__(
+        self, clock: SimulatedClock, name: str, setpoints_in: Callable[[], int] | None = None
+    ) -> None:
         self._clock = clock
+        self._setpoints_in = setpoints_in
         self.name = name
         self.lockstep = clock.mode == "lockstep"
         self._participant: Participant | None = None
@@ -67,6 +83,29 @@ class EmulatorClock:
         if self._participant is not None:
             self._participant.acted(time_s)
 
+    @contextlib.asynccontextmanager
+    async def commanding(self, released_s: float) -> AsyncIterator[None]:
+        """Around sending a setpoint whose step released the world up to ``released_s``. In
+        lockstep the world is first let reach ``released_s`` and held there until the vehicle
+        has the setpoint, so every command takes effect at that simulated time; in real time
+        nothing is waited for."""
+        if self._participant is None or self._setpoints_in is None:
+            yield
+            return
+        await self._clock.sleep_until(released_s)
+        before = self._setpoints_in()
+        yield
+        try:
+            async with asyncio.timeout(DELIVERY_TIMEOUT_S):
+                while self._setpoints_in() == before:
+                    # A short real sleep: the MAVSDK server (another process) must get the CPU
+                    # to send it, and the emulator's datagram handler runs meanwhile.
+                    await asyncio.sleep(0.0005)
+        except TimeoutError:
+            logger.warning(
+                "%s: setpoint not seen by the vehicle within %.1f s", self.name, DELIVERY_TIMEOUT_S
+            )
+
 
 class WallClock:
     """The mission clock of a vehicle process: ``time`` (a :class:`MissionTime`, UNIX time by
@@ -85,6 +124,11 @@ class WallClock:
 
     def now_s(self) -> float:
         return self.time.now_s()
+
+    @contextlib.asynccontextmanager
+    async def commanding(self, released_s: float) -> AsyncIterator[None]:
+        """Nothing to wait for: real vehicles take setpoints in real time."""
+        yield
 
     @property
     def rate(self) -> float:

@@ -6,12 +6,18 @@ unit tests run it against fakes and scenario tests against the emulator through 
 Each step k (t_k = start + kT on the mission clock):
 
 1. wait for t_k; sample the own odometry at exactly t_k (interpolated between telemetry samples);
-   integrate the target's observed velocity into its odometry if this vehicle senses it;
-2. publish the step message (phase theta_i(k), odometry, target relay);
+   if this vehicle has a tracker, take its step-k observation (seen, or an explicit "not seen")
+   and integrate the target's observed velocity into its odometry;
+2. publish the step message (phase theta_i(k), odometry, and the freshest target observation it
+   knows of: its own, or the one relayed to it; with ``algorithm.shared_ranges`` its own step-k
+   ranges too, awaited until half the step's deadline);
 3. wait until every member's step-k message and this vehicle's step-k ranges are in, or the step
    deadline passes; a neighbour that is late or lost drops out of this step only;
-4. run the law (:class:`mission_runner.enclosing.VehicleEnclosing`), clamp the velocity to the
-   vehicle's limits, add the altitude-hold term and send the setpoint.
+4. track the target from the freshest observation heard (:mod:`mission_runner.enclosing.target`:
+   observed, predicted at constant velocity, or lost after ``target_lost_after_s``);
+5. run the law (:class:`mission_runner.enclosing.VehicleEnclosing`), clamp the velocity to the
+   vehicle's limits, add the altitude-hold term and send the setpoint; with the target lost,
+   hold (or orbit its last estimate: ``target_on_lost``) in state ``target_lost``.
 
 Ranges and target observations that cannot be (:mod:`.plausibility`) are dropped and counted
 where they come in, before the inbox and the estimator see them.
@@ -23,6 +29,7 @@ following the law and holds (zero velocity), resuming when data is fresh again.
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 from collections.abc import Callable, Iterable, Sequence
@@ -39,10 +46,20 @@ from ..bus import (
     TargetObservation,
     Topics,
     VehicleStatus,
+    shared_range,
 )
 from ..config import Scenario, VehicleConfig
-from ..enclosing import NeighbourReport, TargetReport, VehicleEnclosing
+from ..enclosing import (
+    LOST,
+    NeighbourReport,
+    TargetEstimate,
+    TargetReport,
+    TargetTrack,
+    VehicleEnclosing,
+    track_target,
+)
 from ..enclosing.separation import separation_guard
+from ..enclosing.target import STATUS_NAMES
 from ..tasks import first_completed
 from ..wiring import (
     ShapeSchedule,
@@ -67,6 +84,8 @@ class ControllerSettings:
     law runs without the missing ones. wall_deadline_s: the same in wall seconds, for lockstep
     runs whose mission clock stands still while controllers wait. release_s: in lockstep, how far
     past t_k the world may run while the controller samples (at least one telemetry period).
+    target_lost_after_s: the longest the target is predicted without an observation [s];
+    target_on_lost: then ``hold`` (hover) or ``orbit`` (the law around the last estimate).
     """
 
     step_s: float
@@ -75,7 +94,8 @@ class ControllerSettings:
     release_s: float = 0.03
     odometry_timeout_s: float = 1.0
     lost_after_missed_steps: int = 3
-    target_velocity_hold_steps: int = 8
+    target_lost_after_s: float = 10.0
+    target_on_lost: str = "hold"
     silence_timeout_s: float = 1.0
     member_timeout_steps: int = 8
     max_horizontal_speed_m_s: float = 10.0
@@ -100,6 +120,8 @@ class StepRecord:
     (north, east, down) sampled at t_k (NaN if none). estimates_m: phat_ij ``(2,)`` [m] by peer
     id (0 = target). gated: peer ids whose range the estimator rejected as an outlier.
     ranges_m: the (horizontal) ranges the law was given, by peer id (0 = target).
+    target: what the vehicle knew of the target at the step: ``observed`` (by itself or a
+    neighbour), ``predicted`` or ``lost`` (``""``: not tracked, a skipped step).
     """
 
     step: int
@@ -114,6 +136,7 @@ class StepRecord:
     odometry_m: tuple[float, float, float] = (math.nan, math.nan, math.nan)
     gated: tuple[int, ...] = ()
     ranges_m: dict[int, float] = field(default_factory=dict)
+    target: str = ""
 
 
 class VehicleController:
@@ -162,8 +185,9 @@ class VehicleController:
             step_of=self._step_of,
             member_timeout_steps=settings.member_timeout_steps,
         )
-        self._target_odometry = np.zeros(2)
+        self._target_odometry = np.zeros(2)  # own observations only, integrated
         self._last_target: tuple[float, NDArray[np.float64]] | None = None
+        self.target_track = TargetTrack.initial()
         self._last_fresh_s = -math.inf  # nothing heard yet; run() starts the silence at k = 0
         self._previous_command: NDArray[np.float64] | None = None
         # Where the law's commands so far would have taken the vehicle.
@@ -177,7 +201,6 @@ class VehicleController:
         #: of the hold is first seen by the step after it.
         self.decided_step = -1
         self._missed_odometry = 0
-        self._known_target_velocity: tuple[int, tuple[float, float]] | None = None
         self.skipped_steps = 0
         #: None: every range is taken as it comes (a unit test's fake sensors).
         self.range_gate = (
@@ -294,7 +317,10 @@ class VehicleController:
             self.inbox.add_range(message)
 
     def _add_target(self, observation: TargetObservation) -> None:
-        if self._possible(observation.vehicle_id, 0, observation.range_m, observation.time_s):
+        seen_range_m = observation.range_m
+        if seen_range_m is None or self._possible(
+            observation.vehicle_id, 0, seen_range_m, observation.time_s
+        ):
             self.inbox.add_target(observation)
 
     async def _step(self, k: int, t_k: float) -> None:
@@ -313,8 +339,12 @@ class VehicleController:
         observation = None
         if odometry is not None:
             self._missed_odometry = 0
-            # The target observation of step k is usually in by now; wait briefly if not.
-            observation = await self._target_observation(k, t_k)
+            # The target observation (and, to share, the ranges) of step k are usually in by
+            # now; wait briefly if not. An observation that says "not seen" is as good as one
+            # that saw: nothing more is coming.
+            observation, shared = await self._own_measurements(k, t_k)
+            if observation is not None and not observation.seen:
+                observation = None
             message = self._with_target(
                 StepMessage(
                     self.vehicle_id,
@@ -324,6 +354,7 @@ class VehicleController:
                     odometry[0],
                     odometry[1],
                     odometry_down_m=float(odometry[2]),
+                    ranges_m=shared,
                 ),
                 observation,
             )
@@ -332,6 +363,7 @@ class VehicleController:
             self._missed_odometry += 1
         await self._wait_inputs(k, t_k)
         data = self.inbox.take(k)
+        target = self._track_target(k, data, observation)
         now = self.clock.now_s()
         if data.neighbours:
             self._last_fresh_s = now
@@ -343,9 +375,16 @@ class VehicleController:
         stale_s = now - self._last_fresh_s
         holding = stale_s > settings.silence_timeout_s or not self.link.in_control
         self.decided_step = k
-        if odometry is None or holding or self.operator_hold:
+        target_lost = int(target.status) == LOST
+        hold_for_target = target_lost and settings.target_on_lost == "hold"
+        if odometry is None or holding or self.operator_hold or hold_for_target:
             velocity = (0.0, 0.0)
-            self.state = "held" if self.operator_hold and not holding else "holding"
+            if self.operator_hold and not holding:
+                self.state = "held"
+            elif odometry is None or holding:
+                self.state = "holding"
+            else:
+                self.state = "target_lost"
             # The vehicle holds: when it resumes, track afresh from where it is, and lead from
             # nothing (a command change over the whole hold is not a rate to lead).
             self._reference = None
@@ -354,7 +393,7 @@ class VehicleController:
             used, estimates, consensus, ranges = (), {}, (0.0, 0.0), {}
             self._turn_oscillator(k)
         else:
-            self.state = "following"
+            self.state = "target_lost" if target_lost else "following"
             ranges = self._horizontal_ranges(data, odometry)
             command = self.law.step(
                 own_odometry_m=odometry[:2],
@@ -363,10 +402,14 @@ class VehicleController:
                     for peer, m in data.neighbours.items()
                 },
                 ranges_m=ranges,
-                target=self._target_report(data, observation),
+                target=TargetReport(
+                    (float(target.odometry_m[0]), float(target.odometry_m[1])),
+                    (float(target.velocity_m_s[0]), float(target.velocity_m_s[1])),
+                ),
                 members=data.members,
                 shape_now=self.shape(k),
                 shape_next=self.shape(k + 1),
+                peer_ranges_m=self._peer_ranges(data, odometry) if self._sharing else None,
             )
             wanted = self._lead(command.velocity_m_s) + self._tracking(
                 command.velocity_m_s, odometry
@@ -377,7 +420,8 @@ class VehicleController:
             used, estimates, gated = command.neighbours_used, command.estimates_m, command.gated
             consensus = (float(command.consensus_m_s[0]), float(command.consensus_m_s[1]))
         vertical = self._altitude_hold(odometry)
-        await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
+        async with self.clock.commanding(t_k + settings.release_s):
+            await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
         sent_s = self.clock.now_s()
         record = StepRecord(
             k,
@@ -392,6 +436,7 @@ class VehicleController:
             (math.nan, math.nan, math.nan) if odometry is None else odometry,
             gated,
             ranges,
+            STATUS_NAMES[int(target.status)],
         )
         self.records.append(record)
         await self._publish_status(k, t_k)
@@ -475,15 +520,37 @@ class VehicleController:
             return None
         return sample
 
-    async def _target_observation(self, k: int, t_k: float) -> TargetObservation | None:
-        """This vehicle's step-k target observation, awaited no longer than the step's own
-        deadline: one that never comes must not cost more than the step has."""
-        if not self.senses_target:
-            return None
-        await self.inbox.wait_for(
-            lambda: self.inbox.pending_target(k) is not None, self._wait_s(t_k)
-        )
-        return self.inbox.pending_target(k)
+    @property
+    def _sharing(self) -> bool:
+        """Whether step messages carry ranges both ways (``algorithm.shared_ranges``)."""
+        return self.law.params.shared_ranges
+
+    async def _own_measurements(
+        self, k: int, t_k: float
+    ) -> tuple[TargetObservation | None, tuple[tuple[int, float], ...] | None]:
+        """What this vehicle's step message relays of its own step-k measurements: the target
+        observation (if it senses the target) and, when sharing, its ranges to the other vehicles
+        (as :func:`.bus.shared_range` rounds them). Awaited no longer than the step's own
+        deadline: what never comes must not cost more than the step has; when sharing, no longer
+        than half of it, since a dropped range never comes and the neighbours stop waiting for
+        this message at the deadline (measured: waiting the whole deadline, a flight with 2 %
+        dropouts lost neighbours' messages, and the phases never settled). Ranges that come later
+        are still the law's, only not shared."""
+        if not (self.senses_target or self._sharing):
+            return None, None
+
+        def in_() -> bool:
+            target = not self.senses_target or self.inbox.pending_target(k) is not None
+            return target and (not self._sharing or self.inbox.own_ranges_in(k))
+
+        await self.inbox.wait_for(in_, self._wait_s(t_k) / (2.0 if self._sharing else 1.0))
+        shared = None
+        if self._sharing:
+            ranges = self.inbox.pending_ranges(k)
+            shared = tuple(
+                (peer, shared_range(ranges[peer])) for peer in sorted(ranges) if peer != 0
+            )
+        return self.inbox.pending_target(k), shared
 
     def _wait_s(self, t_k: float) -> float:
         """Wall seconds left until step k's deadline (in lockstep, where the mission clock
@@ -496,30 +563,34 @@ class VehicleController:
     def _with_target(
         self, message: StepMessage, observation: TargetObservation | None
     ) -> StepMessage:
-        """Integrate the observed target velocity (trapezoid over the time since the previous
-        observation, so a gap in observations is bridged, not lost) and relay it."""
-        if observation is None:
+        """Relay the target: this vehicle's own observation of step k (its velocity integrated
+        into the target's odometry, trapezoid over the time since the previous observation, so
+        a gap in observations is bridged, not lost), else the freshest observation its track
+        holds (made at an earlier step, by itself or relayed to it), else nothing."""
+        odometry: tuple[float | None, float | None] = (None, None)
+        observed_step: int | None = None
+        if observation is not None:
+            velocity = np.array([observation.velocity_north_m_s, observation.velocity_east_m_s])
+            if self._last_target is not None:
+                last_time_s, last_velocity = self._last_target
+                elapsed = observation.time_s - last_time_s
+                self._target_odometry = (
+                    self._target_odometry + 0.5 * (last_velocity + velocity) * elapsed
+                )
+            self._last_target = (observation.time_s, velocity)
+            odometry = (float(self._target_odometry[0]), float(self._target_odometry[1]))
+        elif np.isfinite(self.target_track.observed_step):
+            velocity = self.target_track.velocity_m_s
+            observed_step = int(self.target_track.observed_step)
+        else:
             return message
-        velocity = np.array([observation.velocity_north_m_s, observation.velocity_east_m_s])
-        if self._last_target is not None:
-            last_time_s, last_velocity = self._last_target
-            elapsed = observation.time_s - last_time_s
-            self._target_odometry = (
-                self._target_odometry + 0.5 * (last_velocity + velocity) * elapsed
-            )
-        self._last_target = (observation.time_s, velocity)
-        return StepMessage(
-            message.vehicle_id,
-            message.step,
-            message.time_s,
-            message.phase_rad,
-            message.odometry_north_m,
-            message.odometry_east_m,
-            target_odometry_north_m=float(self._target_odometry[0]),
-            target_odometry_east_m=float(self._target_odometry[1]),
+        return dataclasses.replace(
+            message,
+            target_odometry_north_m=odometry[0],
+            target_odometry_east_m=odometry[1],
             target_velocity_north_m_s=float(velocity[0]),
             target_velocity_east_m_s=float(velocity[1]),
-            odometry_down_m=message.odometry_down_m,
+            target_observed_step=observed_step,
         )
 
     async def _wait_inputs(self, k: int, t_k: float) -> None:
@@ -534,44 +605,67 @@ class VehicleController:
         the neighbour's step message; both odometry origins on the ground) is taken out:
         h = sqrt(d^2 - dz^2). It cancels out of the cosine law only while constant, and a real
         altitude hold wanders by decimetres (PX4 SIH: 0.11-0.14 m RMS), which between vehicles
-        3 m apart in height is worth ~0.1 m of range error. The target's range is horizontal."""
+        3 m apart in height is worth ~0.1 m of range error. The target's range is horizontal.
+        When sharing, the ranges are rounded as the step message carries them."""
         ranges: dict[int, float] = {}
         for peer, measured_m in data.ranges_m.items():
-            if peer == 0:
-                continue
-            neighbour = data.neighbours.get(peer)
-            height_m = 0.0
-            if neighbour is not None and neighbour.odometry_down_m is not None:
-                height_m = odometry[2] - neighbour.odometry_down_m
-            ranges[peer] = math.sqrt(max(measured_m * measured_m - height_m * height_m, 0.0))
-        if data.target is not None:
+            if peer != 0:
+                own_m = shared_range(measured_m) if self._sharing else measured_m
+                ranges[peer] = self._horizontal(own_m, data.neighbours.get(peer), odometry)
+        if data.target is not None and data.target.range_m is not None:
             ranges[0] = data.target.range_m
         return ranges
 
-    def _target_report(
-        self, data: StepData, observation: TargetObservation | None
-    ) -> TargetReport | None:
-        """The target's motion at step k: own observation, else a neighbour's relay, else the
-        last known velocity for up to ``target_velocity_hold_steps`` (the target moves smoothly;
-        dropping the feed-forward to 0 for a step would make the whole formation fall behind)."""
-        velocity: tuple[float, float] | None = None
-        odometry = (math.nan, math.nan)
-        if observation is not None:
-            velocity = (observation.velocity_north_m_s, observation.velocity_east_m_s)
-            odometry = (float(self._target_odometry[0]), float(self._target_odometry[1]))
-        else:
-            for message in data.neighbours.values():
-                north, east = message.target_velocity_north_m_s, message.target_velocity_east_m_s
-                if north is not None and east is not None:  # it relays the target
-                    velocity = (north, east)
-                    break
-        if velocity is not None:
-            self._known_target_velocity = (data.step, velocity)
-        elif self._known_target_velocity is not None:
-            step, known = self._known_target_velocity
-            if data.step - step <= self.settings.target_velocity_hold_steps:
-                velocity = known
-        return None if velocity is None else TargetReport(odometry, velocity)
+    def _peer_ranges(
+        self, data: StepData, odometry: tuple[float, float, float]
+    ) -> dict[int, float]:
+        """d_ji(k): the ranges the neighbours heard this step measured to this vehicle, from
+        their step messages, made horizontal with the same height difference as the own range
+        (a neighbour whose message is missing shares nothing: the own range stands alone)."""
+        ranges: dict[int, float] = {}
+        for peer, message in data.neighbours.items():
+            for to_id, measured_m in message.ranges_m or ():
+                if to_id == self.vehicle_id:
+                    ranges[peer] = self._horizontal(measured_m, message, odometry)
+        return ranges
+
+    @staticmethod
+    def _horizontal(
+        measured_m: float, neighbour: StepMessage | None, odometry: tuple[float, float, float]
+    ) -> float:
+        """A 3-D range to ``neighbour`` (its step message, if heard) made horizontal."""
+        height_m = 0.0
+        if neighbour is not None and neighbour.odometry_down_m is not None:
+            height_m = odometry[2] - neighbour.odometry_down_m
+        return math.sqrt(max(measured_m * measured_m - height_m * height_m, 0.0))
+
+    def _track_target(
+        self, k: int, data: StepData, observation: TargetObservation | None
+    ) -> TargetEstimate:
+        """Advance the target track to step k with the freshest observation heard: this
+        vehicle's own (``observation``, seen at k) or the freshest a neighbour relays in its
+        step-k message. Every vehicle hears the same relays, so every track predicts alike."""
+        heard = [message.relayed_target for message in data.neighbours.values()]
+        north, east = (
+            (None, None)
+            if observation is None
+            else (observation.velocity_north_m_s, observation.velocity_east_m_s)
+        )
+        if north is not None and east is not None:
+            heard.append((k, (north, east)))
+        relays = [relay for relay in heard if relay is not None]
+        observed_step, velocity = max(relays, key=lambda relay: relay[0], default=(None, None))
+        own_odometry = self._target_odometry if observation is not None else (math.nan, math.nan)
+        self.target_track, estimate = track_target(
+            self.target_track,
+            k,
+            velocity_m_s=(math.nan, math.nan) if velocity is None else velocity,
+            observed_step=math.nan if observed_step is None else observed_step,
+            own_odometry_m=own_odometry,
+            step_s=self.settings.step_s,
+            lost_after_s=self.settings.target_lost_after_s,
+        )
+        return estimate
 
     def _lead(self, velocity: ArrayLike) -> NDArray[np.float64]:
         """u + lead * du/dt: offsets the vehicle's velocity-loop lag and the command delay, so
@@ -631,13 +725,21 @@ class VehicleController:
             logger.warning("vehicle %s: could not publish %s: %s", self.vehicle_id, topic, error)
 
     async def _publish_status(self, k: int, t_k: float) -> None:
+        detail = self.link.control_lost or ""
+        if self.state == "target_lost":
+            unseen_s = (k - float(self.target_track.observed_step)) * self.settings.step_s
+            detail = (
+                f"target not seen for {unseen_s:.2f} s"
+                if math.isfinite(unseen_s)
+                else "target never seen"
+            )
         status = VehicleStatus(
             self.vehicle_id,
             t_k,
             self.state,
             k,
             self.state == "following",
-            self.link.control_lost or "",
+            detail,
             mission_id=self.mission_id,
         )
         await self._publish(self.topics.status(self.vehicle_id), status)
@@ -656,7 +758,7 @@ def build_controller(
     """The controller of ``vehicle`` flying ``link`` on ``bus`` and ``clock``."""
     ids = [v.id for v in scenario.vehicles]
     law = VehicleEnclosing(
-        algorithm_params(scenario),
+        algorithm_params(scenario, flown=True),
         vehicle.id,
         ids,
         vehicle.initial_phase_rad,

@@ -134,6 +134,16 @@ class StepInbox:
             return False
         return data.target is not None or not self.senses_target
 
+    def own_ranges_in(self, step: int) -> bool:
+        """Whether this vehicle's ranges to every other member are in for ``step``."""
+        data = self._pending.get(step)
+        return data is not None and self.members() - {self.own_id} <= data.ranges_m.keys()
+
+    def pending_ranges(self, step: int) -> dict[int, float]:
+        """This vehicle's ranges received for ``step`` so far, by peer id (0 = target)."""
+        data = self._pending.get(step)
+        return {} if data is None else dict(data.ranges_m)
+
     def pending_target(self, step: int) -> TargetObservation | None:
         """The target observation received for ``step`` so far, or None."""
         data = self._pending.get(step)

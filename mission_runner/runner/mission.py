@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
 import time
@@ -263,7 +264,16 @@ async def fly(
             ]
             # Each controller's own view of the emulator's clock: a lockstep participant while
             # its controller flies.
-            clocks = [EmulatorClock(emulator.clock, f"vehicle-{i}") for i in ids]
+            clocks = [
+                EmulatorClock(
+                    emulator.clock,
+                    f"vehicle-{vehicle_id}",
+                    setpoints_in=functools.partial(
+                        getattr, emulator.autopilot(index), "accepted_setpoints"
+                    ),
+                )
+                for index, vehicle_id in enumerate(ids)
+            ]
             controllers += _controllers(scenario, vehicles, buses, clocks, step_callback)
             start: asyncio.Future[float] = asyncio.get_running_loop().create_future()
 
@@ -530,9 +540,17 @@ def _schedule_events(scenario: Scenario, emulator: Emulator, world: World, start
     index_of = {vehicle.id: index for index, vehicle in enumerate(scenario.vehicles)}
     step_s = scenario.timing.step_s
     for event in scenario.events:
-        index = index_of[event.vehicle]
+        index = None if event.vehicle is None else index_of[event.vehicle]
         at_s = start_s + event.step(step_s) * step_s
-        if event.kind == "vehicle_lost":
+        # A window ends half a step before the first step it no longer covers, so that it covers
+        # the same steps in flight as in simulate whatever the rounding of the sample times.
+        steps = event.duration_steps(step_s)
+        window_s = None if steps is None else (steps - 0.5) * step_s
+        if event.kind == "target_hidden":
+            world.hide_target(at_s, window_s, index)
+        elif index is None:  # validation gives every other event its vehicle
+            raise RunnerError(f"event {event.kind} names no vehicle")
+        elif event.kind == "vehicle_lost":
             emulator.kill_vehicle(index, at_s=at_s)
         elif event.kind == "link_lost":
             emulator.drop_link(index, "all", at_s=at_s, duration_s=event.duration_s)
@@ -541,6 +559,6 @@ def _schedule_events(scenario: Scenario, emulator: Emulator, world: World, start
         elif event.kind == "sensor_lost" and event.sensor == "flow":
             emulator.fail_sensor(index, "flow", at_s=at_s, duration_s=event.duration_s)
         elif event.kind == "sensor_lost" and event.sensor is not None:  # validation gives one
-            world.fail_sensor(index, event.sensor, at_s=at_s, duration_s=event.duration_s)
+            world.fail_sensor(index, event.sensor, at_s=at_s, duration_s=window_s)
         else:
             raise RunnerError(f"event {event.kind} cannot be flown (simulate it instead)")

@@ -42,6 +42,11 @@ class ControllerClock(Clock, Protocol):
         """Let the world run up to mission time ``time_s`` [s] (lockstep; else nothing)."""
         ...
 
+    def commanding(self, released_s: float) -> AbstractAsyncContextManager[None]:
+        """Around sending a setpoint of a step that released the world up to ``released_s``:
+        in lockstep the command takes effect at exactly that time (else nothing happens)."""
+        ...
+
 
 class OdometrySource(Protocol):
     """The vehicle's own odometry on the mission clock, north-east-down [m] from its origin."""

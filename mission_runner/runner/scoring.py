@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..bus import FORMATION_STATES
+from ..enclosing.target import OBSERVED, STATUS_NAMES
 from ..sim.metrics import TruthSample, closest_pair
 from ..sim.simulator import SimulationResult, score
 from .controller import StepRecord
@@ -56,7 +58,9 @@ def score_flight(
     controller's phase after its last step, ``{id: rad}``.
 
     A vehicle counts in the formation at step k when it is alive and its controller followed
-    the law at k (not holding on stale data, not failed safe).
+    the law at k (not holding on stale data, not failed safe; a formation that lost its target
+    still counts, so that the tracking error shows how far off it is). The target's status at
+    step k is the worst any controller had (lost if any declared it lost).
     """
     steps = scenario.timing.steps
     samples = samples[: steps + 1]
@@ -72,6 +76,7 @@ def score_flight(
     localization = np.zeros((1, max(count - 1, 0)))
     square_errors: list[list[float]] = [[] for _ in range(max(count - 1, 0))]
     gated = np.zeros((1, max(count - 1, 0)), dtype=np.int64)
+    target_status = np.full((1, max(count - 1, 0)), OBSERVED, dtype=np.int8)
     truth_by_step = {s.step: s for s in samples}
     for column, vehicle_id in enumerate(ids):
         for record in records.get(vehicle_id, []):
@@ -79,7 +84,7 @@ def score_flight(
             if k >= count:
                 continue
             phases[0, k, column] = record.phase_rad
-            following[0, k, column] = record.state == "following"
+            following[0, k, column] = record.state in FORMATION_STATES
             if k < count - 1:
                 commands[0, k, column] = record.velocity_ned_m_s[:2]
                 consensus[0, k] = max(consensus[0, k], float(np.hypot(*record.consensus_m_s)))
@@ -87,6 +92,9 @@ def score_flight(
                 localization[0, k] = max(localization[0, k], *errors, 0.0)
                 square_errors[k] += [error * error for error in errors]
                 gated[0, k] += len(record.gated)
+                if record.target:
+                    status = STATUS_NAMES.index(record.target)
+                    target_status[0, k] = max(target_status[0, k], status)
     for column, vehicle_id in enumerate(ids):
         final = (final_phases or {}).get(vehicle_id)
         if final is not None and count == steps + 1 and np.isnan(phases[0, steps, column]):
@@ -108,6 +116,7 @@ def score_flight(
         "gated_ranges": gated,
         "consensus_speed_m_s": consensus,
         "separation_m": closest_pair(distance, live),
+        "target_status": target_status,
     }
     times = np.array([s.time_s for s in samples]) - samples[0].time_s
     extra = {"vehicles_in_formation_at_end": np.array([int(live[0, -1].sum())])}
@@ -195,6 +204,7 @@ def read_steps_csv(path: PathName) -> list[StepRecord]:
                     float(row["time_s"]) + float(row["setpoint_lateness_s"]),
                     _ned(row, "odometry_{}_m"),
                     gated,
+                    target=row.get("target") or "",
                 )
             )
     return records

@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..config import FLIGHT_METRICS, Expectation, MetricName
+from ..enclosing.target import LOST
 
 if TYPE_CHECKING:
     from .simulator import SimulationResult
@@ -28,6 +29,30 @@ def converged_step(error: NDArray[np.float64], tolerance: float) -> NDArray[np.i
     )
     step = last_above + 1
     return np.where(step >= error.shape[-1], -1, step)
+
+
+def first_step(flag: NDArray[np.bool_]) -> NDArray[np.int_]:
+    """First step at which ``flag`` ``(B, K)`` holds; -1 where it never does."""
+    return np.where(flag.any(axis=-1), np.argmax(flag, axis=-1), -1)
+
+
+def max_after_first(error: NDArray[np.float64], tolerance: float) -> NDArray[np.float64]:
+    """Largest ``error`` ``(B, K)`` from the first step it is <= tolerance on (how far a run that
+    had converged strays later: an occlusion, a hand-over); NaN where it never gets there."""
+    reached = error <= tolerance
+    first = np.where(reached.any(axis=-1), np.argmax(reached, axis=-1), error.shape[-1])
+    after = np.arange(error.shape[-1]) >= first[..., None]
+    worst = np.where(after, error, -np.inf).max(axis=-1)
+    return np.where(reached.any(axis=-1), worst, np.nan)
+
+
+#: Metrics whose -1 means "never", which no bound accepts.
+NEVER_IS_NO_VALUE = (
+    "tracking_converged_step",
+    "localization_converged_step",
+    "phase_converged_step",
+    "target_lost_step",
+)
 
 
 def run_metrics(result: SimulationResult) -> dict[str, NDArray[Any]]:
@@ -60,6 +85,10 @@ def run_metrics(result: SimulationResult) -> dict[str, NDArray[Any]]:
         "min_separation_m": result.separation_m.min(axis=-1),
         "final_live_vehicles": result.live[:, -1].sum(axis=-1),
         "gated_ranges": result.gated_ranges.sum(axis=-1),
+        "target_lost_step": first_step(result.target_status == LOST),
+        "max_tracking_error_after_convergence_m": max_after_first(
+            result.tracking_error_m, tolerances.tracking_tolerance_m
+        ),
     }
     # Flight-only metrics (e.g. vehicles disarmed at the end) come with the result; a simulated
     # run has none, and an expectation on them then fails with "no value".
@@ -75,7 +104,7 @@ LOWER_IS_WORSE = {"min_separation_m", "final_live_vehicles"}
 def distribution(values: ArrayLike, name: str) -> dict[str, float | int | None]:
     """Median, p95 and worst of one metric over runs. Convergence steps of -1 count as never."""
     values = np.asarray(values, dtype=float)
-    if name.endswith("_converged_step"):
+    if name in NEVER_IS_NO_VALUE:
         never = int(np.sum(values < 0))
         finite = values[values >= 0]
         if finite.size == 0:
@@ -108,16 +137,23 @@ def check_expectations(
     """Failed expectations as readable strings (empty when the run passes).
 
     expect: the scenario's ``expect`` mapping; metrics: ``{name: scalar}`` of one run. A
-    convergence step of -1 (never) fails any bound on it.
+    convergence step of -1 (never) fails any bound on it. A run that lost its target
+    (``target_lost_step`` >= 0) fails unless ``expect`` bounds ``target_lost_step``: losing the
+    target is a failure of the mission unless the scenario sets out to show it.
     """
     failures = []
+    lost_at = metrics.get("target_lost_step")
+    if "target_lost_step" not in expect and lost_at is not None and lost_at >= 0:
+        failures.append(
+            f"target lost at step {int(lost_at)} (bound target_lost_step in expect: to accept it)"
+        )
     for name, bound in expect.items():
         value = metrics.get(name)
         if value is None:
             if name not in FLIGHT_METRICS:
                 failures.append(f"{name}: not measured")
             continue  # a flight-only bound does not apply to a simulated run
-        never = name.endswith("_converged_step") and value < 0
+        never = name in NEVER_IS_NO_VALUE and value < 0
         if value is None or never or not np.isfinite(value):
             failures.append(f"{name} = {'never' if never else value}: no value to compare")
             continue

@@ -16,12 +16,19 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..config import FLIGHT_ONLY_EVENTS, Scenario
-from ..enclosing import StepOutputs, SwarmEnclosing, splay_spacing_error
+from ..config import FLIGHT_ONLY_EVENTS, FLIGHT_ONLY_SENSORS, Scenario
+from ..enclosing import (
+    LOST,
+    StepOutputs,
+    SwarmEnclosing,
+    TargetTrack,
+    splay_spacing_error,
+    track_target,
+)
 from ..enclosing.separation import separation_guard
 from ..errors import ConfigError, SimulationError
 from ..scenario import shape_matrices, target_positions
-from ..sensors import odometry_drift, odometry_error_step, range_readings
+from ..sensors import odometry_drift, odometry_error_step, range_readings, target_seen
 from ..wiring import algorithm_params, omega_of
 from .metrics import closest_pair, edge_rms, tracking_error
 
@@ -36,7 +43,9 @@ class SimulationResult:
     estimated edges at step k); localization_rms_m ``(B, K)`` (RMS over the estimated edges at
     step k); gated_ranges ``(B, K)`` (ranges the estimators rejected as outliers at step k);
     phase_spacing_error_rad ``(B, K+1)``; consensus_speed_m_s ``(B, K)`` (max over vehicles of
-    |sat(ubar)|); separation_m ``(B, K+1)`` (closest live pair); estimates_m ``(K, N, N+1, 2)``
+    |sat(ubar)|); separation_m ``(B, K+1)`` (closest live pair); target_status ``(B, K)`` (what
+    the formation knew of the target at step k: ``enclosing.target`` OBSERVED, PREDICTED or LOST;
+    a flight's worst over its vehicles); estimates_m ``(K, N, N+1, 2)``
     run 0's phat_ij(k) [north, east] (slot 0 the target; NaN where not estimated), or None
     (flights carry theirs in the controllers' step records; a swarm whose estimates would exceed
     ``ESTIMATES_LIMIT_BYTES`` does not keep them).
@@ -56,6 +65,7 @@ class SimulationResult:
     phase_spacing_error_rad: NDArray[np.float64]
     consensus_speed_m_s: NDArray[np.float64]
     separation_m: NDArray[np.float64]
+    target_status: NDArray[np.int8]
     #: Flight-only metrics, ``{name: (B,) array}`` (see ``config.FLIGHT_METRICS``).
     extra_metrics: dict[str, NDArray[Any]] = field(default_factory=dict)
     estimates_m: NDArray[np.float64] | None = None
@@ -126,6 +136,39 @@ def _event_schedule(scenario: Scenario) -> Callable[[int], NDArray[np.bool_]]:
     return lambda k: (start <= k) & (k < stop)
 
 
+def flight_only_events(scenario: Scenario) -> list[str]:
+    """The scenario's events the numeric model cannot play (empty: it can simulate them all)."""
+    kinds = {e.kind for e in scenario.events} & FLIGHT_ONLY_EVENTS
+    sensors = {
+        f"sensor_lost ({e.sensor})" for e in scenario.events if e.sensor in FLIGHT_ONLY_SENSORS
+    }
+    return sorted(kinds | sensors)
+
+
+def _sensor_windows(scenario: Scenario, sensor: str) -> Callable[[int], NDArray[np.bool_]]:
+    """down(k) -> ``(N,)`` bool: whose ``sensor`` is out at step k (``sensor_lost`` events, and
+    for the tracker ``target_hidden`` occlusions, of one vehicle or of every one)."""
+    ids = [v.id for v in scenario.vehicles]
+    step_s = scenario.timing.step_s
+    windows: list[tuple[NDArray[np.bool_], int, float]] = []
+    for event in scenario.events:
+        hides = event.kind == "target_hidden" and sensor == "tracker"
+        if not (hides or (event.kind == "sensor_lost" and event.sensor == sensor)):
+            continue
+        who = np.array([event.vehicle in (None, i) for i in ids])
+        first, steps = event.step(step_s), event.duration_steps(step_s)
+        windows.append((who, first, np.inf if steps is None else first + steps))
+
+    def down(k: int) -> NDArray[np.bool_]:
+        out = np.zeros(len(ids), dtype=bool)
+        for who, first, end in windows:
+            if first <= k < end:
+                out |= who
+        return out
+
+    return down
+
+
 #: The most memory a simulation may need for its results [bytes]: a scenario that needs more is
 #: refused before anything is allocated (``timing.steps: 10000000`` with ``--runs 100`` once grew
 #: until the machine swapped).
@@ -183,7 +226,7 @@ def simulate(
     if runs < 1:
         raise SimulationError(f"runs must be >= 1, got {runs}")
     check_memory(scenario, runs, f"scenario {scenario.name}")
-    flying_only = sorted({e.kind for e in scenario.events} & FLIGHT_ONLY_EVENTS)
+    flying_only = flight_only_events(scenario)
     if flying_only:
         raise SimulationError(
             f"events {flying_only} need real links and sensors: fly the scenario with "
@@ -200,6 +243,10 @@ def simulate(
     senses = np.array([v.senses_target for v in scenario.vehicles])
     speed_limit = np.array([v.speed_limit_m_s for v in scenario.vehicles])[:, None]
     live_at = _event_schedule(scenario)
+    tracker_down = _sensor_windows(scenario, "tracker")
+    radio_down = _sensor_windows(scenario, "uwb")
+    lost_after_s = scenario.algorithm.target_lost_after_s
+    hold_when_lost = scenario.algorithm.target_on_lost == "hold"
 
     position, phase = initial_conditions(scenario, runs)
     origin = position.copy()
@@ -219,6 +266,7 @@ def simulate(
         "gated_ranges": np.empty((runs, steps), dtype=np.int64),
         "consensus_speed_m_s": np.empty((runs, steps)),
         "separation_m": np.empty((runs, steps + 1)),
+        "target_status": np.empty((runs, steps), dtype=np.int8),
     }
     # Run 0 only (a 1000-run batch would hold 1000 times as much for nobody to look at), and only
     # while small: they grow as N^2.
@@ -226,27 +274,46 @@ def simulate(
     if keep_estimates:
         out["estimates_m"] = np.empty((steps, n, n + 1, 2))
     not_self = ~np.eye(n, n + 1, k=1, dtype=bool)
-    target_column = np.concatenate([senses[:, None], np.ones((n, n), dtype=bool)], axis=1)
+    # One track of the target per run: every vehicle hears every observation at once (the
+    # relay of a complete graph without loss), so every vehicle's track is this one.
+    track = TargetTrack.initial((runs,))
 
     for k in range(steps):
         live = np.broadcast_to(live_at(k), (runs, n))
-        if not (live & senses).any(axis=-1).all():
-            raise SimulationError(f"step {k}: no live vehicle senses the target")
         # True relative positions p_i - p_j on north/east planes (B, N, N+1), slot 0 the target.
         ranged = np.concatenate([np.broadcast_to(target[k], (runs, 1, 2)), position], axis=1)
         truth_north = position[:, :, None, 0] - ranged[:, None, :, 0]
         truth_east = position[:, :, None, 1] - ranged[:, None, :, 1]
         true_ranges = np.sqrt(truth_north * truth_north + truth_east * truth_east)
         out["separation_m"][:, k] = closest_pair(true_ranges[..., 1:], live)
-        measured = not_self & target_column & live[:, :, None]
-        measured &= np.concatenate([np.ones((runs, 1), dtype=bool), live], axis=1)[:, None, :]
+        radio = live & ~radio_down(k)
+        seen = target_seen(
+            true_ranges[..., 0], sensors, noise, looking=live & senses & ~tracker_down(k)
+        )
+        # The target's range comes from the tracker, the others' from the UWB radios.
+        measured = not_self & np.concatenate(
+            [seen[..., None], radio[:, :, None] & radio[:, None, :]], axis=-1
+        )
         ranges = range_readings(true_ranges, sensors, noise, measured=measured)
 
         odometry = position - origin + drift * times[k] + odometry_error
-        odometry = np.where(live[..., None], odometry, np.nan)
-        target_odometry = np.broadcast_to(target[k] - target[0], (runs, 1, 2))
-        odometry = np.concatenate([target_odometry, odometry], axis=1)
-        target_velocity = (target[k + 1] - target[k]) / step_s
+        observed = np.asarray(np.isfinite(ranges[..., 0]).any(axis=-1))
+        track, target_estimate = track_target(
+            track,
+            k,
+            velocity_m_s=np.where(observed[:, None], (target[k + 1] - target[k]) / step_s, np.nan),
+            observed_step=np.where(observed, float(k), np.nan),
+            own_odometry_m=np.where(observed[:, None], target[k] - target[0], np.nan),
+            step_s=step_s,
+            lost_after_s=lost_after_s,
+        )
+        lost = target_estimate.status == LOST
+        holding = lost & hold_when_lost
+        # A formation holding for a lost target does not estimate (it does not move: the
+        # regressors would be zero), as a flying controller that holds does not.
+        odometry = np.where(live[..., None] & ~holding[:, None, None], odometry, np.nan)
+        odometry = np.concatenate([target_estimate.odometry_m[:, None, :], odometry], axis=1)
+        target_velocity = target_estimate.velocity_m_s
 
         out["phases_rad"][:, k] = swarm.phase_rad
         step = swarm.step(
@@ -283,7 +350,8 @@ def simulate(
         previous_odometry = odometry[:, 1:]
         norm = np.sqrt(np.sum(command * command, axis=-1, keepdims=True))
         command = command * np.minimum(1.0, speed_limit / np.maximum(norm, 1e-300))
-        command = np.where(live[..., None], command, 0.0)
+        command = np.where(live[..., None] & ~holding[:, None, None], command, 0.0)
+        out["target_status"][:, k] = target_estimate.status
         out["commands_m_s"][:, k] = command
         out["positions_m"][:, k] = position
         out["live"][:, k] = live

@@ -7,7 +7,9 @@ Published where real drivers on companion computers would publish them - on the 
   sampled at every step boundary t_k = start + kT (``step = k``), with Gaussian noise, dropouts and
   a maximum range from the scenario's ``sensors:``;
 - ``vehicle/<id>/target``: :class:`TargetObservation` for vehicles that sense the target, its
-  horizontal range and velocity (what a radar or vision tracker gives), at the same instants.
+  horizontal range and velocity (what a radar or vision tracker gives), at the same instants; or,
+  when the tracker does not see it (beyond ``sensors.target_sensing_range_m``, a random miss, an
+  occlusion, a failed tracker), an explicit "not seen", so the controller does not wait for it.
 
 The target is not a MAVLink vehicle: it follows the scenario's path, standing at its start point
 until the mission starts. Sampling runs synchronously inside the emulator's physics step (its step
@@ -29,7 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..bus import BusError, RangeMessage, TargetObservation
 from ..scenario import target_positions
-from ..sensors import measure_ranges
+from ..sensors import measure_ranges, target_seen
 from ..sim.metrics import TruthSample
 
 if TYPE_CHECKING:
@@ -88,7 +90,8 @@ class World:
         self.start_s: float | None = None
         self._next_step = 0
         self._rng = np.random.default_rng([seed, 7])
-        self._down: dict[tuple[int, str], tuple[float, float]] = {}  # -> (from_s, until_s)
+        # (index or None for every vehicle, sensor) -> windows [(from_s, until_s)]
+        self._down: dict[tuple[int | None, str], list[tuple[float, float]]] = {}
         self._queue: asyncio.Queue[tuple[str, RangeMessage | TargetObservation]] = asyncio.Queue()
         self._stack = contextlib.AsyncExitStack()
         self._task: asyncio.Task[None] | None = None
@@ -157,7 +160,21 @@ class World:
         observations) stops at ``at_s`` for ``duration_s`` seconds (default: for good)."""
         if sensor not in ("uwb", "tracker"):
             raise ValueError(f"unknown world sensor {sensor!r}; use 'uwb' or 'tracker'")
-        self._down[index, sensor] = (at_s, math.inf if duration_s is None else at_s + duration_s)
+        self._add_window(index, sensor, at_s, duration_s)
+
+    def hide_target(
+        self, at_s: float, duration_s: float | None = None, index: int | None = None
+    ) -> None:
+        """The target is hidden from vehicle ``index``'s tracker (default: from every tracker)
+        from ``at_s`` for ``duration_s`` seconds (default: for good); the trackers report it
+        not seen."""
+        self._add_window(index, "tracker", at_s, duration_s)
+
+    def _add_window(
+        self, index: int | None, sensor: str, at_s: float, duration_s: float | None
+    ) -> None:
+        until_s = math.inf if duration_s is None else at_s + duration_s
+        self._down.setdefault((index, sensor), []).append((at_s, until_s))
 
     def target_position(self, time_s: float) -> NDArray[np.float64]:
         """The target's true ``[north, east]`` at mission time ``time_s``."""
@@ -170,8 +187,8 @@ class World:
         return (self.target_position(time_s + delta_s) - self.target_position(time_s)) / delta_s
 
     def _working(self, index: int, sensor: str, time_s: float) -> bool:
-        window = self._down.get((index, sensor))
-        return window is None or not (window[0] <= time_s < window[1])
+        windows = self._down.get((index, sensor), []) + self._down.get((None, sensor), [])
+        return not any(start <= time_s < until for start, until in windows)
 
     def _on_step(self, time_s: float, truth: Truth) -> None:
         if self.start_s is None:
@@ -197,9 +214,8 @@ class World:
             topics=self.topics,
             positions_m=position,
             ranging=alive & [self._working(i, "uwb", t_k) for i in range(count)],
-            tracking=self.senses_target
-            & alive
-            & [self._working(i, "tracker", t_k) for i in range(count)],
+            tracking=self.senses_target & alive,
+            target_hidden=[not self._working(i, "tracker", t_k) for i in range(count)],
             target_m=target,
             target_velocity_m_s=self.target_velocity(t_k),
             sensors=self.sensors,
@@ -233,14 +249,18 @@ def step_measurements(
     target_velocity_m_s: ArrayLike,
     sensors: SensorConfig,
     rng: Rng,
+    target_hidden: ArrayLike | None = None,
 ) -> list[tuple[str, RangeMessage | TargetObservation]]:
     """What the UWB radios and target trackers report for step ``k`` (time ``t_k``), as
     ``(topic, message)`` pairs: a :class:`RangeMessage` per ranged ordered pair, a
-    :class:`TargetObservation` (horizontal range and the target's velocity) per tracking vehicle.
+    :class:`TargetObservation` per tracking vehicle: the target's horizontal range and velocity
+    where its tracker sees it, "not seen" where not.
 
     positions_m: ``(n, 3)`` true NED positions [m] (NaN rows: unknown); ranging ``(n,)`` bool:
-    radios that work; tracking ``(n,)`` bool: vehicles whose tracker sees the target; target_m
-    ``(2,)``, target_velocity_m_s ``(2,)`` north/east; sensors: the scenario's ``SensorConfig``.
+    radios that work; tracking ``(n,)`` bool: vehicles with a tracker that reports;
+    target_hidden ``(n,)`` bool: trackers the target is hidden from (occluded, failed); target_m
+    ``(2,)``, target_velocity_m_s ``(2,)`` north/east; sensors: the scenario's ``SensorConfig``
+    (its sensing range and misses apply here, :func:`mission_runner.sensors.target_seen`).
     """
     positions_m = np.asarray(positions_m, dtype=float)
     ranging = np.asarray(ranging, dtype=bool)
@@ -252,14 +272,23 @@ def step_measurements(
         )
         for i, j in zip(*(index.tolist() for index in np.nonzero(np.isfinite(ranges))), strict=True)
     ]
+    tracking = np.asarray(tracking, dtype=bool)
+    hidden = np.zeros_like(tracking) if target_hidden is None else np.asarray(target_hidden, bool)
     sensing = np.flatnonzero(tracking)
-    horizontal = measure_ranges(
-        positions_m[sensing, :2], sensors, rng, to_m=np.asarray(target_m, dtype=float)[None, :2]
-    )[:, 0]
+    target_2d = np.asarray(target_m, dtype=float)[:2]
+    horizontal = measure_ranges(positions_m[sensing, :2], sensors, rng, to_m=target_2d[None])[:, 0]
+    gap = positions_m[sensing, :2] - target_2d
+    seen = target_seen(
+        np.sqrt(np.sum(gap * gap, axis=-1)), sensors, rng, looking=~hidden[sensing]
+    ) & np.isfinite(horizontal)
     north_m_s, east_m_s = (float(v) for v in np.asarray(target_velocity_m_s, dtype=float))
     messages += [
-        (topics.target(ids[i]), TargetObservation(ids[i], t_k, float(r), north_m_s, east_m_s))
-        for i, r in zip(sensing.tolist(), horizontal, strict=True)
-        if np.isfinite(r)
+        (
+            topics.target(ids[i]),
+            TargetObservation(ids[i], t_k, float(r), north_m_s, east_m_s)
+            if visible
+            else TargetObservation.not_seen(ids[i], t_k),
+        )
+        for i, r, visible in zip(sensing.tolist(), horizontal, seen.tolist(), strict=True)
     ]
     return messages

@@ -22,6 +22,7 @@ from mission_runner.bus import (
     TargetObservation,
     TopicKind,
     VehicleStatus,
+    shared_range,
 )
 
 finite = st.floats(allow_nan=False, allow_infinity=False)
@@ -48,6 +49,18 @@ step_messages = st.builds(
     target_odometry_east_m=finite,
     target_velocity_north_m_s=finite,
     target_velocity_east_m_s=finite,
+)
+shared_ranges = st.builds(
+    StepMessage,
+    vehicle_id=st.just(1),
+    step=st.integers(0, 10**9),
+    time_s=finite,
+    phase_rad=finite,
+    odometry_north_m=finite,
+    odometry_east_m=finite,
+    ranges_m=st.dictionaries(st.integers(2, 4096), non_negative.map(shared_range)).map(
+        lambda ranges: tuple(sorted(ranges.items()))
+    ),
 )
 range_messages = st.builds(
     RangeMessage,
@@ -81,7 +94,12 @@ vehicle_statuses = st.builds(
     detail=st.text(),
 )
 any_message = (
-    step_messages | range_messages | target_observations | mission_controls | (vehicle_statuses)
+    step_messages
+    | shared_ranges
+    | range_messages
+    | target_observations
+    | mission_controls
+    | (vehicle_statuses)
 )
 
 STEP = StepMessage(
@@ -122,6 +140,14 @@ def test_step_message_payload_names_units_in_keys() -> None:
     assert not STEP.has_target
 
 
+def test_shared_ranges_travel_as_compact_pairs() -> None:
+    message = StepMessage(2, 41, 5.125, 0.0, 0.0, 0.0, ranges_m=((1, shared_range(4.123456789)),))
+    assert b'"ranges_m":[[1,4.1235]]' in message.to_payload()
+    decoded = StepMessage.from_payload(message.to_payload())
+    assert decoded.ranges_m == ((1, 4.1235),)
+    assert isinstance(decoded.ranges_m, tuple)
+
+
 def test_integers_are_accepted_for_float_fields_and_stored_as_floats() -> None:
     message = StepMessage(1, 0, 0, 0, 1, 2)
     assert isinstance(message.odometry_north_m, float)
@@ -143,7 +169,23 @@ def test_every_topic_kind_has_a_message_type() -> None:
         (lambda: StepMessage(1, 0, "0", 0.0, 0.0, 0.0), "time_s must be a number"),
         (
             lambda: StepMessage(1, 0, 0.0, 0.0, 0.0, 0.0, target_odometry_north_m=1.0),
-            "all set",
+            "set as a pair",
+        ),
+        (lambda: StepMessage(2, 0, 0.0, 0.0, 0.0, 0.0, ranges_m=((2, 1.0),)), "another vehicle"),
+        (lambda: StepMessage(2, 0, 0.0, 0.0, 0.0, 0.0, ranges_m=((0, 1.0),)), "another vehicle"),
+        (lambda: StepMessage(2, 0, 0.0, 0.0, 0.0, 0.0, ranges_m=((3, -1.0),)), "must be >= 0"),
+        (lambda: StepMessage(2, 0, 0.0, 0.0, 0.0, 0.0, ranges_m=((3, 1.0), (3, 2.0))), "twice"),
+        (
+            lambda: StepMessage(2, 0, 0.0, 0.0, 0.0, 0.0, ranges_m=((3, math.nan),)),
+            r"ranges_m\[0\]\[1\] must be finite",
+        ),
+        (lambda: StepMessage(2, 0, 0.0, 0.0, 0.0, 0.0, ranges_m=((3,),)), "must have 2 entries"),
+        (lambda: StepMessage(2, 0, 0.0, 0.0, 0.0, 0.0, ranges_m="3:1.0"), "must be an array"),
+        (
+            lambda: StepMessage(
+                2, 0, 0.0, 0.0, 0.0, 0.0, ranges_m=tuple((p, 1.0) for p in range(3, 5000))
+            ),
+            "at most 4096",
         ),
         (lambda: RangeMessage(1, 1, 0.0, 1.0), "peer_id must differ"),
         (lambda: RangeMessage(1, -1, 0.0, 1.0), "peer_id must be >= 0"),

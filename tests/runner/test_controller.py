@@ -16,7 +16,14 @@ import math
 import numpy as np
 import pytest
 
-from mission_runner.bus import RangeMessage, StepMessage, VehicleStatus, open_bus
+from mission_runner.bus import (
+    RangeMessage,
+    StepMessage,
+    TargetObservation,
+    VehicleStatus,
+    open_bus,
+    shared_range,
+)
 from mission_runner.config import validate_scenario
 from mission_runner.enclosing import NeighbourReport, TargetReport, VehicleEnclosing
 from mission_runner.runner.controller import build_controller
@@ -38,13 +45,13 @@ def t_(k):
     return START_S + k * T
 
 
-def make_scenario(*, flight=None, speed_limit_m_s=10.0):
+def make_scenario(*, flight=None, speed_limit_m_s=10.0, sensing=(1,), **algorithm):
     vehicles = [
         {
             "id": vehicle_id,
             "initial_position_m": list(ORIGINS[vehicle_id]),
             "initial_phase_rad": PHASES[vehicle_id],
-            "senses_target": vehicle_id == 1,
+            "senses_target": vehicle_id in sensing,
             "altitude_m": ALTITUDES[vehicle_id],
         }
         for vehicle_id in (1, 2, 3)
@@ -60,6 +67,7 @@ def make_scenario(*, flight=None, speed_limit_m_s=10.0):
                 "forgetting_factor": 0.7,
                 "omega_rad_s": OMEGA,
                 "radius_m": 4.0,
+                **algorithm,
             },
             "target": {"path": {"kind": "line", "start_m": [0.0, 0.0], "velocity_m_s": [0.8, 0]}},
             "vehicles": vehicles,
@@ -146,6 +154,10 @@ class FakeClock:
     def release(self, time_s):
         self.released.append(time_s)
 
+    @contextlib.asynccontextmanager
+    async def commanding(self, released_s):
+        yield
+
     async def sleep_until(self, time_s):
         self.now = max(self.now, time_s)
         if self.on_wake is not None:
@@ -175,7 +187,16 @@ class Neighbours:
         self.heights = True  # step messages carry odometry_down_m
         self.ranges_3d = True  # ranges as UWB measures them (else already horizontal)
         self.on_time = {}  # step -> {peer: Delivered}
+        self.shared = None  # peer -> what its radio reads more than vehicle 2's (shared ranges)
         self._held_back = []
+        # k -> vehicle 1's relay fields at step k (default: it observes the target itself).
+        self.relay = lambda k: {
+            "target_odometry_north_m": TARGET_VELOCITY[0] * k * T,
+            "target_odometry_east_m": TARGET_VELOCITY[1] * k * T,
+            "target_velocity_north_m_s": TARGET_VELOCITY[0],
+            "target_velocity_east_m_s": TARGET_VELOCITY[1],
+        }
+        self.own_tracker = None  # k -> vehicle 2's TargetObservation at t_k, if it has a tracker
 
     def inputs(self, k, peer):
         """Neighbour ``peer``'s step-k message and vehicle 2's range to it, and the horizontal
@@ -188,14 +209,7 @@ class Neighbours:
         )
         down = -ALTITUDES[peer]
         measured = math.hypot(horizontal, own_down - down) if self.ranges_3d else horizontal
-        relay = {}
-        if peer == 1:
-            relay = {
-                "target_odometry_north_m": TARGET_VELOCITY[0] * s,
-                "target_odometry_east_m": TARGET_VELOCITY[1] * s,
-                "target_velocity_north_m_s": TARGET_VELOCITY[0],
-                "target_velocity_east_m_s": TARGET_VELOCITY[1],
-            }
+        relay = self.relay(k) if peer == 1 else {}
         message = StepMessage(
             peer,
             k,
@@ -204,6 +218,9 @@ class Neighbours:
             north - ORIGINS[peer][0],
             east - ORIGINS[peer][1],
             odometry_down_m=down if self.heights else None,
+            ranges_m=None
+            if self.shared is None
+            else ((OWN, shared_range(measured + self.shared[peer])),),
             **relay,
         )
         return message, RangeMessage(OWN, peer, t_(k), measured, step=k), horizontal
@@ -214,6 +231,10 @@ class Neighbours:
         for topic, message in self._held_back:
             await self.bus.publish_message(topic, message, timeout=1.0)
         self._held_back.clear()
+        if self.own_tracker is not None:
+            observation = self.own_tracker(k)
+            if observation is not None:
+                await self.bus.publish_message(self.topics.target(OWN), observation, timeout=1.0)
         if k in self.silent:
             return
         for peer in PEERS:
@@ -728,3 +749,135 @@ async def test_impossible_ranges_never_reach_the_estimator_and_are_counted():
             )
     assert gate is not None
     assert gate.rejected == {"invalid": 0, "beyond_reach": steps, "jump": 2 * steps}
+
+
+# --- shared ranges -------------------------------------------------------------------------------
+
+
+@pytest.mark.asyncio
+async def test_shared_ranges_go_out_in_the_step_message_and_come_back_to_the_law():
+    """With ``algorithm.shared_ranges`` vehicle 2 publishes its step-k ranges (rounded as
+    carried) and hands the law, beside its own, the ranges its neighbours measured to it; a
+    neighbour whose message is missing leaves the own range alone."""
+    given = []
+
+    def setup(flight):
+        flight.neighbours.shared = {1: 0.1, 3: -0.05}
+        flight.neighbours.lost = {3: {1}}
+        flight.neighbours.ranges_3d = flight.neighbours.heights = False
+        law_step = flight.controller.law.step
+
+        def spy(**kwargs):
+            given.append(kwargs)
+            return law_step(**kwargs)
+
+        flight.controller.law.step = spy
+
+    async with rig(make_scenario(shared_ranges=True, estimator="ekf")) as flight:
+        setup(flight)
+        records = await flight.fly(5)
+        published = flight.published_steps()
+        delivered = flight.neighbours.on_time
+
+    for k, (message, inputs) in enumerate(zip(published, given, strict=True)):
+        measured = {peer: d.horizontal_range_m for peer, d in delivered[k].items()}
+        own = {peer: shared_range(value) for peer, value in measured.items()}
+        assert message.ranges_m == tuple(sorted(own.items()))
+        assert inputs["ranges_m"] == own == records[k].ranges_m
+        offsets = flight.neighbours.shared
+        expected = {peer: shared_range(measured[peer] + offsets[peer]) for peer in measured}
+        assert inputs["peer_ranges_m"] == pytest.approx(expected, abs=1e-12)
+    assert sorted(given[3]["peer_ranges_m"]) == [3]
+
+
+# --- the target hidden ---------------------------------------------------------------------------
+
+
+def relayed_since(step):
+    """Vehicle 1's relay when it last saw the target at ``step``: the freshest observation."""
+    return {
+        "target_velocity_north_m_s": TARGET_VELOCITY[0],
+        "target_velocity_east_m_s": TARGET_VELOCITY[1],
+        "target_observed_step": step,
+    }
+
+
+def own_observation(k, *, seen):
+    """Vehicle 2's tracker at t_k: the target (on the scenario's line) seen, or not."""
+    if not seen:
+        return TargetObservation.not_seen(OWN, t_(k))
+    s = k * T
+    north, east, _ = wandering(s)
+    gap = (ORIGINS[OWN][0] + north - TARGET_VELOCITY[0] * s, ORIGINS[OWN][1] + east)
+    return TargetObservation(OWN, t_(k), math.hypot(*gap), *TARGET_VELOCITY)
+
+
+@pytest.mark.asyncio
+async def test_a_target_nobody_sees_is_predicted_then_declared_lost_and_held_for():
+    steps = 16
+    async with rig(target_lost_after_s=1.0) as flight:
+        seen = flight.neighbours.relay
+        flight.neighbours.relay = lambda k: seen(k) if k < 5 else relayed_since(4)
+        records = await flight.fly(steps)
+        statuses = flight.statuses()
+        published = flight.published_steps()
+        delivered = flight.neighbours.on_time
+
+    # Last seen at step 4: predicted while unseen for at most 1 s (steps 5-12), then lost.
+    assert [r.target for r in records] == ["observed"] * 5 + ["predicted"] * 8 + ["lost"] * 3
+    assert [r.state for r in records] == ["following"] * 13 + ["target_lost"] * 3
+    # Predicted at constant velocity: the same commands as with the target in sight.
+    expected = law_alone(flight.scenario, delivered, 13)
+    for setpoint, (_, command) in zip(flight.link.setpoints, expected, strict=False):
+        np.testing.assert_allclose(horizontal(setpoint), command.velocity_m_s, atol=1e-9)
+    # Lost: it holds (target_on_lost: hold) and never says it follows.
+    assert all(
+        horizontal(setpoint).tolist() == [0.0, 0.0] for setpoint in flight.link.setpoints[13:]
+    )
+    assert [s.state for s in statuses[13:]] == ["target_lost"] * 3
+    assert not any(s.tracking_ok for s in statuses[13:])
+    assert statuses[13].detail == f"target not seen for {9 * T:.2f} s"
+    # It relays the freshest observation it knows of, so every vehicle predicts alike.
+    assert published[0].relayed_target is None  # nothing heard yet when it sends step 0
+    assert [m.relayed_target for m in published[1:]] == [
+        (min(k - 1, 4), TARGET_VELOCITY) for k in range(1, steps)
+    ]
+
+
+@pytest.mark.asyncio
+async def test_vehicle_1_lost_hands_the_target_over_to_vehicle_2_which_sees_it_by_then():
+    steps = 14
+    async with rig(make_scenario(sensing=(1, 2))) as flight:
+        flight.neighbours.own_tracker = lambda k: own_observation(k, seen=k >= 3)
+        flight.neighbours.lost = {k: {1} for k in range(6, steps)}
+        records = await flight.fly(steps)
+        published = flight.published_steps()
+
+    assert [r.target for r in records] == ["observed"] * steps
+    assert [r.state for r in records] == ["following"] * steps
+    assert all(0 in r.ranges_m for r in records[3:]) and not any(
+        0 in r.ranges_m for r in records[:3]
+    )
+    assert all(0 in r.estimates_m for r in records[3:])  # its own edge to the target
+    # From step 3 it relays its own observations (with the target's odometry in its frame).
+    assert [m.has_target for m in published] == [False] * 3 + [True] * (steps - 3)
+    assert [m.relayed_target for m in published[3:]] == [
+        (k, TARGET_VELOCITY) for k in range(3, steps)
+    ]
+    np.testing.assert_allclose(
+        [m.target_odometry_north_m - published[3].target_odometry_north_m for m in published[3:]],
+        [TARGET_VELOCITY[0] * (k - 3) * T for k in range(3, steps)],
+        atol=1e-12,
+    )
+
+
+@pytest.mark.asyncio
+async def test_in_lockstep_a_not_seen_observation_is_not_waited_for():
+    # An hour's wall deadline: waiting for an observation that is known not to come would hang.
+    async with rig(make_scenario(sensing=(1, 2)), wall_deadline_s=3600.0) as flight:
+        flight.clock.lockstep = True
+        flight.neighbours.own_tracker = lambda k: own_observation(k, seen=False)
+        async with asyncio.timeout(60):
+            records = await flight.fly(6)
+    assert [r.target for r in records] == ["observed"] * 6  # vehicle 1 still sees it
+    assert not any(0 in r.ranges_m for r in records)

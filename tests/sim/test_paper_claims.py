@@ -5,9 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mission_runner.config import FLIGHT_ONLY_EVENTS, load_scenario, validate_scenario
+from mission_runner.config import load_scenario, validate_scenario
+from mission_runner.enclosing import LOST
 from mission_runner.sim.metrics import check_expectations, run_metrics
-from mission_runner.sim.simulator import simulate
+from mission_runner.sim.simulator import flight_only_events, simulate
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -101,13 +102,18 @@ def test_flight_only_events_are_refused_with_a_pointer_to_run():
         simulate(load_scenario(CONFIGS / "link_lost_flight.yaml"))
 
 
-def test_losing_the_only_sensing_vehicle_is_a_clear_error():
-    from mission_runner.errors import SimulationError
-
+def test_losing_the_only_sensing_vehicle_is_predicted_then_lost():
+    # Nobody senses the target from step 10: every vehicle predicts it for target_lost_after_s,
+    # then the formation declares it lost (it used to be an error of the simulator).
     data = scenario_data()
     data["events"] = [{"kind": "vehicle_lost", "vehicle": 1, "at_step": 10}]
-    with pytest.raises(SimulationError, match="step 10: no live vehicle senses the target"):
-        simulate(validate_scenario(data))
+    data["algorithm"]["target_lost_after_s"] = 2.0
+    result = simulate(validate_scenario(data))
+    step_s = data["timing"]["step_s"]
+    lost_at = 10 - 1 + round(2.0 / step_s) + 1  # last seen at 9; lost once 2 s have passed
+    assert run_metrics(result)["target_lost_step"][0] == lost_at
+    lost = result.target_status[0] == LOST
+    assert lost[lost_at:].all() and not lost[:lost_at].any()
 
 
 def test_sheared_and_translated_shapes_are_followed():
@@ -125,7 +131,7 @@ def simulable():
     names = []
     for path in sorted(CONFIGS.glob("*.yaml")):
         scenario = load_scenario(path)
-        if not {e.kind for e in scenario.events} & FLIGHT_ONLY_EVENTS:
+        if not flight_only_events(scenario):
             names.append(path.stem)
     return names
 

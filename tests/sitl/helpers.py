@@ -15,14 +15,19 @@ import asyncio
 import contextlib
 import math
 import random
-import socket
 from collections.abc import Callable, Iterator
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.autopilot import Px4Autopilot, Snapshot
-from sitl.config import FlightLogConfig, PortsConfig, StreamRates, TruthStreamConfig
+from sitl.config import (
+    FlightLogConfig,
+    PortsConfig,
+    StreamRates,
+    TruthStreamConfig,
+    udp_port_free,
+)
 from sitl.geo import MapProjection
 from sitl.gnss import GnssError
 from sitl.modes import FlightMode
@@ -225,44 +230,16 @@ class Bench:
 
 
 # ---------------------------------------------------------------------- network helpers
-def _udp_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        try:
-            sock.bind(("0.0.0.0", port))
-        except OSError:
-            return False
-    return True
-
-
 def free_port_config(n: int, *, gcs: bool = True, **overrides: Any) -> PortsConfig:
     """A PortsConfig whose every port (vehicles' and clients') is free right now."""
-    rng = random.Random()
-    for _ in range(200):
-        base = rng.randrange(20000, 60000 - 4 * (n + 10), 10)
-        api_remote = base
-        api_local = base + n + 5
-        gcs_local = api_local + n + 5
-        gcs_remote = gcs_local + n + 5
-        ports = [*range(api_remote, api_remote + n), *range(api_local, api_local + n)]
-        if gcs:
-            ports += [*range(gcs_local, gcs_local + n), gcs_remote]
-        if all(_udp_free(p) for p in ports):
-            return PortsConfig(
-                api_remote_base=api_remote,
-                api_local_base=api_local,
-                gcs_local_base=gcs_local,
-                gcs_remote_port=gcs_remote,
-                gcs_enabled=gcs,
-                **overrides,
-            )
-    raise RuntimeError("no free UDP port range found")
+    return PortsConfig.free(n, gcs=gcs, **overrides)
 
 
 def _free_run(n: int, rng: random.Random, avoid: set[int]) -> int:
     for _ in range(200):
         base = rng.randrange(20000, 60000 - n - 10, 10)
         run = set(range(base, base + n))
-        if not run & avoid and all(_udp_free(p) for p in run):
+        if not run & avoid and all(udp_port_free(p) for p in run):
             return base
     raise RuntimeError("no free UDP port range found")
 

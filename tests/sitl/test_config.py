@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
+import socket
+
 import pytest
 from pydantic import BaseModel, ValidationError
 
 from sitl import config as cfg
-from sitl.config import EmulatorConfig, PortsConfig
+from sitl.config import EmulatorConfig, PortsConfig, udp_port_free
 
 
 def test_defaults_follow_px4_sitl() -> None:
@@ -110,3 +113,20 @@ def test_every_field_has_a_title_and_a_description(model: type[BaseModel]) -> No
     for name, field in model.model_fields.items():
         assert field.title, f"{model.__name__}.{name} has no title"
         assert field.description, f"{model.__name__}.{name} has no description"
+
+
+def test_ports_auto_picks_free_ports_for_every_vehicle_and_client():
+    # PX4 SITL (or anything else) on the default ports must not stop an emulated run.
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as squatter:
+        with contextlib.suppress(OSError):  # already held by something else: the point
+            squatter.bind(("0.0.0.0", 14580))
+        config = EmulatorConfig.model_validate({"vehicles": 3, "ports": "auto"})
+    ports = config.ports
+    used = [
+        *(ports.api_remote_port(i) for i in range(3)),
+        *(ports.api_local_port(i, 3) for i in range(3)),
+        *(ports.gcs_local_port(i) for i in range(3)),
+        ports.gcs_remote_port,
+    ]
+    assert 14580 not in used and len(set(used)) == len(used)
+    assert all(udp_port_free(port) for port in used)

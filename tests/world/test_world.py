@@ -101,3 +101,40 @@ async def test_a_failed_uwb_stops_every_range_from_and_to_it():
     faults = [(1, "uwb", 0.0, None)]  # vehicle index 1 (id 2) from the start
     ranges, _, _ = await collect(SensorConfig(), seconds=3, faults=faults)
     assert ranges and all(2 not in (m.vehicle_id, m.peer_id) for m in ranges)
+
+
+async def test_trackers_say_not_seen_beyond_range_when_hidden_and_at_a_miss():
+    from mission_runner.world import step_measurements
+
+    topics = Topics("unit")
+    positions = np.array([[1.0, 0.0, -5.0], [6.0, 0.0, -5.0], [0.0, 2.0, -5.0], [0.0, 3.0, -5.0]])
+
+    def observations(sensors, hidden=(False, False, False, False), tracking=(True,) * 4):
+        measured = step_measurements(
+            3,
+            1.5,
+            ids=[1, 2, 3, 4],
+            topics=topics,
+            positions_m=positions,
+            ranging=np.zeros(4, dtype=bool),
+            tracking=np.array(tracking),
+            target_hidden=np.array(hidden),
+            target_m=[0.0, 0.0],
+            target_velocity_m_s=[0.8, 0.0],
+            sensors=sensors,
+            rng=np.random.default_rng(0),
+        )
+        return {m.vehicle_id: m for _, m in measured if isinstance(m, TargetObservation)}
+
+    # Within 4 m: seen (horizontal range, velocity); beyond: an explicit "not seen".
+    seen = observations(SensorConfig(target_sensing_range_m=4.0))
+    assert {i: o.seen for i, o in seen.items()} == {1: True, 2: False, 3: True, 4: True}
+    assert seen[1].range_m == pytest.approx(1.0)
+    assert (seen[1].velocity_north_m_s, seen[1].velocity_east_m_s) == (0.8, 0.0)
+    assert seen[2].range_m is None and seen[2].velocity_north_m_s is None
+    # Occluded: "not seen" too; a vehicle without a working tracker reports nothing.
+    hidden = observations(SensorConfig(), hidden=(True, False, False, False), tracking=(1, 1, 1, 0))
+    assert {i: o.seen for i, o in hidden.items()} == {1: False, 2: True, 3: True}
+    # Random misses: every tracker misses when the probability is (almost) 1.
+    missed = observations(SensorConfig(target_dropout_probability=0.999999))
+    assert not any(o.seen for o in missed.values()) and len(missed) == 4
