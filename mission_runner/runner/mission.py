@@ -313,7 +313,6 @@ async def fly(
                         )
                 start_s = math.ceil((emulator.time_s + flight.start_delay_s) / step_s) * step_s
                 world.start(start_s)
-                _schedule_events(scenario, emulator, world, start_s)
                 mission_started = time.perf_counter()
                 start.set_result(start_s)
                 await before_mission.aclose()  # from here on the controllers pace the clock
@@ -534,31 +533,3 @@ def _controllers(
             scenario.vehicles, vehicles, buses, clocks, strict=True
         )
     ]
-
-
-def _schedule_events(scenario: Scenario, emulator: Emulator, world: World, start_s: float) -> None:
-    index_of = {vehicle.id: index for index, vehicle in enumerate(scenario.vehicles)}
-    step_s = scenario.timing.step_s
-    for event in scenario.events:
-        index = None if event.vehicle is None else index_of[event.vehicle]
-        at_s = start_s + event.step(step_s) * step_s
-        # A window ends half a step before the first step it no longer covers, so that it covers
-        # the same steps in flight as in simulate whatever the rounding of the sample times.
-        steps = event.duration_steps(step_s)
-        window_s = None if steps is None else (steps - 0.5) * step_s
-        if event.kind == "target_hidden":
-            world.hide_target(at_s, window_s, index)
-        elif index is None:  # validation gives every other event its vehicle
-            raise RunnerError(f"event {event.kind} names no vehicle")
-        elif event.kind == "vehicle_lost":
-            emulator.kill_vehicle(index, at_s=at_s)
-        elif event.kind == "link_lost":
-            emulator.drop_link(index, "all", at_s=at_s, duration_s=event.duration_s)
-        elif event.kind == "taken_over":
-            emulator.take_over(index, event.mode, at_s=at_s)
-        elif event.kind == "sensor_lost" and event.sensor == "flow":
-            emulator.fail_sensor(index, "flow", at_s=at_s, duration_s=event.duration_s)
-        elif event.kind == "sensor_lost" and event.sensor is not None:  # validation gives one
-            world.fail_sensor(index, event.sensor, at_s=at_s, duration_s=window_s)
-        else:
-            raise RunnerError(f"event {event.kind} cannot be flown (simulate it instead)")

@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..bus import BusError, RangeMessage, TargetObservation
+from ..errors import MissionRunnerError
 from ..scenario import target_positions
 from ..sensors import measure_ranges, target_seen
 from ..sim.metrics import TruthSample
@@ -38,7 +39,7 @@ if TYPE_CHECKING:
     from sitl.emulator import Emulator, Truth
 
     from ..bus import Bus, BusClient, Topics
-    from ..config import Scenario, SensorConfig, TargetPath
+    from ..config import EventConfig, Scenario, SensorConfig, TargetPath
     from ..sensors import Rng
 
 logger = logging.getLogger(__name__)
@@ -76,6 +77,7 @@ class World:
         step_s: float,
         seed: int = 0,
         time_offset_s: float = 0.0,
+        events: Sequence[EventConfig] = (),
     ) -> None:
         self.emulator = emulator
         self.bus = bus
@@ -87,6 +89,7 @@ class World:
         self.sensors = sensors
         self.step_s = step_s
         self.time_offset_s = time_offset_s
+        self.events = list(events)
         self.start_s: float | None = None
         self._next_step = 0
         self._rng = np.random.default_rng([seed, 7])
@@ -141,6 +144,7 @@ class World:
             step_s=scenario.timing.step_s,
             seed=scenario.seed,
             time_offset_s=time_offset_s,
+            events=scenario.events,
         )
 
     @property
@@ -149,9 +153,48 @@ class World:
         return self._queue.empty()
 
     def start(self, start_s: float) -> None:
-        """The mission's k = 0 is at ``start_s``: the target starts moving, ranging begins."""
+        """The mission's k = 0 is at ``start_s``: the target starts moving, ranging begins, and
+        the scenario's ``events`` are scheduled on the emulator and the world."""
         self.start_s = start_s
         self._next_step = 0
+        self._schedule_events(start_s)
+
+    def _schedule_events(self, start_s: float) -> None:
+        """Every event at t_k of its step: the world's own (sensors, the target hidden) on the
+        mission clock, the vehicles' faults on the emulator's (``time_offset_s`` earlier)."""
+        index_of = {vehicle_id: index for index, vehicle_id in enumerate(self.vehicle_ids)}
+        step_s = self.step_s
+        for event in self.events:
+            index = None if event.vehicle is None else index_of[event.vehicle]
+            at_s = start_s + event.step(step_s) * step_s
+            emulator_at_s = at_s - self.time_offset_s
+            # A window ends half a step before the first step it no longer covers, so that it
+            # covers the same steps in flight as in simulate whatever the rounding of the sample
+            # times.
+            steps = event.duration_steps(step_s)
+            window_s = None if steps is None else (steps - 0.5) * step_s
+            if event.kind == "target_hidden":
+                self.hide_target(at_s, window_s, index)
+            elif index is None:  # validation gives every other event its vehicle
+                raise MissionRunnerError(f"event {event.kind} names no vehicle")
+            elif event.kind == "vehicle_lost":
+                self.emulator.kill_vehicle(index, at_s=emulator_at_s)
+            elif event.kind == "link_lost":
+                self.emulator.drop_link(
+                    index, "all", at_s=emulator_at_s, duration_s=event.duration_s
+                )
+            elif event.kind == "taken_over":
+                self.emulator.take_over(index, event.mode, at_s=emulator_at_s)
+            elif event.kind == "sensor_lost" and event.sensor == "flow":
+                self.emulator.fail_sensor(
+                    index, "flow", at_s=emulator_at_s, duration_s=event.duration_s
+                )
+            elif event.kind == "sensor_lost" and event.sensor is not None:
+                self.fail_sensor(index, event.sensor, at_s=at_s, duration_s=window_s)
+            else:
+                raise MissionRunnerError(
+                    f"event {event.kind} cannot be flown (simulate it instead)"
+                )
 
     def fail_sensor(
         self, index: int, sensor: str, at_s: float, duration_s: float | None = None

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mission_runner.bus import InProcessBus, RangeMessage, TargetObservation, Topics
-from mission_runner.config import CirclePath, SensorConfig
+from mission_runner.config import CirclePath, EventConfig, SensorConfig
 from mission_runner.world import World
 from sitl.config import ClockConfig, EmulatorConfig
 from sitl.emulator import Emulator
@@ -138,3 +138,37 @@ async def test_trackers_say_not_seen_beyond_range_when_hidden_and_at_a_miss():
     # Random misses: every tracker misses when the probability is (almost) 1.
     missed = observations(SensorConfig(target_dropout_probability=0.999999))
     assert not any(o.seen for o in missed.values()) and len(missed) == 4
+
+
+async def test_the_scenarios_events_happen_at_their_step_on_the_emulators_clock():
+    # A vehicle-process world: its mission clock is UNIX time, the emulator's its own seconds.
+    offset_s = 1.7e9
+    events = [
+        EventConfig(kind="vehicle_lost", vehicle=2, at_step=8),
+        EventConfig(kind="taken_over", vehicle=3, at_step=4, mode="land"),
+    ]
+    path = CirclePath(kind="circle", center_m=[0.0, 10.0], radius_m=2.0, period_s=20.0)
+    async with (
+        Emulator(emulator_config()) as emulator,
+        InProcessBus() as bus,
+        World(
+            emulator,
+            bus=bus,
+            topics=TOPICS,
+            vehicle_ids=[1, 2, 3],
+            senses_target=(True, False, False),
+            target_path=path,
+            target_altitude_m=0.0,
+            sensors=SensorConfig(),
+            step_s=STEP_S,
+            time_offset_s=offset_s,
+            events=events,
+        ) as world,
+    ):
+        start_s = math.ceil(emulator.time_s / STEP_S) * STEP_S + STEP_S
+        world.start(offset_s + start_s)
+        await emulator.run_for(2.0)
+    happened = {(index, what): time_s for time_s, index, what in emulator.events}
+    assert happened[1, "killed"] == pytest.approx(start_s + 8 * STEP_S, abs=0.006)
+    taken = [time_s for (index, what), time_s in happened.items() if index == 2]
+    assert taken == [pytest.approx(start_s + 4 * STEP_S, abs=0.006)]
