@@ -998,6 +998,9 @@ def _score_without_truth(
         "failed" if failures else "unchecked" if unchecked else "passed",
         "no truth (no simulator): expectations on errors not checked",
         metrics=observed,
+        vehicles={
+            str(i): {"state": s.state, "detail": s.detail} for i, s in sorted(statuses.items())
+        },
         expectations={
             "checked": sorted(checkable),
             "passed": not failures,

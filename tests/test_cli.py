@@ -623,6 +623,7 @@ def test_a_ground_station_without_truth_scores_only_what_it_saw(tmp_path):
     assert summary["metrics"] == {"vehicles_in_formation_at_end": 3}
     assert summary["expectations"]["failures"] == ["vehicles_in_formation_at_end = 3 < min 4"]
     assert "tail_tracking_error_rms_m" in summary["expectations"]["not_checked"]
+    assert summary["vehicles"]["4"] == {"state": "taken_over", "detail": ""}
 
     statuses[4] = VehicleStatus(4, 10.0, "done", 600, False)
     with RunSummary(tmp_path, scenario, config_path=None) as record:

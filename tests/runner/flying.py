@@ -12,6 +12,7 @@ from pathlib import Path
 import yaml
 
 from mission_runner.config import load_scenario
+from sitl.config import PortsConfig
 from tests.sitl.helpers import free_port_config
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
@@ -82,29 +83,48 @@ class Swarm:
     """The processes of a mission flown as it flies for real (see :func:`swarm`)."""
 
     world: subprocess.Popen
+    ports: PortsConfig | None = None
     ground: subprocess.Popen | None = None
     vehicles: list[subprocess.Popen] = field(default_factory=list)
     world_output: str = ""
 
 
 @contextlib.contextmanager
-def swarm(scenario, tmp_path, vehicles=4, ground_arguments=(), ground_stdin=subprocess.DEVNULL):
-    """``mission-runner emulate`` (emulator and world, on free ports), then a ``ground`` station
-    (its stdin ``ground_stdin``) and one ``vehicle`` process per drone, all on the scenario's
-    bus. Processes still running at the end are killed, the world is stopped and its output
-    kept in ``world_output``."""
-    ports = free_port_config(vehicles, gcs=False)
+def swarm(
+    scenario,
+    tmp_path,
+    *,
+    vehicles=4,
+    ground_arguments=(),
+    ground_stdin=subprocess.DEVNULL,
+    gcs=False,
+):
+    """``mission-runner emulate`` (emulator and world, on free ports; the vehicles' GCS links
+    too with ``gcs``), then a ``ground`` station (its stdin ``ground_stdin``) and one ``vehicle``
+    process per drone, all on the scenario's bus. Processes still running at the end are killed,
+    the world is stopped and its output kept in ``world_output``."""
+    ports = free_port_config(vehicles, gcs=gcs)
+    gcs_arguments = (
+        [
+            "--gcs-port-base",
+            str(ports.gcs_local_base),
+            "--gcs-remote-port",
+            str(ports.gcs_remote_port),
+        ]
+        if gcs
+        else ["--no-gcs"]
+    )
     world = start(
         "mission_runner.cli",
         "emulate",
         scenario,
-        "--no-gcs",
+        *gcs_arguments,
         "--api-port-base",
         str(ports.api_remote_base),
         "--api-local-port-base",
         str(ports.api_local_base),
     )
-    flying = Swarm(world)
+    flying = Swarm(world, ports=ports)
     try:
         wait_for(world, "world on the mqtt bus", [])
         flying.ground = start(
