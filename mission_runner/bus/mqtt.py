@@ -40,15 +40,16 @@ import asyncio
 import collections
 import contextlib
 import logging
+import math
 import os
 import random
 import socket
 import ssl
 import time
 import uuid
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
-from typing import Self
+from typing import Self, TypeVar
 
 import aiomqtt
 from aiomqtt.exceptions import MqttCodeError, MqttConnectError
@@ -61,6 +62,7 @@ from mission_runner.bus.settings import TlsSettings
 from mission_runner.bus.topics import Topics, topic_matches, validate_pattern, validate_topic
 from mission_runner.clock import Clock, MonotonicClock
 
+_T = TypeVar("_T")
 logger = logging.getLogger(__name__)
 
 # CONNACK codes meaning "these credentials are not welcome" in MQTT 3.1.1 (4, 5) and as
@@ -137,6 +139,19 @@ def _connack_code(exc: BaseException) -> int | None:
     rc = exc.rc
     value = getattr(rc, "value", rc)
     return value if isinstance(value, int) else None
+
+
+async def _bounded(call: Awaitable[_T], timeout_s: float) -> _T:
+    """An aiomqtt call made with ``timeout=math.inf``, bounded by ``timeout_s`` here instead:
+    aiomqtt bounds its calls with ``asyncio.wait_for``, which on Python 3.11 drops a
+    cancellation that arrives as the call completes, so that the cancelled caller runs on (a
+    controller told to stop by the operator flew on to the end of the mission). Times out as
+    aiomqtt would, with an :class:`aiomqtt.MqttError`."""
+    try:
+        async with asyncio.timeout(timeout_s):
+            return await call
+    except TimeoutError:
+        raise aiomqtt.MqttError("Operation timed out") from None
 
 
 def _abandon(client: aiomqtt.Client) -> None:
@@ -471,8 +486,9 @@ class MqttBus(Bus):
         self._client = client
         patterns = list(self._patterns)
         if patterns:
-            codes = await client.subscribe(
-                [(pattern, self.qos) for pattern in patterns], timeout=self.subscribe_timeout_s
+            codes = await _bounded(
+                client.subscribe([(pattern, self.qos) for pattern in patterns], timeout=math.inf),
+                self.subscribe_timeout_s,
             )
             for pattern, code in zip(patterns, codes, strict=False):
                 if getattr(code, "is_failure", False) or code == 0x80:
@@ -537,12 +553,9 @@ class MqttBus(Bus):
             # out in the order they were drawn.
             sealed = self._seal(topic, bytes(payload), retain=retain, sender=sender)
             try:
-                await client.publish(
-                    topic,
-                    sealed,
-                    qos=self.qos,
-                    retain=retain,
-                    timeout=max(deadline - loop.time(), 0.001),
+                await _bounded(
+                    client.publish(topic, sealed, qos=self.qos, retain=retain, timeout=math.inf),
+                    max(deadline - loop.time(), 0.001),
                 )
                 break
             except MqttCodeError as exc:
@@ -589,7 +602,9 @@ class MqttBus(Bus):
 
     async def _broker_subscribe(self, client: aiomqtt.Client, pattern: str, timeout: float) -> None:
         try:
-            result = await client.subscribe(pattern, qos=self.qos, timeout=timeout)
+            result = await _bounded(
+                client.subscribe(pattern, qos=self.qos, timeout=math.inf), timeout
+            )
         except MqttCodeError as exc:
             # Not connected any more: the runner subscribes again after reconnecting.
             logger.debug("subscription to %r deferred to the next connection: %s", pattern, exc)
@@ -642,7 +657,7 @@ class MqttBus(Bus):
         if client is None or not self._open:
             return
         try:
-            await client.unsubscribe(pattern, timeout=self.subscribe_timeout_s)
+            await _bounded(client.unsubscribe(pattern, timeout=math.inf), self.subscribe_timeout_s)
         except aiomqtt.MqttError as exc:
             # Harmless: local matching ignores messages no subscription wants.
             logger.debug("unsubscribing from %r failed: %s", pattern, exc)

@@ -9,6 +9,7 @@ import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
+import aiomqtt
 import pytest
 import pytest_asyncio
 
@@ -31,6 +32,7 @@ from mission_runner.bus import (
     lost_vehicle_will,
     open_bus,
 )
+from mission_runner.bus.mqtt import _bounded
 from tests.mosquitto import (
     TEST_BUS_KEY,
     MosquittoBroker,
@@ -487,3 +489,36 @@ async def test_missing_tls_files_are_reported_before_connecting(tmp_path: Path) 
     with pytest.raises(BusConnectionError, match=r"cannot load the TLS files.*bus\.mqtt\.tls"):
         async with MqttBus("127.0.0.1", 1, key=bus_test_key(), client_id="x", tls=tls):
             pass
+
+
+# -- cancellation -------------------------------------------------------------------------------
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("bound", [_bounded, asyncio.wait_for], ids=["bus", "wait_for"])
+async def test_a_cancel_that_comes_as_a_broker_call_completes_is_not_lost(bound) -> None:
+    """The bus bounds aiomqtt's calls itself: ``asyncio.wait_for`` (aiomqtt's own bound) drops
+    a cancellation that comes in the same loop iteration as the call's completion on Python
+    3.11, and the cancelled caller (a controller the operator stopped) runs on."""
+    acknowledged = asyncio.get_running_loop().create_future()
+
+    async def call():
+        return await acknowledged
+
+    task = asyncio.create_task(bound(call(), 5.0))
+    for _ in range(3):  # until the call waits (wait_for's inner task too)
+        await asyncio.sleep(0)
+    acknowledged.set_result("ack")
+    task.cancel()
+    if bound is _bounded or sys.version_info >= (3, 12):
+        with pytest.raises(asyncio.CancelledError):
+            await task
+    else:  # the bug the bus avoids, shown so that this test fails if it stops being one
+        assert await task == "ack"
+
+
+@pytest.mark.asyncio
+async def test_a_bounded_broker_call_times_out_as_aiomqtt_would() -> None:
+    never = asyncio.get_running_loop().create_future()
+    with pytest.raises(aiomqtt.MqttError, match="Operation timed out"):
+        await _bounded(never, 0.01)

@@ -142,10 +142,6 @@ def test_ctrl_c_lands_the_swarm_and_a_second_one_stops_at_once(signals, tmp_path
 
 @pytest.mark.mqtt
 @pytest.mark.timeout(120)
-@pytest.mark.skip(
-    reason="known bug: after 'land --vehicle 3' over MQTT the run stopped progressing in 2 of 3 "
-    "full-suite runs (never when run alone, 7 of 7); skipped until found, see the README"
-)
 def test_control_reaches_a_run_on_an_mqtt_bus(tmp_path, mosquitto):
     bus = {"kind": "mqtt", "mqtt": {"host": mosquitto.host, "port": mosquitto.port}}
     config = run_scenario(tmp_path, steps=400, bus=bus)
