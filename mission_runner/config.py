@@ -579,7 +579,27 @@ class SafetyConfig(Model):
         4.0,
         title="Separation gain",
         description="How fast two vehicles may close on the minimum separation [1/s]: their "
-        "distance above it shrinks at most this fast (exponentially).",
+        "distance above it shrinks by at most gain x step_s (capped at 1) of itself per step; "
+        "up to 0.5 per step the guard stays safe even when the pair's step messages are lost.",
+    )
+    separation_margin_m: NonNegativeFloat = Field(
+        0.0,
+        title="Separation margin",
+        description="Distance the guard keeps beyond min_separation_m [m], for range noise and "
+        "estimate error.",
+    )
+    separation_braking_m_s2: PositiveFloat | None = Field(
+        None,
+        title="Braking",
+        description="Deceleration each vehicle can count on [m/s^2]: two vehicles close no "
+        "faster than they could still stop before the minimum separation. None: velocity "
+        "changes at once (the numeric model); flying, about half the autopilot's MPC_ACC_HOR.",
+    )
+    separation_latency_s: NonNegativeFloat = Field(
+        0.0,
+        title="Command latency",
+        description="How long commands in force keep closing a pair before a new one acts [s] "
+        "(the velocity loop's response and the command delay; 0 in the numeric model).",
     )
 
 

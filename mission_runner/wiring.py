@@ -120,7 +120,11 @@ def controller_settings(scenario: Scenario, vehicle: VehicleConfig) -> Controlle
         tracking_max_correction_m_s=flight.displacement_tracking.max_correction_m_s,
         min_separation_m=scenario.safety.min_separation_m,
         separation_gain_1_s=scenario.safety.separation_gain_1_s,
+        separation_margin_m=scenario.safety.separation_margin_m,
+        separation_braking_m_s2=scenario.safety.separation_braking_m_s2,
+        separation_latency_s=scenario.safety.separation_latency_s,
         range_limits=range_limits(scenario),
+        fleet_speed_limit_m_s=max(v.speed_limit_m_s for v in scenario.vehicles),
         target_lost_after_s=scenario.algorithm.target_lost_after_s,
         target_on_lost=scenario.algorithm.target_on_lost,
     )

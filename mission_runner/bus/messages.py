@@ -229,6 +229,11 @@ class StepMessage(Message):
     neighbours as ``(peer id, range [m])`` pairs, 3-D as measured, rounded by
     :func:`shared_range` (the sender uses the rounded values itself, so both ends of a pair
     average the same two numbers).
+
+    ``command_*_m_s`` is the horizontal velocity setpoint the sender is flying as it sends (the
+    one it set at step k - 1; none before its first): the separation guard's neighbours take it
+    as the sender's motion in force. A receiver drops one faster than the sender may fly
+    (:mod:`mission_runner.runner.plausibility`).
     """
 
     vehicle_id: int
@@ -244,6 +249,8 @@ class StepMessage(Message):
     odometry_down_m: float | None = None
     ranges_m: tuple[tuple[int, float], ...] | None = None
     target_observed_step: int | None = None
+    command_north_m_s: float | None = None
+    command_east_m_s: float | None = None
 
     @property
     def has_target(self) -> bool:
@@ -259,9 +266,17 @@ class StepMessage(Message):
         observed = self.step if self.target_observed_step is None else self.target_observed_step
         return observed, (north, east)
 
+    @property
+    def command_m_s(self) -> tuple[float, float] | None:
+        """The sender's setpoint in force ``(north, east)`` [m/s], if it sent one."""
+        north, east = self.command_north_m_s, self.command_east_m_s
+        return None if north is None or east is None else (north, east)
+
     def _check(self) -> None:
         _require(self.vehicle_id >= 1, f"vehicle_id must be >= 1, got {self.vehicle_id}")
         _require(self.step >= 0, f"step must be >= 0, got {self.step}")
+        command = (self.command_north_m_s, self.command_east_m_s)
+        _require(command.count(None) in (0, 2), "command_*_m_s must be set as a pair")
         velocity = (self.target_velocity_north_m_s, self.target_velocity_east_m_s)
         odometry = (self.target_odometry_north_m, self.target_odometry_east_m)
         _require(

@@ -70,7 +70,7 @@ from ..wiring import (
     shape_schedule,
 )
 from .inbox import StepData, StepInbox
-from .plausibility import RangeGate, RangeLimits
+from .plausibility import CommandGate, RangeGate, RangeLimits
 from .ports import ControllerBus, ControllerClock, ControllerLink, MessageSource
 
 logger = logging.getLogger(__name__)
@@ -107,7 +107,13 @@ class ControllerSettings:
     tracking_max_correction_m_s: float = 2.0
     min_separation_m: float | None = None
     separation_gain_1_s: float = 4.0
+    separation_margin_m: float = 0.0
+    separation_braking_m_s2: float | None = None
+    separation_latency_s: float = 0.0
     range_limits: RangeLimits | None = None
+    #: The fastest any vehicle of the mission may fly [m/s]: a neighbour's step message saying
+    #: it flies faster loses its command (None: every command is taken as it comes).
+    fleet_speed_limit_m_s: float | None = None
 
 
 @dataclass
@@ -193,7 +199,9 @@ class VehicleController:
         # Where the law's commands so far would have taken the vehicle.
         self._reference: NDArray[np.float64] | None = None
         self._tracking_integral = np.zeros(2)
-        self._last_positions: dict[int, tuple[float, float]] = {}  # for the separation guard
+        #: The horizontal setpoint this vehicle flies (the last one sent by the law's steps;
+        #: None before the first): its step messages carry it for the neighbours' guards.
+        self.command_in_force: tuple[float, float] | None = None
         #: The operator's hold (ground station ``hold`` until ``resume``): hover in place, keep
         #: the oscillator on the grid, publish nothing of the law.
         self.operator_hold = False
@@ -206,6 +214,11 @@ class VehicleController:
         self.range_gate = (
             RangeGate(settings.range_limits, vehicle_id)
             if settings.range_limits is not None
+            else None
+        )
+        self.command_gate = (
+            CommandGate(settings.fleet_speed_limit_m_s, vehicle_id)
+            if settings.fleet_speed_limit_m_s is not None
             else None
         )
         self.mission_id: str | None = None  # carried by every status (vehicle processes set it)
@@ -287,7 +300,7 @@ class VehicleController:
     async def _pump(self, subscriptions: Sequence[MessageSource]) -> None:
         """Feed the inbox from the bus subscriptions (decode errors are dropped, not fatal)."""
         handlers: dict[type[Message], Callable[[Any], None]] = {
-            StepMessage: self.inbox.add_step,
+            StepMessage: self._add_step,
             RangeMessage: self._add_range,
             TargetObservation: self._add_target,
         }
@@ -311,6 +324,10 @@ class VehicleController:
         if gate is None or vehicle_id != self.vehicle_id:
             return True
         return gate.accept(peer_id, range_m, time_s)
+
+    def _add_step(self, message: StepMessage) -> None:
+        gate = self.command_gate
+        self.inbox.add_step(message if gate is None else gate.checked(message))
 
     def _add_range(self, message: RangeMessage) -> None:
         if self._possible(message.vehicle_id, message.peer_id, message.range_m, message.time_s):
@@ -343,6 +360,7 @@ class VehicleController:
             # now; wait briefly if not. An observation that says "not seen" is as good as one
             # that saw: nothing more is coming.
             observation, shared = await self._own_measurements(k, t_k)
+            in_force = self.command_in_force
             if observation is not None and not observation.seen:
                 observation = None
             message = self._with_target(
@@ -355,6 +373,8 @@ class VehicleController:
                     odometry[1],
                     odometry_down_m=float(odometry[2]),
                     ranges_m=shared,
+                    command_north_m_s=None if in_force is None else in_force[0],
+                    command_east_m_s=None if in_force is None else in_force[1],
                 ),
                 observation,
             )
@@ -415,13 +435,14 @@ class VehicleController:
                 command.velocity_m_s, odometry
             )
             if settings.min_separation_m is not None:
-                wanted = self._separated(wanted, command.estimates_m, data, odometry)
+                wanted = self._separated(wanted, command.estimates_m, data, ranges)
             velocity = self._clamp(wanted)
             used, estimates, gated = command.neighbours_used, command.estimates_m, command.gated
             consensus = (float(command.consensus_m_s[0]), float(command.consensus_m_s[1]))
         vertical = self._altitude_hold(odometry)
         async with self.clock.commanding(t_k + settings.release_s):
             await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
+        self.command_in_force = velocity
         sent_s = self.clock.now_s()
         record = StepRecord(
             k,
@@ -448,34 +469,33 @@ class VehicleController:
         velocity: NDArray[np.float64],
         estimates_m: dict[int, NDArray[np.float64]],
         data: StepData,
-        odometry: tuple[float, float, float],
+        ranges: dict[int, float],
     ) -> NDArray[np.float64]:
         """The command through the separation guard: directions from this step's estimates,
-        distances from the measured (horizontal) ranges, velocities from the own odometry and
-        the neighbours' step messages over the last step (never truth)."""
-        step_s = self.settings.step_s
-        ranges = self._horizontal_ranges(data, odometry)
-        now = {peer: (m.odometry_north_m, m.odometry_east_m) for peer, m in data.neighbours.items()}
-        now[self.vehicle_id] = (odometry[0], odometry[1])
-
-        def velocity_of(peer: int) -> tuple[float, float]:
-            before, after = self._last_positions.get(peer), now.get(peer)
-            if before is None or after is None:
-                return (math.nan, math.nan)
-            return ((after[0] - before[0]) / step_s, (after[1] - before[1]) / step_s)
-
-        self._last_positions = now
+        distances from the measured (horizontal) ranges, the pair's motion from the setpoints in
+        force (the own, and the neighbours' from their step messages; never truth)."""
         peers = [peer for peer in estimates_m if peer != 0]
         if not peers:
             return velocity
+
+        def in_force(peer: int) -> tuple[float, float]:
+            message = data.neighbours.get(peer)
+            command = None if message is None else message.command_m_s
+            return (math.nan, math.nan) if command is None else command
+
+        settings = self.settings
         return separation_guard(
             np.asarray(velocity, dtype=float),
             np.array([estimates_m[peer] for peer in peers], dtype=float),
             np.array([ranges.get(peer, math.nan) for peer in peers], dtype=float),
-            np.array(velocity_of(self.vehicle_id)),
-            np.array([velocity_of(peer) for peer in peers]),
-            min_separation_m=self.settings.min_separation_m or 0.0,
-            gain_1_s=self.settings.separation_gain_1_s,
+            np.array(self.command_in_force or (math.nan, math.nan), dtype=float),
+            np.array([in_force(peer) for peer in peers], dtype=float),
+            min_separation_m=settings.min_separation_m or 0.0,
+            gain_1_s=settings.separation_gain_1_s,
+            step_s=settings.step_s,
+            margin_m=settings.separation_margin_m,
+            braking_m_s2=settings.separation_braking_m_s2,
+            latency_s=settings.separation_latency_s,
         )
 
     def _turn_oscillator(self, k: int) -> None:

@@ -6,6 +6,10 @@ together (relative speed bound times the time between them, plus the noise margi
 counted by reason and logged (rate-limited). The estimator then treats it as a missing range: its
 next update spans the gap (:mod:`mission_runner.enclosing.rlse`).
 
+A neighbour's step message that says it flies faster than any vehicle of the mission may
+(``StepMessage.command_*_m_s`` beyond the speed limit) loses that command, counted the same way:
+the separation guard then counts the neighbour's motion as unknown rather than believing it.
+
 This is a check of physics at the message boundary, not outlier gating of the estimate (that
 belongs to the estimator). The band widens with time since the last accepted range, so a pair
 whose true range really did change while ranges were rejected is accepted again once the time
@@ -15,10 +19,12 @@ which is why the bus authenticates who sent a range (:mod:`mission_runner.bus.au
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
 
+from ..bus import StepMessage
 from ..bus.auth import RateLimitedWarnings
 
 logger = logging.getLogger(__name__)
@@ -100,3 +106,40 @@ class RangeGate:
             self.rejected_total,
         )
         return False
+
+
+#: A command may exceed the speed limit by this much [m/s] (the sender's clamp rounds).
+COMMAND_TOLERANCE_M_S = 1e-6
+
+
+@dataclass
+class CommandGate:
+    """Drops the command of a step message that no vehicle of the mission may fly: faster than
+    ``max_speed_m_s`` (the fastest vehicle's speed limit). Non-finite commands never get this far
+    (the message does not decode). ``rejected`` counts ``command_speed``."""
+
+    max_speed_m_s: float
+    vehicle_id: int = 0
+    rejected: dict[str, int] = field(default_factory=lambda: {"command_speed": 0})
+    _warnings: RateLimitedWarnings = field(
+        default_factory=lambda: RateLimitedWarnings(logger), repr=False
+    )
+
+    def checked(self, message: StepMessage) -> StepMessage:
+        """``message``, without its command if the command is impossible."""
+        command = message.command_m_s
+        if command is None or math.hypot(*command) <= self.max_speed_m_s + COMMAND_TOLERANCE_M_S:
+            return message
+        self.rejected["command_speed"] += 1
+        self._warnings.warn(
+            "command_speed",
+            "vehicle %s: vehicle %s's step %d command of %.3g m/s dropped: faster than the "
+            "%.3g m/s any vehicle may fly; %d dropped so far",
+            self.vehicle_id,
+            message.vehicle_id,
+            message.step,
+            math.hypot(*command),
+            self.max_speed_m_s,
+            self.rejected["command_speed"],
+        )
+        return dataclasses.replace(message, command_north_m_s=None, command_east_m_s=None)

@@ -254,7 +254,8 @@ def simulate(
     noise = _Noise(scenario.seed, runs)
     drift = odometry_drift(sensors, noise, (runs, n))
     odometry_error = np.zeros((runs, n, 2))
-    previous_odometry = np.full((runs, n, 2), np.nan)  # neighbours' velocities start unknown
+    # The commands in force, as each vehicle's step message carries them (none before k = 0).
+    in_force = np.full((runs, n, 2), np.nan)
 
     out = {
         "positions_m": np.empty((runs, steps + 1, n, 2)),
@@ -345,12 +346,11 @@ def simulate(
 
         command = step.velocity_m_s
         if scenario.safety.min_separation_m is not None:
-            velocity = (odometry[:, 1:] - previous_odometry) / step_s
-            command = _guarded(command, step, ranges, velocity, live, scenario)
-        previous_odometry = odometry[:, 1:]
+            command = _guarded(command, step, ranges, in_force, live, scenario)
         norm = np.sqrt(np.sum(command * command, axis=-1, keepdims=True))
         command = command * np.minimum(1.0, speed_limit / np.maximum(norm, 1e-300))
         command = np.where(live[..., None] & ~holding[:, None, None], command, 0.0)
+        in_force = np.where(live[..., None], command, np.nan)
         out["target_status"][:, k] = target_estimate.status
         out["commands_m_s"][:, k] = command
         out["positions_m"][:, k] = position
@@ -374,25 +374,30 @@ def _guarded(  # noqa: PLR0917 - the step's pieces, each named
     command: NDArray[np.float64],
     step: StepOutputs,
     ranges: NDArray[np.float64],
-    velocity: NDArray[np.float64],
+    in_force: NDArray[np.float64],
     live: NDArray[np.bool_],
     scenario: Scenario,
 ) -> NDArray[np.float64]:
     """The law's commands ``(B, N, 2)`` through the separation guard: each vehicle's estimates of
-    the live others (RLSE, p_i - p_j) for directions, its measured ranges for distances, the
-    others' velocities ``(B, N, 2)`` from their odometry over the last step (as their step
-    messages give them; NaN at k = 0)."""
+    the live others (RLSE, p_i - p_j) for directions, its measured ranges for distances, and the
+    commands in force ``(B, N, 2)`` (set at the last step, as the step messages carry them; NaN
+    at k = 0 and for vehicles not live)."""
     others = live[:, None, :] & ~np.eye(live.shape[-1], dtype=bool)
     relative = np.stack([step.estimate_north_m[..., 1:], step.estimate_east_m[..., 1:]], axis=-1)
     relative = np.where(others[..., None], relative, np.nan)
+    safety = scenario.safety
     return separation_guard(
         command,
         relative,
         np.where(others, ranges[..., 1:], np.nan),
-        velocity,
-        np.broadcast_to(velocity[:, None, :, :], relative.shape),
-        min_separation_m=scenario.safety.min_separation_m or 0.0,
-        gain_1_s=scenario.safety.separation_gain_1_s,
+        in_force,
+        np.broadcast_to(in_force[:, None, :, :], relative.shape),
+        min_separation_m=safety.min_separation_m or 0.0,
+        gain_1_s=safety.separation_gain_1_s,
+        step_s=scenario.timing.step_s,
+        margin_m=safety.separation_margin_m,
+        braking_m_s2=safety.separation_braking_m_s2,
+        latency_s=safety.separation_latency_s,
     )
 
 

@@ -49,6 +49,8 @@ step_messages = st.builds(
     target_odometry_east_m=finite,
     target_velocity_north_m_s=finite,
     target_velocity_east_m_s=finite,
+    command_north_m_s=finite,
+    command_east_m_s=finite,
 )
 shared_ranges = st.builds(
     StepMessage,
@@ -148,6 +150,13 @@ def test_shared_ranges_travel_as_compact_pairs() -> None:
     assert isinstance(decoded.ranges_m, tuple)
 
 
+def test_the_command_in_force_travels_as_a_pair() -> None:
+    message = StepMessage(2, 41, 5.125, 0.0, 0.0, 0.0, command_north_m_s=1.5, command_east_m_s=-2)
+    decoded = StepMessage.from_payload(message.to_payload())
+    assert decoded.command_m_s == (1.5, -2.0)
+    assert STEP.command_m_s is None
+
+
 def test_integers_are_accepted_for_float_fields_and_stored_as_floats() -> None:
     message = StepMessage(1, 0, 0, 0, 1, 2)
     assert isinstance(message.odometry_north_m, float)
@@ -180,6 +189,16 @@ def test_every_topic_kind_has_a_message_type() -> None:
             r"ranges_m\[0\]\[1\] must be finite",
         ),
         (lambda: StepMessage(2, 0, 0.0, 0.0, 0.0, 0.0, ranges_m=((3,),)), "must have 2 entries"),
+        (
+            lambda: StepMessage(2, 0, 0.0, 0.0, 0.0, 0.0, command_north_m_s=1.0),
+            r"command_\*_m_s must be set as a pair",
+        ),
+        (
+            lambda: StepMessage(
+                2, 0, 0.0, 0.0, 0.0, 0.0, command_north_m_s=math.inf, command_east_m_s=0.0
+            ),
+            "command_north_m_s must be finite",
+        ),
         (lambda: StepMessage(2, 0, 0.0, 0.0, 0.0, 0.0, ranges_m="3:1.0"), "must be an array"),
         (
             lambda: StepMessage(

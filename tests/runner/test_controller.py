@@ -26,6 +26,7 @@ from mission_runner.bus import (
 )
 from mission_runner.config import validate_scenario
 from mission_runner.enclosing import NeighbourReport, TargetReport, VehicleEnclosing
+from mission_runner.runner import controller as controller_module
 from mission_runner.runner.controller import build_controller
 from mission_runner.runner.odometry import OdometrySample
 from mission_runner.wiring import algorithm_params
@@ -197,6 +198,7 @@ class Neighbours:
             "target_velocity_east_m_s": TARGET_VELOCITY[1],
         }
         self.own_tracker = None  # k -> vehicle 2's TargetObservation at t_k, if it has a tracker
+        self.commands = {}  # peer -> the (north, east) setpoint its step messages say it flies
 
     def inputs(self, k, peer):
         """Neighbour ``peer``'s step-k message and vehicle 2's range to it, and the horizontal
@@ -210,6 +212,9 @@ class Neighbours:
         down = -ALTITUDES[peer]
         measured = math.hypot(horizontal, own_down - down) if self.ranges_3d else horizontal
         relay = self.relay(k) if peer == 1 else {}
+        command = self.commands.get(peer)
+        if command is not None:
+            relay = {**relay, "command_north_m_s": command[0], "command_east_m_s": command[1]}
         message = StepMessage(
             peer,
             k,
@@ -380,6 +385,39 @@ async def test_each_step_publishes_the_own_message_runs_the_law_and_sends_its_co
     assert flight.clock.released == [
         t_(k) + flight.controller.settings.release_s for k in range(steps)
     ]
+
+
+@pytest.mark.asyncio
+async def test_step_messages_carry_the_setpoint_in_force_and_the_guard_uses_the_neighbours(
+    monkeypatch,
+):
+    seen = []
+
+    def guard(velocity, relative, distance, own, others, **settings):
+        seen.append((own, others))
+        return velocity
+
+    monkeypatch.setattr(controller_module, "separation_guard", guard)
+    async with rig(min_separation_m=1.0) as flight:
+        # Vehicle 3 says it flies faster than any vehicle of the mission may (10 m/s).
+        flight.neighbours.commands = {1: (0.5, -0.25), 3: (40.0, 0.0)}
+        await flight.fly(4)
+        published = flight.published_steps()
+        setpoints = flight.link.setpoints
+
+    # None before the first setpoint, then the one sent at the step before.
+    assert published[0].command_m_s is None
+    for k in range(1, 4):
+        assert published[k].command_m_s == tuple(horizontal(setpoints[k - 1]))
+    # The guard saw its own setpoint in force and vehicle 1's; vehicle 3's command was dropped
+    # (unknown: NaN) and counted.
+    assert np.isnan(seen[0][0]).all()
+    for k in range(1, 4):
+        np.testing.assert_allclose(seen[k][0], horizontal(setpoints[k - 1]))
+    for _, others in seen:
+        np.testing.assert_allclose(others[0], [0.5, -0.25])
+        assert np.isnan(others[1]).all()
+    assert flight.controller.command_gate.rejected == {"command_speed": 4}
 
 
 # --- holding and losing the vehicle --------------------------------------------------------------

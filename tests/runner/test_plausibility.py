@@ -5,8 +5,9 @@ import math
 
 import pytest
 
+from mission_runner.bus import StepMessage
 from mission_runner.config import validate_scenario
-from mission_runner.runner.plausibility import RangeGate, RangeLimits
+from mission_runner.runner.plausibility import CommandGate, RangeGate, RangeLimits
 from mission_runner.wiring import DEFAULT_RADIO_REACH_M, range_limits
 
 from .flying import load
@@ -57,3 +58,26 @@ def test_limits_follow_the_scenario():
     limits = range_limits(validate_scenario(data))
     assert limits.max_range_m == 60.0
     assert limits.margin_m == pytest.approx(0.2 + 6 * math.sqrt(2) * 0.05)
+
+
+def stepping(north_m_s, east_m_s, vehicle_id=2):
+    return StepMessage(
+        vehicle_id, 7, 0.875, 0.0, 1.0, 2.0, command_north_m_s=north_m_s, command_east_m_s=east_m_s
+    )
+
+
+def test_a_command_faster_than_any_vehicle_may_fly_is_dropped_and_counted(
+    caplog: pytest.LogCaptureFixture,
+):
+    gate = CommandGate(max_speed_m_s=5.0, vehicle_id=1)
+    possible = stepping(3.0, 4.0)  # 5 m/s: at the limit
+    assert gate.checked(possible) is possible
+    without = StepMessage(2, 7, 0.875, 0.0, 1.0, 2.0)
+    assert gate.checked(without) is without
+    with caplog.at_level(logging.WARNING, logger="mission_runner.runner.plausibility"):
+        checked = gate.checked(stepping(30.0, -40.0, vehicle_id=3))
+    # The rest of the message stands: only the command is not believed.
+    assert checked.command_m_s is None
+    assert (checked.vehicle_id, checked.step, checked.odometry_east_m) == (3, 7, 2.0)
+    assert gate.rejected == {"command_speed": 1}
+    assert "vehicle 3's step 7 command of 50 m/s dropped" in caplog.text

@@ -22,8 +22,7 @@ def batch(guard_m):
 def test_the_guard_keeps_random_starts_apart_and_the_formation_still_tracks():
     free, guarded = batch(None), batch(1.0)
     assert np.mean(free["min_separation_m"] < 0.9) > 0.5  # without it, most runs come close
-    assert np.mean(guarded["min_separation_m"] < 0.9) <= 0.02
-    assert guarded["min_separation_m"].min() > 0.3
+    assert guarded["min_separation_m"].min() >= 0.9  # every one of them
     converged = guarded["tracking_converged_step"] >= 0
     assert converged.mean() >= 0.97
     # It costs little time: the median convergence step moves by a few steps.
