@@ -875,7 +875,11 @@ def _vehicle(arguments: argparse.Namespace) -> int:
         f"results in {out_dir}/" + (f"\n  {run.detail}" if run.detail else "")
     )
     security = {
-        "bus_security": bus_security(run.bus_messages, {run.vehicle_id: run.ranges_rejected})
+        "bus_security": bus_security(
+            run.bus_messages,
+            {run.vehicle_id: run.ranges_rejected},
+            {run.vehicle_id: run.commands_rejected},
+        )
     }
     line = bus_security_line(security)
     if line:

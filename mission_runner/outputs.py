@@ -222,16 +222,21 @@ def summary(
 
 
 def bus_security(
-    messages: Mapping[str, int], ranges_rejected: Mapping[int, Mapping[str, int]]
+    messages: Mapping[str, int],
+    ranges_rejected: Mapping[int, Mapping[str, int]],
+    commands_rejected: Mapping[int, int] | None = None,
 ) -> dict[str, Any]:
     """What a summary says about dropped input: ``messages``, the bus's received messages
-    accepted and dropped by reason (forged, replayed, ...; ``AuthCounters.as_dict``), and
-    ``ranges_rejected``, per vehicle id the ranges its controller found impossible, by reason."""
+    accepted and dropped by reason (forged, replayed, ...; ``AuthCounters.as_dict``),
+    ``ranges_rejected``, per vehicle id the ranges its controller found impossible, by reason,
+    and ``commands_rejected``, per vehicle id the neighbours' setpoints in force (step messages)
+    it dropped as faster than any vehicle may fly (``CommandGate``)."""
     dropped = sum(count for reason, count in messages.items() if reason != "accepted")
     return {
         "messages": dict(messages),
         "messages_dropped": dropped,
         "ranges_rejected": {str(i): dict(c) for i, c in sorted(ranges_rejected.items())},
+        "commands_rejected": {str(i): c for i, c in sorted((commands_rejected or {}).items())},
     }
 
 
@@ -245,7 +250,8 @@ def bus_security_line(document: Mapping[str, Any]) -> str | None:
         reason: sum(counts.get(reason, 0) for counts in security["ranges_rejected"].values())
         for reason in ("invalid", "beyond_reach", "jump")
     }
-    if not security["messages_dropped"] and not any(ranges.values()):
+    commands = sum(security.get("commands_rejected", {}).values())
+    if not security["messages_dropped"] and not any(ranges.values()) and not commands:
         return None
     parts = [f"{count} {reason}" for reason, count in messages.items() if reason != "accepted"]
     impossible = [f"{count} {reason}" for reason, count in ranges.items() if count]
@@ -254,6 +260,7 @@ def bus_security_line(document: Mapping[str, Any]) -> str | None:
         f"{security['messages_dropped'] + messages.get('accepted', 0)} messages "
         f"({', '.join(p for p in parts if not p.startswith('0 ')) or 'none'}); impossible "
         f"ranges rejected: {', '.join(impossible) or 'none'}"
+        + (f"; impossible neighbour commands dropped: {commands}" if commands else "")
     )
 
 
@@ -443,7 +450,11 @@ def write_vehicle_run(
             else None
         ),
         "autopilot_params": run.params,
-        "bus_security": bus_security(run.bus_messages, {run.vehicle_id: run.ranges_rejected}),
+        "bus_security": bus_security(
+            run.bus_messages,
+            {run.vehicle_id: run.ranges_rejected},
+            {run.vehicle_id: run.commands_rejected},
+        ),
         "config": None if config_path is None else str(config_path),
         "versions": versions(),
     }

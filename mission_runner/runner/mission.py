@@ -351,6 +351,11 @@ async def fly(
     security = bus_security(
         messages,
         {c.vehicle_id: c.range_gate.rejected for c in controllers if c.range_gate is not None},
+        {
+            c.vehicle_id: c.command_gate.rejected["command_speed"]
+            for c in controllers
+            if c.command_gate is not None
+        },
     )
     ended = {
         controller.vehicle_id: _how_it_ended(controller, vehicle, endings[controller.vehicle_id])

@@ -109,6 +109,8 @@ class VehicleRun:
     bus_messages: dict[str, int] = field(default_factory=dict)
     #: Ranges the controller found impossible, by reason (``RangeGate.rejected``).
     ranges_rejected: dict[str, int] = field(default_factory=dict)
+    #: Neighbours' setpoints in force dropped as impossible (``CommandGate.rejected``).
+    commands_rejected: int = 0
 
 
 class _Reporter:
@@ -216,6 +218,8 @@ async def run_vehicle(
             run.bus_messages = bus.auth_counters.as_dict()
             if controller.range_gate is not None:
                 run.ranges_rejected = dict(controller.range_gate.rejected)
+            if controller.command_gate is not None:
+                run.commands_rejected = controller.command_gate.rejected["command_speed"]
             run.autopilot_clock_rate = mapping.fit.boot_rate
             run.clock_residual_s = mapping.fit.residual_s
     return run

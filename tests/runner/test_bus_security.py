@@ -23,6 +23,7 @@ from mission_runner.bus import (
 )
 from mission_runner.bus.broker import read_credentials
 from mission_runner.config import validate_scenario
+from mission_runner.outputs import bus_security, bus_security_line
 from mission_runner.runner.handshake import (
     MAX_START_LAG_S,
     MAX_START_LEAD_S,
@@ -181,3 +182,21 @@ async def test_forged_ranges_for_every_pair_leave_the_mission_unharmed(tmp_path)
     assert outcome.bus_security["ranges_rejected"] == {
         str(i): {"invalid": 0, "beyond_reach": 0, "jump": 0} for i in ids
     }
+    assert outcome.bus_security["commands_rejected"] == {str(i): 0 for i in ids}
+
+
+def test_the_summary_counts_every_kind_of_dropped_input_and_says_so_in_one_line():
+    quiet = bus_security({"accepted": 10}, {1: {"invalid": 0, "jump": 0}}, {1: 0})
+    assert bus_security_line({"bus_security": quiet}) is None
+    security = bus_security({"accepted": 10, "forged": 2}, {1: {"jump": 1}}, {1: 3, 2: 1})
+    assert security["messages_dropped"] == 2
+    assert security["commands_rejected"] == {"1": 3, "2": 1}
+    line = bus_security_line({"bus_security": security})
+    assert line == (
+        "bus: dropped 2 of 12 messages (2 forged); impossible ranges rejected: 1 jump; "
+        "impossible neighbour commands dropped: 4"
+    )
+    commands_only = bus_security({"accepted": 10}, {}, {3: 2})
+    assert bus_security_line({"bus_security": commands_only}).endswith(
+        "impossible neighbour commands dropped: 2"
+    )
