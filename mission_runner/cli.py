@@ -448,6 +448,13 @@ def _parser() -> argparse.ArgumentParser:
         help="UDP port of vehicle id 1's truth",
     )
     ranges.add_argument(
+        "--truth-rate",
+        type=argtypes.non_negative_float,
+        default=None,
+        help="with --source sih: ground-truth rate to ask of each instance, Hz (PX4 SIH streams "
+        "25; a step's ranges wait for the first sample after t_k; 0: leave it; default 100)",
+    )
+    ranges.add_argument(
         "--url",
         action="append",
         default=None,
@@ -1088,7 +1095,7 @@ def _mission_dir(scenario: Scenario) -> Path:
 
 def _ranges(arguments: argparse.Namespace) -> int:
     from .outputs import TRUTH_FILES, prepare_out_dir  # noqa: PLC0415
-    from .runner.ranges import run_range_provider  # noqa: PLC0415
+    from .runner.ranges import TRUTH_RATE_HZ, run_range_provider  # noqa: PLC0415
     from .runner.scoring import write_truth_csv  # noqa: PLC0415
 
     scenario = with_bus_access(load_scenario(arguments.config), arguments)
@@ -1104,6 +1111,9 @@ def _ranges(arguments: argparse.Namespace) -> int:
             source=arguments.source,
             urls=arguments.url or ["udpin://0.0.0.0:14550"],
             truth_port_base=arguments.truth_port_base,
+            truth_rate_hz=TRUTH_RATE_HZ
+            if arguments.truth_rate is None
+            else arguments.truth_rate or None,
             seed=scenario.seed,
         )
     )
@@ -1111,7 +1121,9 @@ def _ranges(arguments: argparse.Namespace) -> int:
     lateness = ", ".join(f"{k} {v:.1f} ms" for k, v in stats.lateness_percentiles_ms().items())
     print(
         f"ranges: {stats.steps} steps, {stats.ranges} ranges published, "
-        f"{stats.missing_vehicles} vehicle-steps without a position; after t_k: {lateness}"
+        f"{stats.missing_vehicles} vehicle-steps without a position; after t_k: {lateness}; "
+        "positions per second: "
+        + ", ".join(f"{i}: {rate:.1f}" for i, rate in stats.position_rates_hz.items())
     )
     return EXIT_OK if stats.ranges else EXIT_RUNTIME_FAILURE
 

@@ -33,7 +33,7 @@ import math
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,6 +58,9 @@ EARTH_RADIUS_M = 6_371_000.0
 POSITION_RATE_HZ = 20.0
 SOURCES = ("sih", "gps")
 TRUTH_PORT_BASE = 19410
+#: The ground truth's rate asked of each SIH instance [Hz] (PX4 streams 25): a step's ranges wait
+#: for the first sample after t_k, so this bounds that wait (10 ms).
+TRUTH_RATE_HZ = 100.0
 #: A vehicle whose last position is older than this at t_k is not waited for (dead or silent).
 STALE_AFTER_S = 1.0
 #: Longest wait after t_k for the positions bracketing it.
@@ -114,6 +117,8 @@ class RangeStats:
     missing_vehicles: int = 0
     lateness_s: list[float] = field(default_factory=list)
     truth: list[TruthSample] = field(default_factory=list)  # per step, for scoring only
+    #: Positions received per second during the mission, by vehicle id.
+    position_rates_hz: dict[int, float] = field(default_factory=dict)
 
     def lateness_percentiles_ms(self) -> dict[str, float]:
         if not self.lateness_s:
@@ -167,14 +172,23 @@ class _Positions:
 
 
 class _TruthProtocol(asyncio.DatagramProtocol):
-    """HIL_STATE_QUATERNION datagrams from one SIH instance, stamped on arrival."""
+    """HIL_STATE_QUATERNION datagrams from one SIH instance, stamped on arrival. On the first one,
+    asks the instance for ``rate_hz`` of them (MAV_CMD_SET_MESSAGE_INTERVAL, to where they come
+    from): PX4 starts the stream at 25 Hz, so a step's bracketing sample would come up to 40 ms
+    after t_k, and every vehicle's step waits for it."""
 
-    def __init__(self, positions: _Positions, vehicle_id: int) -> None:
+    def __init__(self, positions: _Positions, vehicle_id: int, rate_hz: float | None) -> None:
         self.positions = positions
         self.vehicle_id = vehicle_id
         self.parser = mavlink.MAVLink(None)
         self.parser.robust_parsing = True
         self.malformed = 0
+        self.rate_hz = rate_hz
+        self.transport: asyncio.DatagramTransport | None = None
+        self.asked = False
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = cast(asyncio.DatagramTransport, transport)
 
     def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
         arrived_s = time.time()
@@ -189,20 +203,53 @@ class _TruthProtocol(asyncio.DatagramProtocol):
             if message.get_srcSystem() != self.vehicle_id:
                 self.malformed += 1  # another instance's stream on this port: never mix them
                 continue
+            if not self.asked:
+                self._ask_rate(addr)
             self.positions.add(
                 self.vehicle_id, arrived_s, message.lat / 1e7, message.lon / 1e7, message.alt / 1e3
             )
 
+    def _ask_rate(self, addr: tuple[str | Any, int]) -> None:
+        self.asked = True
+        if self.rate_hz is None or self.transport is None:
+            return
+        request = mavlink.MAVLink_command_long_message(
+            self.vehicle_id,
+            1,
+            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+            0,
+            mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION,
+            1e6 / self.rate_hz,
+            0,
+            0,
+            0,
+            0,
+            0,
+        )
+        sender = mavlink.MAVLink(
+            None, srcSystem=255, srcComponent=mavlink.MAV_COMP_ID_MISSIONPLANNER
+        )
+        self.transport.sendto(request.pack(sender), addr)
+        logger.info(
+            "vehicle %s: ground truth asked for at %g Hz (from %s:%s)",
+            self.vehicle_id,
+            self.rate_hz,
+            *addr,
+        )
+
 
 async def _sih_source(
-    stack: contextlib.AsyncExitStack, positions: _Positions, scenario: Scenario, port_base: int
+    stack: contextlib.AsyncExitStack,
+    positions: _Positions,
+    port_base: int,
+    rate_hz: float | None,
 ) -> None:
     loop = asyncio.get_running_loop()
     for vehicle_id in positions.ids:
         port = port_base + vehicle_id - 1
         try:
             transport, _ = await loop.create_datagram_endpoint(
-                functools.partial(_TruthProtocol, positions, vehicle_id),
+                functools.partial(_TruthProtocol, positions, vehicle_id, rate_hz),
                 local_addr=("127.0.0.1", port),
             )
         except OSError as error:
@@ -257,6 +304,7 @@ async def run_range_provider(
     source: str = "sih",
     urls: Iterable[str] = (),
     truth_port_base: int = TRUTH_PORT_BASE,
+    truth_rate_hz: float | None = TRUTH_RATE_HZ,
     steps: int | None = None,
     seed: int = 0,
     start_timeout_s: float = 600.0,
@@ -282,11 +330,13 @@ async def run_range_provider(
         control = await stack.enter_async_context(bus.subscribe(topics.control()))
         group = await stack.enter_async_context(asyncio.TaskGroup())
         if source == "sih":
-            await _sih_source(stack, positions, scenario, truth_port_base)
+            await _sih_source(stack, positions, truth_port_base, truth_rate_hz)
         else:
             await _gps_source(stack, positions, list(urls), mission_time, group)
         start = await start_command(control, timeout_s=start_timeout_s)
         mission_time.set(start.clock_rate or 1.0, start.clock_reference_s or start.time_s)
+        started_s = time.time()
+        received = {i: p.received for i, p in positions.vehicles.items()}
         for k in range(steps):
             t_k = start.time_s + k * scenario.timing.step_s
             unix_k = mission_time.to_unix(t_k)
@@ -294,6 +344,10 @@ async def run_range_provider(
             now = await positions.bracketing(unix_k, MAX_WAIT_S)
             await _publish_step(bus, topics, scenario, now, k, t_k, start.time_s, rng, stats)
             stats.lateness_s.append(mission_time.now_s() - t_k)
+        elapsed_s = max(time.time() - started_s, 1e-9)
+        stats.position_rates_hz = {
+            i: (p.received - received[i]) / elapsed_s for i, p in positions.vehicles.items()
+        }
     return stats
 
 

@@ -39,7 +39,7 @@ def scenario(broker):
     return validate_scenario(data)
 
 
-async def fly_aid(mosquitto, *, source, truth=False):
+async def fly_aid(mosquitto, *, source, truth=False, truth_rate_hz=100.0):
     """Run the aid for 8 steps against three parked emulated vehicles; returns the start time,
     the aid's stats and what it published."""
     mission = scenario(mosquitto)
@@ -67,6 +67,7 @@ async def fly_aid(mosquitto, *, source, truth=False):
             source=source,
             urls=[f"udpin://0.0.0.0:{ports.gcs_remote_port}"],
             truth_port_base=config.truth_stream.remote_base,
+            truth_rate_hz=truth_rate_hz,
             steps=8,
         )
         await bus.publish(topics.control(), b"", retain=True, timeout=5.0)
@@ -104,3 +105,21 @@ async def test_ranges_match_the_true_distances_on_the_step_grid(mosquitto, sourc
     for sample in stats.truth:
         assert sample.alive.all()
         assert sample.positions_m == pytest.approx(np.array(PLACES), abs=0.05)
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize(("asked_hz", "low_hz", "high_hz"), [(None, 15, 35), (100.0, 40, 130)])
+async def test_the_aid_asks_the_simulator_for_ground_truth_fast_enough(
+    mosquitto, asked_hz, low_hz, high_hz
+):
+    """SIH (and the emulator's truth stream, like it) sends 25 Hz of ground truth; each step's
+    ranges wait for the first sample after t_k, so the aid asks for more (SET_MESSAGE_INTERVAL
+    on the truth link) unless told not to. (The emulator streams at most at its physics rate,
+    50 Hz here.)"""
+    _, stats, measured, _ = await fly_aid(
+        mosquitto, source="sih", truth=True, truth_rate_hz=asked_hz
+    )
+    assert stats.ranges == len(measured) == 8 * 6
+    assert set(stats.position_rates_hz) == {1, 2, 3}
+    for rate in stats.position_rates_hz.values():
+        assert low_hz < rate < high_hz
