@@ -19,7 +19,7 @@ import os
 import platform
 import sys
 import tempfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Literal
@@ -389,6 +389,9 @@ def write_vehicle_run(
             "consensus_east_m_s",
             "neighbours_used",
             "setpoint_lateness_s",
+            "odometry_lateness_s",
+            "message_lateness_s",
+            "inputs_lateness_s",
             "odometry_north_m",
             "odometry_east_m",
             "odometry_down_m",
@@ -412,6 +415,14 @@ def write_vehicle_run(
                 *(f"{v:.6f}" for v in record.consensus_m_s),
                 " ".join(str(peer) for peer in record.neighbours_used),
                 f"{record.setpoint_sent_s - record.time_s:.6f}",
+                *(
+                    f"{at_s - record.time_s:.6f}"
+                    for at_s in (
+                        record.odometry_ready_s,
+                        record.message_sent_s,
+                        record.inputs_ready_s,
+                    )
+                ),
                 *(f"{v:.6f}" for v in record.odometry_m),
                 " ".join(str(peer) for peer in record.gated),
                 record.target,
@@ -425,7 +436,18 @@ def write_vehicle_run(
     states: dict[str, int] = {}
     for record in run.records:
         states[record.state] = states.get(record.state, 0) + 1
-    lateness = [r.setpoint_sent_s - r.time_s for r in run.records if np.isfinite(r.setpoint_sent_s)]
+
+    def after_t_k(at_s: Callable[[StepRecord], float]) -> dict[str, float] | None:
+        """p50/p99/max of ``at_s(record) - t_k`` over the steps that got that far [s]."""
+        values = [at_s(r) - r.time_s for r in run.records if np.isfinite(at_s(r))]
+        if not values:
+            return None
+        return {
+            "p50": float(np.percentile(values, 50)),
+            "p99": float(np.percentile(values, 99)),
+            "max": float(np.max(values)),
+        }
+
     document = {
         "status": status,
         "vehicle_id": run.vehicle_id,
@@ -440,15 +462,14 @@ def write_vehicle_run(
         "mission_clock_rate": run.clock_rate,
         "autopilot_clock_rate": run.autopilot_clock_rate,
         "autopilot_clock_residual_s": run.clock_residual_s,
-        "setpoint_lateness_s": (
-            {
-                "p50": float(np.percentile(lateness, 50)),
-                "p99": float(np.percentile(lateness, 99)),
-                "max": float(np.max(lateness)),
-            }
-            if lateness
-            else None
-        ),
+        "setpoint_lateness_s": after_t_k(lambda r: r.setpoint_sent_s),
+        # Where that lateness comes from, in the order a step goes: the own odometry at t_k in,
+        # the own step message out, every input in (or the deadline).
+        "step_timing_after_t_k_s": {
+            "odometry": after_t_k(lambda r: r.odometry_ready_s),
+            "message_sent": after_t_k(lambda r: r.message_sent_s),
+            "inputs": after_t_k(lambda r: r.inputs_ready_s),
+        },
         "autopilot_params": run.params,
         "bus_security": bus_security(
             run.bus_messages,

@@ -143,6 +143,12 @@ class StepRecord:
     gated: tuple[int, ...] = ()
     ranges_m: dict[int, float] = field(default_factory=dict)
     target: str = ""
+    #: Where the step's time went (mission clock): when the own odometry at t_k was in, when
+    #: the own step message had been published, when the step's inputs were complete (or the
+    #: deadline passed). NaN where the step did not get that far.
+    odometry_ready_s: float = math.nan
+    message_sent_s: float = math.nan
+    inputs_ready_s: float = math.nan
 
 
 class VehicleController:
@@ -352,6 +358,8 @@ class VehicleController:
         self.clock.release(t_k + settings.release_s)
         await self.clock.sleep_until(t_k)
         odometry = await self._odometry_at(t_k)
+        odometry_ready_s = self.clock.now_s()
+        message_sent_s = math.nan
         phase = self.law.phase_rad
         observation = None
         if odometry is not None:
@@ -379,9 +387,11 @@ class VehicleController:
                 observation,
             )
             await self._publish(self.topics.step(self.vehicle_id), message)
+            message_sent_s = self.clock.now_s()
         else:
             self._missed_odometry += 1
         await self._wait_inputs(k, t_k)
+        inputs_ready_s = self.clock.now_s()
         data = self.inbox.take(k)
         target = self._track_target(k, data, observation)
         now = self.clock.now_s()
@@ -458,6 +468,9 @@ class VehicleController:
             gated,
             ranges,
             STATUS_NAMES[int(target.status)],
+            odometry_ready_s=odometry_ready_s if odometry is not None else math.nan,
+            message_sent_s=message_sent_s,
+            inputs_ready_s=inputs_ready_s,
         )
         self.records.append(record)
         await self._publish_status(k, t_k)

@@ -171,6 +171,10 @@ def test_the_mission_flies_on_px4_like_vehicles_as_separate_processes(tmp_path, 
         assert summary["autopilot_clock_rate"] == pytest.approx(0.986, abs=0.003)
         assert summary["mission_clock_rate"] == pytest.approx(0.986, abs=0.003)
         assert summary["autopilot_params"]["COM_OBL_RC_ACT"] == 4  # on_lost: land
+        # Where each step's time went, in the order a step goes; the setpoint last.
+        timing = summary["step_timing_after_t_k_s"]
+        order = [timing[part]["p50"] for part in ("odometry", "message_sent", "inputs")]
+        assert 0 <= order[0] <= order[1] <= order[2] <= summary["setpoint_lateness_s"]["p50"]
     merged = json.loads((mission / "summary.json").read_text())
     assert merged["metrics"]["tail_tracking_error_rms_m"] < 0.2
     assert "live: ws://127.0.0.1:" in ground_out
