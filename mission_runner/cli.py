@@ -196,7 +196,7 @@ def _run_async(coroutine: Coroutine[Any, Any, T], stopping: _Stopping = _Stoppin
         def say(text: str) -> None:
             print(text, file=sys.stderr, flush=True)
 
-        def cancel(name: str) -> None:  # in a signal handler: only hand work to the loop
+        def cancel(name: str) -> None:  # may be in a signal handler: only hand work to the loop
             nonlocal stops
             stops += 1
             _signals.received = name
@@ -206,19 +206,26 @@ def _run_async(coroutine: Coroutine[Any, Any, T], stopping: _Stopping = _Stoppin
             if task is not None:
                 loop.call_soon_threadsafe(task.cancel)  # wakes the loop, as asyncio's handler
 
-        previous_sigint = None
-        if (
-            threading.current_thread() is threading.main_thread()
-            and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
-        ):
-            previous_sigint = signal.signal(signal.SIGINT, lambda number, frame: cancel("SIGINT"))
+        # Through the loop: it makes the signal wake it (its wakeup descriptor) whichever thread
+        # the kernel hands the signal to. A plain signal.signal handler runs only when the main
+        # thread next runs Python, and a loop asleep in epoll for the hour of a landing may not:
+        # the process has other threads (numpy's BLAS workers), and one of them may get it.
+        handled: list[tuple[signal.Signals, Any]] = []
+        if threading.current_thread() is threading.main_thread():
+            for number, name in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")):
+                previous = signal.getsignal(number)
+                if number == signal.SIGINT and previous is signal.SIG_IGN:
+                    continue  # a background job's: stays ignored
+                loop.add_signal_handler(number, cancel, name)
+                handled.append((number, previous))
         _signals.cancel_main = cancel
         try:
             return await coroutine
         finally:
             _signals.cancel_main = None
-            if previous_sigint is not None:
-                signal.signal(signal.SIGINT, previous_sigint)
+            for number, previous in handled:
+                loop.remove_signal_handler(number)
+                signal.signal(number, previous if previous is not None else signal.SIG_DFL)
 
     try:
         result = asyncio.run(main())

@@ -507,6 +507,63 @@ def test_a_second_signal_abandons_the_landing_and_says_so(first, second, tmp_pat
     ]
 
 
+OTHER_THREAD_STOP = """
+import asyncio
+import signal
+import sys
+import threading
+
+from mission_runner import cli
+
+
+def signaller():
+    sys.stdin.readline()  # the test says when
+    signal.pthread_kill(threading.get_ident(), signal.SIGINT)  # to this thread, not the main one
+
+
+async def fly():
+    try:
+        print("flying", flush=True)
+        await asyncio.sleep(3600)
+    except asyncio.CancelledError:
+        print("landing", flush=True)
+        raise
+
+
+threading.Thread(target=signaller, daemon=True).start()
+with cli._terminate_as_interrupt():
+    try:
+        cli._run_async(fly(), cli._RUN_STOPPING)
+    except KeyboardInterrupt:
+        print("KeyboardInterrupt", cli._signals.received, flush=True)
+"""
+
+
+def test_a_stop_signal_reaches_the_flight_whichever_thread_the_kernel_gives_it_to(tmp_path):
+    """The process has threads besides the main one (numpy's BLAS workers) and a signal for
+    the process may be handed to any: the loop, asleep for the hour of a flight, must wake
+    (without its wakeup descriptor a second Ctrl-C once went unseen in CI)."""
+    root = Path(__file__).resolve().parents[1]
+    process = subprocess.Popen(
+        [sys.executable, "-c", OTHER_THREAD_STOP],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(root)},
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert process.stdout.readline() == "flying\n"
+        process.stdin.write("now\n")
+        process.stdin.flush()
+        output, error = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert output == "landing\nKeyboardInterrupt SIGINT\n"
+    assert error.splitlines() == ["run: SIGINT: landing every vehicle (SIGINT again: stop at once)"]
+
+
 @pytest.mark.mavsdk
 @pytest.mark.slow
 @pytest.mark.timeout(300)
