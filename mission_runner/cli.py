@@ -462,6 +462,23 @@ def _parser() -> argparse.ArgumentParser:
         "25; a step's ranges wait for the first sample after t_k; 0: leave it; default 100)",
     )
     ranges.add_argument(
+        "--vision",
+        type=argtypes.non_negative_float,
+        default=0.0,
+        metavar="HZ",
+        help="with --source sih: also send each instance a vision odometry (ODOMETRY, VIO, local "
+        "NED) made from its truth at this rate, for EKF2 to fuse (EKF2_EV_CTRL); 0: none "
+        "(default)",
+    )
+    ranges.add_argument(
+        "--vision-noise",
+        type=argtypes.non_negative_float,
+        nargs=2,
+        default=(0.02, 0.05),
+        metavar=("POSITION_M", "VELOCITY_M_S"),
+        help="white noise (std) of the vision odometry's position and velocity (0.02 0.05)",
+    )
+    ranges.add_argument(
         "--url",
         action="append",
         default=None,
@@ -1102,7 +1119,7 @@ def _mission_dir(scenario: Scenario) -> Path:
 
 def _ranges(arguments: argparse.Namespace) -> int:
     from .outputs import TRUTH_FILES, prepare_out_dir  # noqa: PLC0415
-    from .runner.ranges import TRUTH_RATE_HZ, run_range_provider  # noqa: PLC0415
+    from .runner.ranges import TRUTH_RATE_HZ, VisionSettings, run_range_provider  # noqa: PLC0415
     from .runner.scoring import write_truth_csv  # noqa: PLC0415
 
     scenario = with_bus_access(load_scenario(arguments.config), arguments)
@@ -1121,6 +1138,9 @@ def _ranges(arguments: argparse.Namespace) -> int:
             truth_rate_hz=TRUTH_RATE_HZ
             if arguments.truth_rate is None
             else arguments.truth_rate or None,
+            vision=VisionSettings(arguments.vision, *arguments.vision_noise)
+            if arguments.vision
+            else None,
             seed=scenario.seed,
         )
     )
@@ -1131,6 +1151,12 @@ def _ranges(arguments: argparse.Namespace) -> int:
         f"{stats.missing_vehicles} vehicle-steps without a position; after t_k: {lateness}; "
         "positions per second: "
         + ", ".join(f"{i}: {rate:.1f}" for i, rate in stats.position_rates_hz.items())
+        + (
+            "; vision odometry per second: "
+            + ", ".join(f"{i}: {rate:.1f}" for i, rate in stats.vision_rates_hz.items())
+            if stats.vision_rates_hz
+            else ""
+        )
     )
     return EXIT_OK if stats.ranges else EXIT_RUNTIME_FAILURE
 

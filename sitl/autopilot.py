@@ -142,6 +142,10 @@ class Px4Autopilot:
         stick_flight = StickFlight(vehicle, self._manual_control)
         self.orbit = Orbit(vehicle, set_mode=self._set_mode)
         self.follow_target = FollowTarget(vehicle)
+        #: External vision (ODOMETRY) received: how many, and the last. PX4 hands it to EKF2 when
+        #: EKF2_EV_CTRL asks; the emulator's odometry model does not fuse it (kept for checks).
+        self.external_vision_received = 0
+        self.external_vision: mavlink.MAVLink_odometry_message | None = None
         self._flight_tasks = FlightModeManager(
             vehicle,
             {
@@ -197,6 +201,7 @@ class Px4Autopilot:
             handlers={
                 "MANUAL_CONTROL": self._manual_control.on_manual_control,
                 "FOLLOW_TARGET": self.follow_target.on_follow_target,
+                "ODOMETRY": self._on_external_vision,
             },
             command_tables=[
                 bind(self.orbit, ORBIT_COMMANDS),
@@ -527,6 +532,10 @@ class Px4Autopilot:
         self._receiver.pump()
 
     # ================================================================ wiring
+    def _on_external_vision(self, msg: mavlink.MAVLink_message, _link: Link) -> None:
+        self.external_vision_received += 1
+        self.external_vision = msg
+
     def _on_statustext(self, now_s: float, severity: int, text: str) -> None:
         if self._flight_logger is not None:
             self._flight_logger.text(now_s, severity, text)

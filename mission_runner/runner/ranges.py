@@ -16,6 +16,13 @@ Two sources of positions:
   decimetres (PX4 SIH: -0.54..+0.38 m, 5th-95th percentile of pair ranges against truth), which
   is far more than the RLSE tolerates: expect metres of tracking error.
 
+With ``sih``, the aid can also stand in for a vision/flow odometry (``vision``): it sends each
+instance ODOMETRY (MAV_ESTIMATOR_TYPE_VIO, local NED) made from the same truth with white noise,
+back on the truth link, for EKF2 to fuse (``EKF2_EV_CTRL``) as an indoor swarm's vehicles fuse
+their own VIO. PX4 stamps it on arrival. The controllers still read only LOCAL_POSITION_NED:
+EKF2's estimate, its latency and its filtering included. Without it, SIH's EKF2 follows SIH's
+GPS (0.2 m white noise, hard-coded) and its local position wanders 0.2-0.3 m within seconds.
+
 Each step's ranges are published as soon as every live vehicle has a position after t_k (the two
 samples bracketing t_k, interpolated), not after a fixed delay. The scenario frame's origin is
 placed so that the first vehicle's first fix is at its ``initial_position_m``; the virtual target
@@ -61,10 +68,22 @@ TRUTH_PORT_BASE = 19410
 #: The ground truth's rate asked of each SIH instance [Hz] (PX4 streams 25): a step's ranges wait
 #: for the first sample after t_k, so this bounds that wait (10 ms).
 TRUTH_RATE_HZ = 100.0
+#: The attitude's std a vision odometry reports [rad]: the truth's, sent as is.
+ATTITUDE_NOISE_STD_RAD = 0.01
 #: A vehicle whose last position is older than this at t_k is not waited for (dead or silent).
 STALE_AFTER_S = 1.0
 #: Longest wait after t_k for the positions bracketing it.
 MAX_WAIT_S = 0.25
+
+
+def flat_earth_ned(
+    reference: tuple[float, float, float], lat_deg: float, lon_deg: float, alt_m: float
+) -> tuple[float, float, float]:
+    """``(north_m, east_m, down_m)`` of a fix from ``reference`` ``(lat, lon, alt)``, flat earth."""
+    lat0, lon0, alt0 = reference
+    north = math.radians(lat_deg - lat0) * EARTH_RADIUS_M
+    east = math.radians(lon_deg - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
+    return north, east, -(alt_m - alt0)
 
 
 class GeodeticFrame:
@@ -85,14 +104,8 @@ class GeodeticFrame:
             if vehicle_id != self.first_id:
                 return None
             self.reference = (lat_deg, lon_deg, alt_m)
-        lat0, lon0, alt0 = self.reference
-        north = math.radians(lat_deg - lat0) * EARTH_RADIUS_M
-        east = math.radians(lon_deg - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
-        return (
-            north + self.first_position_m[0],
-            east + self.first_position_m[1],
-            -(alt_m - alt0),
-        )
+        north, east, down = flat_earth_ned(self.reference, lat_deg, lon_deg, alt_m)
+        return north + self.first_position_m[0], east + self.first_position_m[1], down
 
 
 @dataclass
@@ -108,6 +121,87 @@ class VehiclePositions:
         return -math.inf if latest is None else latest.time_s
 
 
+@dataclass(frozen=True)
+class VisionSettings:
+    """The simulated vision odometry: how often each instance gets one, and its white noise."""
+
+    rate_hz: float
+    position_noise_std_m: float = 0.02
+    velocity_noise_std_m_s: float = 0.05
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.rate_hz) and 0 < self.rate_hz <= 1000):
+            raise RunnerError(f"vision odometry rate {self.rate_hz} Hz: give 0 < rate <= 1000")
+        for name in ("position_noise_std_m", "velocity_noise_std_m_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise RunnerError(f"vision odometry {name} = {value}: give a finite value >= 0")
+
+
+class VisionOdometry:
+    """ODOMETRY messages from one instance's ground truth: position in the vehicle's own NED frame
+    (origin at its first truth sample, like a VIO switched on there) and NED velocity, each with
+    white noise and that noise's variance in the covariance, at most ``rate_hz``."""
+
+    def __init__(self, vehicle_id: int, settings: VisionSettings, rng: np.random.Generator) -> None:
+        self.vehicle_id = vehicle_id
+        self.settings = settings
+        self.rng = rng
+        self.origin: tuple[float, float, float] | None = None
+        self.next_s = -math.inf
+        self.sent = 0
+        self.packer = mavlink.MAVLink(
+            None, srcSystem=vehicle_id, srcComponent=mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+        )
+
+    def message(self, arrived_s: float, truth: Any) -> bytes | None:
+        """The ODOMETRY for a HIL_STATE_QUATERNION ``truth`` received at ``arrived_s``, or None
+        when the last one went out less than a period ago."""
+        if arrived_s < self.next_s:
+            return None
+        period_s = 1.0 / self.settings.rate_hz
+        self.next_s = max(self.next_s + period_s, arrived_s + 0.5 * period_s)
+        fix = (truth.lat / 1e7, truth.lon / 1e7, truth.alt / 1e3)
+        if self.origin is None:
+            self.origin = fix
+        position = np.add(flat_earth_ned(self.origin, *fix), self.rng.normal(0.0, self._sd(0), 3))
+        velocity = np.add(
+            (truth.vx / 100.0, truth.vy / 100.0, truth.vz / 100.0),
+            self.rng.normal(0.0, self._sd(1), 3),
+        )
+        self.sent += 1
+        return mavlink.MAVLink_odometry_message(
+            0,  # PX4 stamps it on arrival (no TIMESYNC on this link)
+            mavlink.MAV_FRAME_LOCAL_NED,
+            mavlink.MAV_FRAME_LOCAL_NED,
+            *map(float, position),
+            list(truth.attitude_quaternion),  # a VIO's attitude: for EKF2_EV_CTRL's yaw bit
+            *map(float, velocity),
+            math.nan,
+            math.nan,
+            math.nan,
+            _diagonal_covariance(self._sd(0) ** 2, ATTITUDE_NOISE_STD_RAD**2),
+            _diagonal_covariance(self._sd(1) ** 2, math.nan),
+            0,
+            mavlink.MAV_ESTIMATOR_TYPE_VIO,
+            100,
+        ).pack(self.packer)
+
+    def _sd(self, which: int) -> float:
+        return (self.settings.position_noise_std_m, self.settings.velocity_noise_std_m_s)[which]
+
+
+def _diagonal_covariance(linear: float, angular: float) -> list[float]:
+    """MAVLink's upper-triangular 6x6 covariance: ``linear`` on the x, y, z diagonal entries,
+    ``angular`` on the three rotations', the rest unknown (NaN)."""
+    covariance = [math.nan] * 21
+    for index in (0, 6, 11):
+        covariance[index] = linear
+    for index in (15, 18, 20):
+        covariance[index] = angular
+    return covariance
+
+
 @dataclass
 class RangeStats:
     """What the aid published: steps, ranges, and how long after t_k each step went out."""
@@ -119,6 +213,8 @@ class RangeStats:
     truth: list[TruthSample] = field(default_factory=list)  # per step, for scoring only
     #: Positions received per second during the mission, by vehicle id.
     position_rates_hz: dict[int, float] = field(default_factory=dict)
+    #: Vision odometry messages sent per second during the mission, by vehicle id (if asked).
+    vision_rates_hz: dict[int, float] = field(default_factory=dict)
 
     def lateness_percentiles_ms(self) -> dict[str, float]:
         if not self.lateness_s:
@@ -177,9 +273,16 @@ class _TruthProtocol(asyncio.DatagramProtocol):
     from): PX4 starts the stream at 25 Hz, so a step's bracketing sample would come up to 40 ms
     after t_k, and every vehicle's step waits for it."""
 
-    def __init__(self, positions: _Positions, vehicle_id: int, rate_hz: float | None) -> None:
+    def __init__(
+        self,
+        positions: _Positions,
+        vehicle_id: int,
+        rate_hz: float | None,
+        vision: VisionOdometry | None = None,
+    ) -> None:
         self.positions = positions
         self.vehicle_id = vehicle_id
+        self.vision = vision
         self.parser = mavlink.MAVLink(None)
         self.parser.robust_parsing = True
         self.malformed = 0
@@ -208,6 +311,10 @@ class _TruthProtocol(asyncio.DatagramProtocol):
             self.positions.add(
                 self.vehicle_id, arrived_s, message.lat / 1e7, message.lon / 1e7, message.alt / 1e3
             )
+            if self.vision is not None and self.transport is not None:
+                odometry = self.vision.message(arrived_s, message)
+                if odometry is not None:
+                    self.transport.sendto(odometry, addr)
 
     def _ask_rate(self, addr: tuple[str | Any, int]) -> None:
         self.asked = True
@@ -243,13 +350,17 @@ async def _sih_source(
     positions: _Positions,
     port_base: int,
     rate_hz: float | None,
+    vision: dict[int, VisionOdometry],
 ) -> None:
     loop = asyncio.get_running_loop()
     for vehicle_id in positions.ids:
         port = port_base + vehicle_id - 1
+        protocol = functools.partial(
+            _TruthProtocol, positions, vehicle_id, rate_hz, vision.get(vehicle_id)
+        )
         try:
             transport, _ = await loop.create_datagram_endpoint(
-                functools.partial(_TruthProtocol, positions, vehicle_id, rate_hz),
+                protocol,
                 local_addr=("127.0.0.1", port),
             )
         except OSError as error:
@@ -305,22 +416,33 @@ async def run_range_provider(
     urls: Iterable[str] = (),
     truth_port_base: int = TRUTH_PORT_BASE,
     truth_rate_hz: float | None = TRUTH_RATE_HZ,
+    vision: VisionSettings | None = None,
     steps: int | None = None,
     seed: int = 0,
     start_timeout_s: float = 600.0,
 ) -> RangeStats:
     """Publish synthetic ranges for ``steps`` steps (default: the scenario's) from the ground
-    station's start. Returns :class:`RangeStats`."""
+    station's start, and with ``vision`` (``sih`` only) a vision odometry to every instance from
+    the moment its truth arrives. Returns :class:`RangeStats`."""
     if scenario.bus.kind != "mqtt":
         raise RunnerError("the range provider publishes for vehicle processes: set bus.kind: mqtt")
     if source not in SOURCES:
         raise RunnerError(f"unknown range source {source!r}: use one of {', '.join(SOURCES)}")
+    if vision is not None and source != "sih":
+        raise RunnerError("a vision odometry is made from a simulator's truth: use --source sih")
     steps = scenario.timing.steps if steps is None else steps
     topics = scenario.bus.topics(scenario.name)
     rng = np.random.default_rng([seed, 11])
     mission_time = MissionTime()
     positions = _Positions(scenario)
     stats = RangeStats()
+    odometry = {
+        vehicle.id: VisionOdometry(
+            vehicle.id, vision, np.random.default_rng([seed, 12, vehicle.id])
+        )
+        for vehicle in scenario.vehicles
+        if vision is not None
+    }
     async with contextlib.AsyncExitStack() as stack:
         bus = await stack.enter_async_context(
             open_bus(
@@ -330,13 +452,14 @@ async def run_range_provider(
         control = await stack.enter_async_context(bus.subscribe(topics.control()))
         group = await stack.enter_async_context(asyncio.TaskGroup())
         if source == "sih":
-            await _sih_source(stack, positions, truth_port_base, truth_rate_hz)
+            await _sih_source(stack, positions, truth_port_base, truth_rate_hz, odometry)
         else:
             await _gps_source(stack, positions, list(urls), mission_time, group)
         start = await start_command(control, timeout_s=start_timeout_s)
         mission_time.set(start.clock_rate or 1.0, start.clock_reference_s or start.time_s)
         started_s = time.time()
         received = {i: p.received for i, p in positions.vehicles.items()}
+        sent = {i: o.sent for i, o in odometry.items()}
         for k in range(steps):
             t_k = start.time_s + k * scenario.timing.step_s
             unix_k = mission_time.to_unix(t_k)
@@ -348,6 +471,7 @@ async def run_range_provider(
         stats.position_rates_hz = {
             i: (p.received - received[i]) / elapsed_s for i, p in positions.vehicles.items()
         }
+        stats.vision_rates_hz = {i: (o.sent - sent[i]) / elapsed_s for i, o in odometry.items()}
     return stats
 
 

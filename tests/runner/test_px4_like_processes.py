@@ -105,6 +105,8 @@ class Swarm:
             "sih",
             "--truth-port-base",
             str(self.truth.remote_base),
+            "--vision",  # as the README's block: the file's EKF2 fuses it on SIH
+            "50",
             "--out",
             str(mission / "truth"),
         )
@@ -162,6 +164,7 @@ def test_the_mission_flies_on_px4_like_vehicles_as_separate_processes(tmp_path, 
     for vehicle, output in zip(vehicles, outputs, strict=True):
         assert vehicle.returncode == 0, output
     assert re.search(rf"ranges: {STEPS} steps, \d+ ranges published", ranges_out), ranges_out
+    assert re.search(r"vision odometry per second: 1: [1-9]", ranges_out), ranges_out
     for number in range(1, 5):
         summary = json.loads((mission / f"vehicle_{number}" / "summary.json").read_text())
         assert summary["state"] == "done"

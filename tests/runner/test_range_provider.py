@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from pymavlink.dialects.v20 import common as mavlink
 
 from mission_runner.bus import (
     ControlCommand,
@@ -16,7 +17,8 @@ from mission_runner.bus import (
     TargetObservation,
 )
 from mission_runner.config import validate_scenario
-from mission_runner.runner.ranges import run_range_provider
+from mission_runner.runner.errors import RunnerError
+from mission_runner.runner.ranges import VisionSettings, run_range_provider
 from sitl.config import ClockConfig, EmulatorConfig
 from sitl.emulator import Emulator
 from tests.mosquitto import bus_test_key
@@ -39,9 +41,10 @@ def scenario(broker):
     return validate_scenario(data)
 
 
-async def fly_aid(mosquitto, *, source, truth=False, truth_rate_hz=100.0):
+async def fly_aid(mosquitto, *, source, truth=False, truth_rate_hz=100.0, vision=None, seen=None):
     """Run the aid for 8 steps against three parked emulated vehicles; returns the start time,
-    the aid's stats and what it published."""
+    the aid's stats and what it published. ``seen(emulator)`` looks at the emulator before it
+    stops."""
     mission = scenario(mosquitto)
     ports = free_port_config(3, gcs=True)
     config = EmulatorConfig(
@@ -53,7 +56,7 @@ async def fly_aid(mosquitto, *, source, truth=False, truth_rate_hz=100.0):
     )
     topics = mission.bus.topics(mission.name)
     async with (
-        Emulator(config),
+        Emulator(config) as emulator,
         MqttBus(mosquitto.host, mosquitto.port, key=bus_test_key(), client_id="listener") as bus,
         bus.subscribe(topics.all_ranges(), queue_size=10_000) as ranges,
         bus.subscribe(topics.all_targets(), queue_size=10_000) as targets,
@@ -68,8 +71,11 @@ async def fly_aid(mosquitto, *, source, truth=False, truth_rate_hz=100.0):
             urls=[f"udpin://0.0.0.0:{ports.gcs_remote_port}"],
             truth_port_base=config.truth_stream.remote_base,
             truth_rate_hz=truth_rate_hz,
+            vision=vision,
             steps=8,
         )
+        if seen is not None:
+            seen(emulator)
         await bus.publish(topics.control(), b"", retain=True, timeout=5.0)
         # The aid returns once it has published; the broker may still be delivering the last.
         measured = [
@@ -123,3 +129,56 @@ async def test_the_aid_asks_the_simulator_for_ground_truth_fast_enough(
     assert set(stats.position_rates_hz) == {1, 2, 3}
     for rate in stats.position_rates_hz.values():
         assert low_hz < rate < high_hz
+
+
+@pytest.mark.timeout(60)
+async def test_the_aid_feeds_each_instance_a_vision_odometry_from_its_truth(mosquitto):
+    """With a vision rate, every instance gets ODOMETRY on its truth link (as a VIO on the
+    vehicle would send it): local NED from where its truth started, the truth's attitude, the
+    noise's variance in the covariance, at the asked rate."""
+    settings = VisionSettings(rate_hz=20.0, position_noise_std_m=0.01, velocity_noise_std_m_s=0.02)
+    received = {}
+
+    def seen(emulator):
+        for index in range(3):
+            autopilot = emulator.autopilot(index)
+            received[index + 1] = (autopilot.external_vision_received, autopilot.external_vision)
+
+    _, stats, measured, _ = await fly_aid(
+        mosquitto, source="sih", truth=True, vision=settings, seen=seen
+    )
+    assert stats.ranges == len(measured) == 8 * 6
+    assert set(stats.vision_rates_hz) == {1, 2, 3}
+    for vehicle_id, (count, last) in received.items():
+        assert 12 < stats.vision_rates_hz[vehicle_id] < 25
+        assert count >= 8 * STEP_S * 12  # the mission's second, at least, and the wait before it
+        assert last.get_srcSystem() == vehicle_id
+        assert last.frame_id == last.child_frame_id == mavlink.MAV_FRAME_LOCAL_NED
+        assert last.estimator_type == mavlink.MAV_ESTIMATOR_TYPE_VIO
+        # Parked: where it started, standing still, level, within a few noise std.
+        assert np.hypot(last.x, last.y) < 0.06 and abs(last.z) < 0.06
+        assert np.hypot(last.vx, last.vy) < 0.1
+        assert abs(last.q[0]) == pytest.approx(1.0, abs=0.01)
+        assert last.pose_covariance[0] == pytest.approx(0.01**2)
+        assert last.velocity_covariance[6] == pytest.approx(0.02**2)
+
+
+async def test_a_vision_odometry_needs_a_simulator_truth(mosquitto):
+    with pytest.raises(RunnerError, match="--source sih"):
+        await run_range_provider(
+            scenario(mosquitto), source="gps", vision=VisionSettings(rate_hz=50.0), steps=1
+        )
+
+
+@pytest.mark.parametrize(
+    "settings",
+    [
+        {"rate_hz": 0.0},
+        {"rate_hz": float("nan")},
+        {"rate_hz": 50.0, "position_noise_std_m": -0.1},
+        {"rate_hz": 50.0, "velocity_noise_std_m_s": float("inf")},
+    ],
+)
+async def test_vision_settings_refuse_what_no_sensor_does(settings):
+    with pytest.raises(RunnerError, match="vision odometry"):
+        VisionSettings(**settings)
