@@ -288,6 +288,8 @@ class _TruthProtocol(asyncio.DatagramProtocol):
         self.malformed = 0
         self.rate_hz = rate_hz
         self.transport: asyncio.DatagramTransport | None = None
+        self.address: tuple[str | Any, int] | None = None
+        self.clock_rate = 1.0
         self.asked = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -317,8 +319,15 @@ class _TruthProtocol(asyncio.DatagramProtocol):
                     self.transport.sendto(odometry, addr)
 
     def _ask_rate(self, addr: tuple[str | Any, int]) -> None:
-        self.asked = True
-        if self.rate_hz is None or self.transport is None:
+        self.asked, self.address = True, addr
+        self.ask_rate(self.clock_rate)
+
+    def ask_rate(self, clock_rate: float) -> None:
+        """Ask for ``rate_hz`` per second of host time from an instance whose clock runs at
+        ``clock_rate`` x the host's (PX4's intervals are on its own clock; at speed factor 2 the
+        aid would otherwise parse twice as much). Before its first message, only noted."""
+        self.clock_rate = clock_rate
+        if self.rate_hz is None or self.transport is None or self.address is None:
             return
         request = mavlink.MAVLink_command_long_message(
             self.vehicle_id,
@@ -326,7 +335,7 @@ class _TruthProtocol(asyncio.DatagramProtocol):
             mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
             0,
             mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION,
-            1e6 / self.rate_hz,
+            1e6 * clock_rate / self.rate_hz,
             0,
             0,
             0,
@@ -336,12 +345,13 @@ class _TruthProtocol(asyncio.DatagramProtocol):
         sender = mavlink.MAVLink(
             None, srcSystem=255, srcComponent=mavlink.MAV_COMP_ID_MISSIONPLANNER
         )
-        self.transport.sendto(request.pack(sender), addr)
+        self.transport.sendto(request.pack(sender), self.address)
         logger.info(
-            "vehicle %s: ground truth asked for at %g Hz (from %s:%s)",
+            "vehicle %s: ground truth asked for at %g Hz (from %s:%s, clock %gx)",
             self.vehicle_id,
             self.rate_hz,
-            *addr,
+            *self.address,
+            clock_rate,
         )
 
 
@@ -351,8 +361,9 @@ async def _sih_source(
     port_base: int,
     rate_hz: float | None,
     vision: dict[int, VisionOdometry],
-) -> None:
+) -> list[_TruthProtocol]:
     loop = asyncio.get_running_loop()
+    protocols: list[_TruthProtocol] = []
     for vehicle_id in positions.ids:
         port = port_base + vehicle_id - 1
         protocol = functools.partial(
@@ -369,6 +380,8 @@ async def _sih_source(
                 f"{error.strerror} (--truth-port-base moves it)"
             ) from None
         stack.callback(transport.close)
+        protocols.append(cast(_TruthProtocol, transport.get_protocol()))
+    return protocols
 
 
 async def _gps_source(
@@ -451,12 +464,16 @@ async def run_range_provider(
         )
         control = await stack.enter_async_context(bus.subscribe(topics.control()))
         group = await stack.enter_async_context(asyncio.TaskGroup())
+        truth: list[_TruthProtocol] = []
         if source == "sih":
-            await _sih_source(stack, positions, truth_port_base, truth_rate_hz, odometry)
+            truth = await _sih_source(stack, positions, truth_port_base, truth_rate_hz, odometry)
         else:
             await _gps_source(stack, positions, list(urls), mission_time, group)
         start = await start_command(control, timeout_s=start_timeout_s)
         mission_time.set(start.clock_rate or 1.0, start.clock_reference_s or start.time_s)
+        if mission_time.rate != 1.0:
+            for protocol in truth:
+                protocol.ask_rate(mission_time.rate)
         started_s = time.time()
         received = {i: p.received for i, p in positions.vehicles.items()}
         sent = {i: o.sent for i, o in odometry.items()}
@@ -508,6 +525,9 @@ async def _publish_step(  # noqa: PLR0917
         sensors=scenario.sensors,
         rng=rng,
     )
-    for topic, message in measured:
-        await bus.publish_message(topic, message, timeout=0.1)
-        stats.ranges += isinstance(message, RangeMessage)
+    # All at once: one after the other, each waits for the loop to write it out, and on a loaded
+    # machine (four PX4 at 2x) that put the aid seconds behind the mission.
+    async with asyncio.TaskGroup() as group:
+        for topic, message in measured:
+            group.create_task(bus.publish_message(topic, message, timeout=0.1))
+    stats.ranges += sum(isinstance(message, RangeMessage) for _, message in measured)

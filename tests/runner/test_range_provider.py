@@ -41,7 +41,9 @@ def scenario(broker):
     return validate_scenario(data)
 
 
-async def fly_aid(mosquitto, *, source, truth=False, truth_rate_hz=100.0, vision=None, seen=None):
+async def fly_aid(
+    mosquitto, *, source, truth=False, truth_rate_hz=100.0, vision=None, seen=None, clock_rate=None
+):
     """Run the aid for 8 steps against three parked emulated vehicles; returns the start time,
     the aid's stats and what it published. ``seen(emulator)`` looks at the emulator before it
     stops."""
@@ -63,7 +65,13 @@ async def fly_aid(mosquitto, *, source, truth=False, truth_rate_hz=100.0, vision
     ):
         start_s = math.ceil((time.time() + 2.0) / STEP_S) * STEP_S
         # Retained, as the aid may subscribe after the ground station spoke.
-        start = MissionControl(ControlCommand.START, start_s, mission_id="m1")
+        start = MissionControl(
+            ControlCommand.START,
+            start_s,
+            mission_id="m1",
+            clock_rate=clock_rate,
+            clock_reference_s=start_s if clock_rate else None,
+        )
         await bus.publish_message(topics.control(), start, retain=True, timeout=5.0)
         stats = await run_range_provider(
             mission,
@@ -129,6 +137,19 @@ async def test_the_aid_asks_the_simulator_for_ground_truth_fast_enough(
     assert set(stats.position_rates_hz) == {1, 2, 3}
     for rate in stats.position_rates_hz.values():
         assert low_hz < rate < high_hz
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.timeout(60)
+async def test_the_truth_rate_asked_is_per_second_of_host_time(mosquitto):
+    """On a mission clock at 2x (PX4's speed factor 2) the aid asks for half the rate in the
+    autopilot's time, so that it parses what it asked for per second, not twice that."""
+    _, stats, measured, _ = await fly_aid(
+        mosquitto, source="sih", truth=True, truth_rate_hz=40.0, clock_rate=2.0
+    )
+    assert stats.ranges == len(measured) == 8 * 6
+    for rate in stats.position_rates_hz.values():
+        assert 12 < rate < 28  # 20 Hz: the emulator runs at 1x, so 40 Hz over 2
 
 
 @pytest.mark.timeout(60)
