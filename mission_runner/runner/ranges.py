@@ -525,9 +525,6 @@ async def _publish_step(  # noqa: PLR0917
         sensors=scenario.sensors,
         rng=rng,
     )
-    # All at once: one after the other, each waits for the loop to write it out, and on a loaded
-    # machine (four PX4 at 2x) that put the aid seconds behind the mission.
-    async with asyncio.TaskGroup() as group:
-        for topic, message in measured:
-            group.create_task(bus.publish_message(topic, message, timeout=0.1))
-    stats.ranges += sum(isinstance(message, RangeMessage) for _, message in measured)
+    for topic, message in measured:
+        await bus.publish_message(topic, message, timeout=0.1)
+        stats.ranges += isinstance(message, RangeMessage)
