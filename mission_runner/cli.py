@@ -1148,7 +1148,8 @@ def _ranges(arguments: argparse.Namespace) -> int:
     lateness = ", ".join(f"{k} {v:.1f} ms" for k, v in stats.lateness_percentiles_ms().items())
     print(
         f"ranges: {stats.steps} steps, {stats.ranges} ranges published, "
-        f"{stats.missing_vehicles} vehicle-steps without a position; after t_k: {lateness}; "
+        f"{stats.missing_vehicles} vehicle-steps without a position, {stats.unsent} messages "
+        f"dropped (not handed to the broker in time); after t_k: {lateness}; "
         "positions per second: "
         + ", ".join(f"{i}: {rate:.1f}" for i, rate in stats.position_rates_hz.items())
         + (

@@ -69,6 +69,8 @@ logger = logging.getLogger(__name__)
 # paho reports them (MQTT 5 reason codes 134 "bad user name or password", 135 "not
 # authorized"). Retrying cannot fix them, so the first connection fails fast on them.
 _AUTH_REFUSED_CODES = frozenset({4, 5, 134, 135})
+#: Publishes awaiting their hand-over to the socket above which aiomqtt logs a warning.
+PENDING_PUBLISHES_WARNING = 64
 
 
 @dataclass(frozen=True, slots=True)
@@ -377,7 +379,7 @@ class MqttBus(Bus):
             will = aiomqtt.Will(
                 self.will.topic, payload, qos=self.will.qos, retain=self.will.retain
             )
-        return aiomqtt.Client(
+        client = aiomqtt.Client(
             self.host,
             self.port,
             username=self._username,
@@ -400,6 +402,10 @@ class MqttBus(Bus):
             socket_options=((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),),
             logger=logging.getLogger(f"{__name__}.client"),
         )
+        # aiomqtt warns above 10 publishes awaiting their hand-over; a range aid hands a step's
+        # dozen over at once, which is no backlog.
+        client.pending_calls_threshold = PENDING_PUBLISHES_WARNING
+        return client
 
     async def _keep_connected(self) -> None:
         while True:

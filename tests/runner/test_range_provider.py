@@ -10,6 +10,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from mission_runner.bus import (
+    BusTimeoutError,
     ControlCommand,
     MissionControl,
     MqttBus,
@@ -18,7 +19,12 @@ from mission_runner.bus import (
 )
 from mission_runner.config import validate_scenario
 from mission_runner.runner.errors import RunnerError
-from mission_runner.runner.ranges import VisionSettings, run_range_provider
+from mission_runner.runner.ranges import (
+    RangeStats,
+    VisionSettings,
+    _publish_step,
+    run_range_provider,
+)
 from sitl.config import ClockConfig, EmulatorConfig
 from sitl.emulator import Emulator
 from tests.mosquitto import bus_test_key
@@ -203,3 +209,25 @@ async def test_a_vision_odometry_needs_a_simulator_truth(mosquitto):
 async def test_vision_settings_refuse_what_no_sensor_does(settings):
     with pytest.raises(RunnerError, match="vision odometry"):
         VisionSettings(**settings)
+
+
+async def test_a_message_not_handed_over_in_time_is_dropped_and_counted():
+    """One range the bus cannot hand over in time is lost like a radio packet: the others of
+    the step still go out, the aid goes on, and its count says so."""
+    mission = scenario(type("Broker", (), {"host": "127.0.0.1", "port": 1})())
+    topics = mission.bus.topics(mission.name)
+    sent = []
+
+    class SlowOnce:
+        async def publish_message(self, topic, message, *, timeout):
+            if topic == topics.range(1, 2):
+                raise BusTimeoutError(f"publish to {topic}", timeout)
+            sent.append(topic)
+
+    stats = RangeStats()
+    positions = np.array([[*place, -5.0] for place in PLACES])
+    rng = np.random.default_rng(0)
+    await _publish_step(SlowOnce(), topics, mission, positions, 0, 10.0, 10.0, rng, stats)
+    assert stats.unsent == 1
+    assert stats.ranges == 5 and len(sent) == 6  # five ranges and the target observation
+    assert topics.range(1, 2) not in sent
