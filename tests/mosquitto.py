@@ -157,9 +157,10 @@ class MosquittoBroker:
             "log_type warning",
             "log_type notice",
         ]
-        if os.geteuid() == 0:
+        if os.geteuid() == 0 and "user root" not in lines:
             # Started as root, mosquitto would switch to the "mosquitto" user, who cannot
-            # read files in the test's private temporary directory.
+            # read files in the test's private temporary directory (broker-config's own
+            # configuration says so itself).
             lines.append("user root")
         if given:
             pass  # access control is the given configuration's

@@ -212,5 +212,11 @@ def write_broker_config(
         # Without it Nagle's algorithm holds step messages to subscribers by up to 40 ms.
         "set_tcp_nodelay true",
     ]
+    if os.geteuid() == 0:
+        lines += [
+            "# Written as root, the logins are root's (0600): started as root, mosquitto would",
+            '# switch to the user "mosquitto" and fail to read them. Run as another user: drop it.',
+            "user root",
+        ]
     files.config.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return files

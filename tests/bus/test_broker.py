@@ -62,6 +62,18 @@ def test_a_password_hash_has_a_fresh_salt_and_verifies() -> None:
     assert hashlib.pbkdf2_hmac("sha512", b"pw", salt, 101) == digest
 
 
+@pytest.mark.parametrize(("uid", "as_root"), [(0, True), (1000, False)])
+def test_written_as_root_the_broker_stays_root_to_read_its_logins(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, uid: int, as_root: bool
+) -> None:
+    """mosquitto started as root switches to the user "mosquitto" unless told otherwise, and
+    that user cannot read root's 0600 logins ("Unable to open pwfile"): following the README
+    as root failed so."""
+    monkeypatch.setattr("mission_runner.bus.broker.os.geteuid", lambda: uid)
+    files = write_broker_config(tmp_path / "out", TOPICS, [1], port=1883)
+    assert ("user root" in files.config.read_text().splitlines()) is as_root
+
+
 def test_the_files_written(tmp_path: Path) -> None:
     cert, key = tmp_path / "server.crt", tmp_path / "server.key"
     files = write_broker_config(
