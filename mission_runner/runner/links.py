@@ -44,6 +44,8 @@ ODOMETRY_RATE_HZ = 50.0
 SYSTEM_TIME_RATE_HZ = 10.0  # pairs to interpolate a jittery simulated clock between
 #: Height above which a vehicle taking off is airborne enough to be handed to OFFBOARD.
 TAKEOFF_CLEAR_M = 2.0
+#: How often discovery looks for the vehicles it waits for [s].
+DISCOVERY_POLL_S = 0.1
 _mavsdk_logging_routed = False
 _REASON_SEVERITIES = frozenset({"EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING"})
 
@@ -89,7 +91,7 @@ async def connected_vehicles(
         found: dict[int, Any] = {}
         try:
             async with asyncio.timeout(timeout_s):
-                async for _ in _discovery_ticks(mavsdk):
+                async for _ in _discovery_ticks():
                     for system in await mavsdk.get_systems():
                         if await system.has_autopilot():
                             found.setdefault(await system.get_system_id(), system)
@@ -104,16 +106,14 @@ async def connected_vehicles(
         yield {sysid: found[sysid] for sysid in wanted}
 
 
-async def _discovery_ticks(mavsdk: Mavsdk) -> AsyncIterator[None]:
-    """Yield at once, then whenever MAVSDK reports a new system (and at least every 0.2 s)."""
-    yield
-    stream = mavsdk.on_new_system()
-    async with contextlib.aclosing(stream):
-        while True:
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(0.2):
-                    await anext(stream)
-            yield
+async def _discovery_ticks() -> AsyncIterator[None]:
+    """Yield at once, then every DISCOVERY_POLL_S. (MAVSDK's new-system stream is an async
+    generator: a timeout around its ``anext`` ends it for good, and discovery died with
+    StopAsyncIteration whenever the vehicle was not up within the first wait - a vehicle
+    process started with PX4, as the README's block does.)"""
+    while True:
+        yield
+        await asyncio.sleep(DISCOVERY_POLL_S)
 
 
 class MappedTrack:
