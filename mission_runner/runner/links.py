@@ -44,6 +44,9 @@ ODOMETRY_RATE_HZ = 50.0
 SYSTEM_TIME_RATE_HZ = 10.0  # pairs to interpolate a jittery simulated clock between
 #: Height above which a vehicle taking off is airborne enough to be handed to OFFBOARD.
 TAKEOFF_CLEAR_M = 2.0
+#: How long a refused arm is asked again, and how often [s].
+ARM_RETRY_S = 15.0
+ARM_RETRY_INTERVAL_S = 1.0
 #: How often discovery looks for the vehicles it waits for [s].
 DISCOVERY_POLL_S = 0.1
 _mavsdk_logging_routed = False
@@ -179,6 +182,7 @@ class MavsdkVehicle:
         self.armed: bool | None = None
         self._seen_in_control = False
         self._control_lost: str | None = None
+        self._arm_refusals = 0
 
     def _boot_s(self, mission_s: float) -> float:
         return self.boot_s_at(mission_s)  # late-bound: follow_clock replaces boot_s_at
@@ -401,7 +405,7 @@ class MavsdkVehicle:
             self.telemetry.subscribe_health_all_ok(), bool, "health (is it armable?)", timeout_s
         )
         await self._commanded(self.action.set_takeoff_altitude(altitude_m), "takeoff altitude")
-        await self._commanded(self.action.arm(), "arm")
+        await self._arm()
         await self._commanded(self.action.takeoff(), "takeoff")
         clear_m = min(altitude_m - 0.3, TAKEOFF_CLEAR_M)
         await self._first(
@@ -410,6 +414,23 @@ class MavsdkVehicle:
             f"climb above {clear_m:g} m",
             timeout_s,
         )
+
+    async def _arm(self) -> None:
+        """Arm. PX4 refuses while a preflight check settles (EKF2 seconds after boot or after a
+        parameter change, even once MAVSDK reported it healthy): a refusal is asked again every
+        ARM_RETRY_INTERVAL_S for ARM_RETRY_S, and the last one raised with PX4's reason."""
+        give_up_s = time.monotonic() + ARM_RETRY_S
+        while True:
+            try:
+                await self._commanded(self.action.arm(), "arm")
+                return
+            except VehicleCommandError as refusal:
+                if time.monotonic() + ARM_RETRY_INTERVAL_S > give_up_s:
+                    raise
+                if not self._arm_refusals:
+                    logger.warning("%s; asking again for up to %g s", refusal, ARM_RETRY_S)
+                self._arm_refusals += 1
+            await asyncio.sleep(ARM_RETRY_INTERVAL_S)
 
     async def wait_altitude(
         self, altitude_m: float, *, tolerance_m: float = 0.3, timeout_s: float = 30.0

@@ -194,7 +194,8 @@ def test_the_mission_flies_on_px4_like_vehicles_as_separate_processes(tmp_path, 
 @pytest.mark.timeout(240)
 def test_a_refused_arm_aborts_the_mission_for_everyone_with_px4s_reason(tmp_path, mosquitto):
     scenario, data = scenario_file(tmp_path, mosquitto)
-    with Swarm(tmp_path, scenario, data, "--deny-arming", "1") as swarm:
+    # Refused for good (PX4 asked again and again): the vehicle gives up after ARM_RETRY_S.
+    with Swarm(tmp_path, scenario, data, "--deny-arming", "1:1000") as swarm:
         mission, ground, ground_out, vehicles, outputs, _ = swarm.fly(timeout_s=180)
 
     assert ground.returncode == 3, ground_out
