@@ -459,7 +459,7 @@ class MavsdkVehicle:
             return await self._within(awaitable, what)
         except MavsdkError as error:
             result = getattr(getattr(error, "result", None), "name", None) or str(error)
-            reason = await self.reason_since(asked_s)
+            reason = (await self.reason_since(asked_s) or "").strip()
             raise VehicleCommandError(
                 f"vehicle {self.system_id}: {what} refused ({result})"
                 + (f": {reason}" if reason else "")
