@@ -567,15 +567,13 @@ class Px4SitlInstances:
         await self._stack.__aexit__(*exc_info)
 
     async def wait_for_exit(self) -> Px4Instance:
-        """Return the first instance whose process ends (they are meant to run until stopped),
-        with ``pid`` of the process that ended."""
-        if not self._running:
+        """Return the first still running instance whose process ends (they are meant to run
+        until stopped), with ``pid`` of the process that ended."""
+        running = [r for r in self._running if r.process.returncode is None]
+        if not running:
             raise Px4SitlError("no PX4 SITL instance is running")
         _, instance = await first_completed(
-            {
-                f"px4sitl-wait-{running.instance.instance}": self._exit_of(running)
-                for running in self._running
-            }
+            {f"px4sitl-wait-{r.instance.instance}": self._exit_of(r) for r in running}
         )
         return instance
 
@@ -762,8 +760,11 @@ async def run_px4_sitl_command(
     """Start PX4 SITL for ``scenario``, ``report`` the table of what runs where, and keep the
     instances running until ``until`` completes (e.g. a signal event's ``wait()``, which also
     cuts a start-up short); then stop them and return them as they ran (empty if stopped
-    before ready). Raises :class:`Px4SitlError` if an instance exits on its own."""
+    before ready). An instance that exits on its own is reported at once and the others fly
+    on (a swarm loses one vehicle, not all); :class:`Px4SitlError` is raised in the end, or as
+    soon as none is left."""
     ran: list[Px4Instance] = []
+    died: list[str] = []
 
     async def serve() -> None:
         sitl = Px4SitlInstances(
@@ -780,16 +781,21 @@ async def run_px4_sitl_command(
                 f"PX4 SITL for scenario {scenario.name}: {len(ran)} instance(s), "
                 f"speed factor {speed_factor:g}, in {sitl.run_dir}\n{instances_table(ran)}"
             )
-            # Described before leaving: a temporary run directory goes with the instances.
-            raise Px4SitlError(sitl.describe_exit(await sitl.wait_for_exit()))
+            while len(died) < len(ran):
+                # Described at once: a temporary run directory goes with the instances.
+                died.append(sitl.describe_exit(await sitl.wait_for_exit()))
+                report(f"error: {died[-1]}")
+            raise Px4SitlError("every PX4 SITL instance exited")
 
     async def stop() -> None:
         await until
         report("stopping PX4 SITL" if ran else "stopped before PX4 SITL was ready")
 
     # Whichever ends first cancels the other: a stop cancels the start or the watch (leaving
-    # the instances stops them); an instance that exits ends the run with its error.
+    # the instances stops them); the last instance exiting ends the run.
     await first_completed({"px4sitl-run": serve(), "px4sitl-until": stop()})
+    if died:
+        raise Px4SitlError("\n".join(died))
     return ran
 
 

@@ -425,7 +425,9 @@ async def test_an_unknown_parameter_is_named(tmp_path: Path) -> None:
 
 
 @pytest.mark.asyncio
-async def test_the_command_fails_when_an_instance_dies_while_running(tmp_path: Path) -> None:
+async def test_an_instance_that_dies_is_reported_and_the_others_fly_on(tmp_path: Path) -> None:
+    """One PX4 crashing (or killed) must not take the swarm's other vehicles out of the air:
+    it is reported at once, the others run until stopped, and the command fails in the end."""
     build = script_build(
         tmp_path / "px4",
         'echo $$ > pid\necho "Ready for takeoff!"\n'
@@ -433,18 +435,36 @@ async def test_the_command_fails_when_an_instance_dies_while_running(tmp_path: P
         "exec sleep 60\n",
     )
     lines: list[str] = []
+    reported, stop = asyncio.Event(), asyncio.Event()
+
+    def report(line: str) -> None:
+        lines.append(line)
+        if "exited with code" in line:
+            reported.set()
+
+    async def survivor_then_stop() -> None:
+        await reported.wait()
+        pids = [int(path.read_text()) for path in (tmp_path / "work").glob("*/instance-*/pid")]
+        assert sum(not process_gone(pid) for pid in pids) == 1  # instance 30 flies on
+        stop.set()
+
     with pytest.raises(
         Px4SitlError, match=r"instance 31 \(vehicle 32\) exited with code 3(.|\n)*crashed"
     ):
-        await run_px4_sitl_command(
-            scenario(ids=(31, 32)),
-            build,
-            first_instance=30,
-            work_dir=tmp_path / "work",
-            until=asyncio.sleep(30),
-            report=lines.append,
+        await asyncio.gather(
+            survivor_then_stop(),
+            run_px4_sitl_command(
+                scenario(ids=(31, 32)),
+                build,
+                first_instance=30,
+                work_dir=tmp_path / "work",
+                until=stop.wait(),
+                report=report,
+            ),
         )
     assert "udpin://0.0.0.0:14549" in lines[0]
+    assert any(line.startswith("error: PX4 instance 31 (vehicle 32) exited") for line in lines)
+    assert lines[-1] == "stopping PX4 SITL"
     pids = [int(path.read_text()) for path in (tmp_path / "work").glob("*/instance-*/pid")]
     assert len(pids) == 2
     assert all(process_gone(pid) for pid in pids)
