@@ -471,6 +471,19 @@ with cli._terminate_as_interrupt():
 """
 
 
+def _python_script(script: str, cwd: Path) -> subprocess.Popen[str]:
+    """``script`` run by this Python against this checkout, its standard streams piped."""
+    return subprocess.Popen(
+        [sys.executable, "-c", script],
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
 @pytest.mark.parametrize(
     ("first", "second"),
     [
@@ -480,15 +493,7 @@ with cli._terminate_as_interrupt():
     ],
 )
 def test_a_second_signal_abandons_the_landing_and_says_so(first, second, tmp_path):
-    root = Path(__file__).resolve().parents[1]
-    process = subprocess.Popen(
-        [sys.executable, "-c", SECOND_STOP],
-        cwd=tmp_path,
-        env={**os.environ, "PYTHONPATH": str(root)},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    process = _python_script(SECOND_STOP, tmp_path)
     try:
         assert process.stdout.readline() == "flying\n"
         process.send_signal(first)
@@ -543,16 +548,7 @@ def test_a_stop_signal_reaches_the_flight_whichever_thread_the_kernel_gives_it_t
     """The process has threads besides the main one (numpy's BLAS workers) and a signal for
     the process may be handed to any: the loop, asleep for the hour of a flight, must wake
     (without its wakeup descriptor a second Ctrl-C once went unseen in CI)."""
-    root = Path(__file__).resolve().parents[1]
-    process = subprocess.Popen(
-        [sys.executable, "-c", OTHER_THREAD_STOP],
-        cwd=tmp_path,
-        env={**os.environ, "PYTHONPATH": str(root)},
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    process = _python_script(OTHER_THREAD_STOP, tmp_path)
     try:
         assert process.stdout.readline() == "flying\n"
         process.stdin.write("now\n")
