@@ -182,7 +182,6 @@ class MavsdkVehicle:
         self.armed: bool | None = None
         self._seen_in_control = False
         self._control_lost: str | None = None
-        self._arm_refusals = 0
 
     def _boot_s(self, mission_s: float) -> float:
         return self.boot_s_at(mission_s)  # late-bound: follow_clock replaces boot_s_at
@@ -420,6 +419,7 @@ class MavsdkVehicle:
         parameter change, even once MAVSDK reported it healthy): a refusal is asked again every
         ARM_RETRY_INTERVAL_S for ARM_RETRY_S, and the last one raised with PX4's reason."""
         give_up_s = time.monotonic() + ARM_RETRY_S
+        warned = False
         while True:
             try:
                 await self._commanded(self.action.arm(), "arm")
@@ -427,9 +427,9 @@ class MavsdkVehicle:
             except VehicleCommandError as refusal:
                 if time.monotonic() + ARM_RETRY_INTERVAL_S > give_up_s:
                     raise
-                if not self._arm_refusals:
+                if not warned:
                     logger.warning("%s; asking again for up to %g s", refusal, ARM_RETRY_S)
-                self._arm_refusals += 1
+                    warned = True
             await asyncio.sleep(ARM_RETRY_INTERVAL_S)
 
     async def wait_altitude(

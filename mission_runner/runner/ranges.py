@@ -175,10 +175,12 @@ class VisionOdometry:
         fix = (truth.lat / 1e7, truth.lon / 1e7, truth.alt / 1e3)
         if self.origin is None:
             self.origin = fix
-        position = np.add(flat_earth_ned(self.origin, *fix), self.rng.normal(0.0, self._sd(0), 3))
+        position_sd = self.settings.position_noise_std_m
+        velocity_sd = self.settings.velocity_noise_std_m_s
+        position = np.add(flat_earth_ned(self.origin, *fix), self.rng.normal(0.0, position_sd, 3))
         velocity = np.add(
             (truth.vx / 100.0, truth.vy / 100.0, truth.vz / 100.0),
-            self.rng.normal(0.0, self._sd(1), 3),
+            self.rng.normal(0.0, velocity_sd, 3),
         )
         self.sent += 1
         return mavlink.MAVLink_odometry_message(
@@ -191,15 +193,12 @@ class VisionOdometry:
             math.nan,
             math.nan,
             math.nan,
-            _diagonal_covariance(self._sd(0) ** 2, ATTITUDE_NOISE_STD_RAD**2),
-            _diagonal_covariance(self._sd(1) ** 2, math.nan),
+            _diagonal_covariance(position_sd**2, ATTITUDE_NOISE_STD_RAD**2),
+            _diagonal_covariance(velocity_sd**2, math.nan),
             0,
             mavlink.MAV_ESTIMATOR_TYPE_VIO,
             100,
         ).pack(self.packer)
-
-    def _sd(self, which: int) -> float:
-        return (self.settings.position_noise_std_m, self.settings.velocity_noise_std_m_s)[which]
 
 
 def _diagonal_covariance(linear: float, angular: float) -> list[float]:
