@@ -61,7 +61,7 @@ from sitl.mission import MissionTransfer
 from sitl.modes import FlightMode
 from sitl.navigator import Navigator
 from sitl.odometry import Odometry
-from sitl.offboard import Offboard
+from sitl.offboard import Offboard, OffboardSetpoint
 from sitl.orbit import ORBIT_COMMANDS, Orbit
 from sitl.params import ParamStore, pack_param_pck
 from sitl.telemetry import TelemetryBuilder
@@ -279,6 +279,11 @@ class Px4Autopilot:
     def accepted_setpoints(self) -> int:
         """Offboard setpoints taken so far (a client can tell when one has arrived)."""
         return self._offboard.accepted_setpoints
+
+    @property
+    def offboard_setpoint(self) -> OffboardSetpoint | None:
+        """The latest offboard setpoint taken, in the vehicle's own units (simulated seconds)."""
+        return self._offboard.setpoint
 
     @property
     def preflight_ready_after_s(self) -> float:

@@ -104,6 +104,11 @@ class Offboard:
         self.rejected_setpoints = 0
         self.accepted_setpoints = 0
 
+    @property
+    def setpoint(self) -> OffboardSetpoint | None:
+        """The latest accepted setpoint, as the vehicle took it (None before the first)."""
+        return self._setpoint
+
     # ------------------------------------------------------------- messages in
     def on_position_target_local(self, msg: mavlink.MAVLink_message, link: Link) -> None:
         vehicle = self._vehicle

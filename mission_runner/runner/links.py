@@ -41,6 +41,10 @@ _T = TypeVar("_T")
 logger = logging.getLogger(__name__)
 
 ODOMETRY_RATE_HZ = 50.0
+#: The most a velocity setpoint is scaled from mission to autopilot seconds (see
+#: :attr:`MavsdkVehicle.velocity_scale`): clocks further apart than this are not one mission's,
+#: and a broken or hostile SYSTEM_TIME must not multiply the vehicle's speed.
+MAX_VELOCITY_SCALE = 1.25
 SYSTEM_TIME_RATE_HZ = 10.0  # pairs to interpolate a jittery simulated clock between
 #: Height above which a vehicle taking off is airborne enough to be handed to OFFBOARD.
 TAKEOFF_CLEAR_M = 2.0
@@ -168,6 +172,8 @@ class MavsdkVehicle:
         self.boot_s_at: Callable[[float], float] = float
         self.odometry = MappedTrack(self.track, self._boot_s)
         self.clock_mapping: ClockMapping | None = None
+        self._mission_time: MissionTime | None = None
+        self._scale_bounded = False  # warned once that the clocks are too far apart
         self.status_texts: collections.deque[tuple[float, str, str]] = collections.deque(
             maxlen=50
         )  # (monotonic s, severity, text)
@@ -334,8 +340,36 @@ class MavsdkVehicle:
                 timeout_s,
             ) from None
         self.clock_mapping = mapping
+        self._mission_time = mission_time
         self.boot_s_at = lambda mission_s: mapping.boot_s(mission_time.to_unix(mission_s))
         return mapping
+
+    @property
+    def velocity_scale(self) -> float:
+        """Mission seconds per autopilot (boot-clock) second: what a velocity in metres per
+        mission second is multiplied by to be the setpoint the autopilot integrates on its own
+        clock. 1 where boot time is mission time (the in-process emulator); with
+        :meth:`follow_clock`, the mission clock's rate over the fitted boot-clock rate. PX4 SIH's
+        clock runs at 0.986x wall time at speed factor 1 (the mission clock then is UNIX time)
+        and at 1.93-1.96x at 2 (the mission clock the ground chose at start): unscaled, every
+        vehicle moves 1.4 % (up to 7 % at 2x) off what the law commanded. Bounded to
+        [1/MAX_VELOCITY_SCALE, MAX_VELOCITY_SCALE]."""
+        mapping, mission_time = self.clock_mapping, self._mission_time
+        if mapping is None or mission_time is None:
+            return 1.0
+        scale = mission_time.rate * mapping.fit.rate
+        bounded = min(max(scale, 1.0 / MAX_VELOCITY_SCALE), MAX_VELOCITY_SCALE)
+        if bounded != scale and not self._scale_bounded:
+            self._scale_bounded = True
+            logger.warning(
+                "vehicle %s: its clock runs %.3fx the mission clock; velocity setpoints are "
+                "scaled by %.3f, not %.3f (is its SYSTEM_TIME right?)",
+                self.system_id,
+                1.0 / scale,
+                bounded,
+                scale,
+            )
+        return bounded
 
     async def request_interval(self, message_id: int, rate_hz: float) -> None:
         """MAV_CMD_SET_MESSAGE_INTERVAL for ``message_id`` at ``rate_hz`` on this link."""
@@ -513,8 +547,14 @@ class MavsdkVehicle:
     async def set_velocity_ned(
         self, north_m_s: float, east_m_s: float, down_m_s: float, yaw_deg: float = 0.0
     ) -> None:
+        """A velocity setpoint in metres per mission second (scaled to the autopilot's clock,
+        :attr:`velocity_scale`)."""
+        scale = self.velocity_scale
         setpoint = VelocityNedYaw(
-            float(north_m_s), float(east_m_s), float(down_m_s), float(yaw_deg)
+            float(north_m_s) * scale,
+            float(east_m_s) * scale,
+            float(down_m_s) * scale,
+            float(yaw_deg),
         )
         await self._within(self.offboard.set_velocity_ned(setpoint), "velocity setpoint")
 

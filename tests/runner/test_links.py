@@ -1,10 +1,12 @@
-"""Finding the vehicles: MAVSDK connections made before the autopilots are up."""
+"""The MAVSDK vehicle link: finding vehicles whose autopilots come up later, arming that PX4
+refuses at first, velocity setpoints on the autopilot's own clock."""
 
 import asyncio
 
 import pytest
 
-from mission_runner.runner.links import MavsdkVehicle, connected_vehicles
+from mission_runner.runner.links import MAX_VELOCITY_SCALE, MavsdkVehicle, connected_vehicles
+from mission_runner.runner.timesync import MissionTime
 from sitl.config import ClockConfig, EmulatorConfig
 from sitl.emulator import Emulator
 from tests.sitl.helpers import free_port_config
@@ -51,3 +53,47 @@ async def test_an_arm_refused_while_checks_settle_is_asked_again(caplog):
     refusals = [r.getMessage() for r in caplog.records if "arm refused" in r.getMessage()]
     assert len(refusals) == 1  # said once, not at every attempt
     assert "Resolve system health failures first" in refusals[0]
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize(
+    ("mission_rate", "expected_scale"), [(1.8, 0.9), (2.2, 1.1), (1.0, 1 / MAX_VELOCITY_SCALE)]
+)
+async def test_velocity_setpoints_are_scaled_to_the_autopilots_clock(
+    mission_rate, expected_scale, caplog
+):
+    """An autopilot integrates a velocity setpoint on its own boot clock. Here it runs at 2x
+    wall time (like PX4's speed factor 2, SYSTEM_TIME's UNIX time from the host) and the
+    mission clock at ``mission_rate``: 1 m per mission second is mission_rate / 2 m per boot
+    second. Unscaled, a SIH vehicle moved 1.4 % (1x) to 7 % (2x: the ground chose 1.82 from
+    take-off, PX4 ran at 1.95) off the law's command. A mission clock half the autopilot's is
+    not one mission's: bounded."""
+    ports = free_port_config(1, gcs=False)
+    clock = ClockConfig(speed=2.0, unix_time="host")
+    config = EmulatorConfig(vehicles=1, ports=ports, clock=clock)
+    async with Emulator(config) as emulator:
+        url = f"udpin://0.0.0.0:{ports.api_remote_port(0)}"
+        async with (
+            connected_vehicles([url], [1]) as systems,
+            MavsdkVehicle(systems[1], 1) as vehicle,
+        ):
+            mapping = await vehicle.follow_clock(MissionTime(rate=mission_rate, reference_s=0.0))
+            await vehicle.take_off(3.0)  # seconds of SYSTEM_TIME pairs: the rate is measured
+            await vehicle.start_offboard()
+            taken, scale = emulator.autopilot(0).accepted_setpoints, vehicle.velocity_scale
+            await vehicle.set_velocity_ned(1.0, -0.4, 0.2)
+            while emulator.autopilot(0).accepted_setpoints == taken:
+                await asyncio.sleep(0.01)
+            setpoint = emulator.autopilot(0).offboard_setpoint
+            assert mapping.fit.boot_rate == pytest.approx(2.0, rel=0.02)
+            assert scale == pytest.approx(expected_scale, rel=0.02)
+            assert scale != pytest.approx(1.0, rel=0.02)
+            assert setpoint is not None and setpoint.kind == "velocity"
+            assert setpoint.vector_ned == pytest.approx(
+                [1.0 * scale, -0.4 * scale, 0.2 * scale],
+                rel=1e-3,  # the fit refines meanwhile
+            )
+            await vehicle.finish("land")
+    warnings = [r.getMessage() for r in caplog.records if "scaled by" in r.getMessage()]
+    bounded = expected_scale == 1 / MAX_VELOCITY_SCALE
+    assert len(warnings) == bounded  # said once, and only where the scale is bounded
