@@ -179,7 +179,8 @@ class MissionTime:
     ``mission_s = reference_s + rate * (unix_s - reference_s)``: at ``reference_s`` both clocks
     read the same. The ground station chooses ``rate`` (the autopilots' measured boot-clock rate,
     or exactly 1 where that is within ``UNITY_BAND`` of 1, as for hardware) and sends it with the
-    start command, so that every process runs the same clock. ``unix`` is injectable for tests.
+    start command, so that every process runs the same clock; ``started`` says :meth:`set` has
+    taken it (before, the clock is plain UNIX time). ``unix`` is injectable for tests.
     """
 
     UNITY_BAND = 0.002
@@ -192,9 +193,15 @@ class MissionTime:
         unix: Callable[[], float] = time.time,
     ) -> None:
         self._unix = unix
-        self.set(rate, reference_s)
+        self._apply(rate, reference_s)
+        self.started = False
 
     def set(self, rate: float, reference_s: float) -> None:
+        """Run at the mission's ``rate`` around ``reference_s`` from now on (the start)."""
+        self._apply(rate, reference_s)
+        self.started = True
+
+    def _apply(self, rate: float, reference_s: float) -> None:
         if not (math.isfinite(rate) and MIN_RATE <= rate <= MAX_RATE):
             raise ClockMappingError(f"mission clock rate must be in [{MIN_RATE}, {MAX_RATE}]")
         self.rate = float(rate)

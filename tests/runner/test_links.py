@@ -77,9 +77,12 @@ async def test_velocity_setpoints_are_scaled_to_the_autopilots_clock(
             connected_vehicles([url], [1]) as systems,
             MavsdkVehicle(systems[1], 1) as vehicle,
         ):
-            mapping = await vehicle.follow_clock(MissionTime(rate=mission_rate, reference_s=0.0))
+            mission_time = MissionTime()
+            mapping = await vehicle.follow_clock(mission_time)
             await vehicle.take_off(3.0)  # seconds of SYSTEM_TIME pairs: the rate is measured
             await vehicle.start_offboard()
+            assert vehicle.velocity_scale == 1.0  # before the start: holds, nothing to scale
+            mission_time.set(mission_rate, 0.0)  # the ground's start
             taken, scale = emulator.autopilot(0).accepted_setpoints, vehicle.velocity_scale
             await vehicle.set_velocity_ned(1.0, -0.4, 0.2)
             while emulator.autopilot(0).accepted_setpoints == taken:

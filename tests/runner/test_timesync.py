@@ -119,8 +119,9 @@ def test_the_fit_is_within_the_jitter_for_any_rate(boot_rate, jitter_s, seed):
 def test_mission_time_scales_unix_time_around_its_reference():
     now = {"unix": 1000.0}
     time = MissionTime(unix=lambda: now["unix"])
-    assert time.now_s() == 1000.0
+    assert time.now_s() == 1000.0 and not time.started
     time.set(1.93, reference_s=1000.0)
+    assert time.started
     now["unix"] = 1010.0
     assert time.now_s() == pytest.approx(1019.3)
     assert time.to_unix(time.from_unix(1234.5)) == pytest.approx(1234.5)
