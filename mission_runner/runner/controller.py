@@ -260,15 +260,18 @@ class VehicleController:
         """Fly ``steps`` steps starting at mission time ``start_s``. Returns the records."""
         self.start_s = start_s
         self._last_fresh_s = start_s
+        # The other members' step topics, not the wildcard: the own messages would come back
+        # (a quarter of what a vehicle of four receives, each authenticated and decoded to be
+        # ignored), and so would any stranger's.
+        wanted: list[tuple[str, type[Message]]] = [
+            *((self.topics.step(peer), StepMessage) for peer in self.inbox.others),
+            (self.topics.all_ranges(self.vehicle_id), RangeMessage),
+            (self.topics.target(self.vehicle_id), TargetObservation),
+        ]
         async with contextlib.AsyncExitStack() as stack:
             subscriptions = [
-                await stack.enter_async_context(self.bus.subscribe(self.topics.all_steps())),
-                await stack.enter_async_context(
-                    self.bus.subscribe(self.topics.all_ranges(self.vehicle_id))
-                ),
-                await stack.enter_async_context(
-                    self.bus.subscribe(self.topics.target(self.vehicle_id))
-                ),
+                (await stack.enter_async_context(self.bus.subscribe(topic)), message_type)
+                for topic, message_type in wanted
             ]
             # The inbox pump runs for ever; the step loop's end (or either's failure) ends both.
             await first_completed(
@@ -303,7 +306,7 @@ class VehicleController:
                 await self._publish_status(k, start_s + k * self.settings.step_s)
                 return
 
-    async def _pump(self, subscriptions: Sequence[MessageSource]) -> None:
+    async def _pump(self, subscriptions: Sequence[tuple[MessageSource, type[Message]]]) -> None:
         """Feed the inbox from the bus subscriptions (decode errors are dropped, not fatal)."""
         handlers: dict[type[Message], Callable[[Any], None]] = {
             StepMessage: self._add_step,
@@ -316,12 +319,10 @@ class VehicleController:
                 handlers[message_type](message)
 
         async with asyncio.TaskGroup() as group:
-            for subscription, message_type in zip(
-                subscriptions, (StepMessage, RangeMessage, TargetObservation), strict=True
-            ):
+            for n, (subscription, message_type) in enumerate(subscriptions):
                 group.create_task(
                     drain(subscription, message_type),
-                    name=f"vehicle-{self.vehicle_id}-{message_type.__name__}",
+                    name=f"vehicle-{self.vehicle_id}-{message_type.__name__}-{n}",
                 )
 
     def _possible(self, vehicle_id: int, peer_id: int, range_m: float, time_s: float) -> bool:

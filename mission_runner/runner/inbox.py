@@ -63,8 +63,8 @@ class StepInbox:
         self._step_of = step_of
         self._timeout = member_timeout_steps
         self._horizon = horizon_steps
-        self._others = [peer for peer in vehicle_ids if peer != own_id]
-        self._last_heard = {peer: 0 for peer in self._others}  # members from the start
+        self.others = tuple(peer for peer in vehicle_ids if peer != own_id)
+        self._last_heard = {peer: 0 for peer in self.others}  # members from the start
         self._current = 0
         self._pending: dict[int, StepData] = {}
         self._changed = asyncio.Event()

@@ -388,6 +388,27 @@ async def test_each_step_publishes_the_own_message_runs_the_law_and_sends_its_co
 
 
 @pytest.mark.asyncio
+async def test_a_vehicle_hears_its_peers_step_messages_not_its_own(monkeypatch):
+    """Subscribed to each other member's step topic: over MQTT the wildcard brought every own
+    message back (a quarter of a vehicle's step traffic in a formation of four, each
+    authenticated and decoded only to be ignored), and any stranger's."""
+    async with rig() as flight:
+        bus = flight.controller.bus
+        patterns = []
+
+        def subscribe(pattern, **options):
+            patterns.append(pattern)
+            return type(bus).subscribe(bus, pattern, **options)
+
+        monkeypatch.setattr(bus, "subscribe", subscribe)
+        records = await flight.fly(3)
+    topics = flight.scenario.bus.topics(flight.scenario.name)
+    steps = [pattern for pattern in patterns if pattern.endswith("/step")]
+    assert steps == [topics.step(1), topics.step(3)]
+    assert [record.state for record in records] == ["following"] * 3
+
+
+@pytest.mark.asyncio
 async def test_step_messages_carry_the_setpoint_in_force_and_the_guard_uses_the_neighbours(
     monkeypatch,
 ):
