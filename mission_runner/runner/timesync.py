@@ -55,6 +55,43 @@ class ClockFit:
         return self.reference_boot_s + (unix_s - self.reference_unix_s) / self.rate
 
 
+#: Running sums are recomputed from the window (and re-originated) after this many updates, so
+#: rounding never accumulates over a long mission.
+_RESUM_EVERY = 256
+
+
+class _Sums:
+    """Sums of the pairs in a window, taken from ``origin`` (the first pair added since they were
+    last recomputed: UNIX times of 1.7e9 s would leave no digits for milliseconds once squared)."""
+
+    __slots__ = ("boot", "boot_boot", "boot_unix", "origin", "unix", "unix_unix", "updates")
+
+    def __init__(self) -> None:
+        self.origin: tuple[float, float] | None = None
+        self.boot = self.unix = self.boot_boot = self.boot_unix = self.unix_unix = 0.0
+        self.updates = 0
+
+    @classmethod
+    def of(cls, pairs: deque[tuple[float, float]]) -> _Sums:
+        sums = cls()
+        for boot_s, unix_s in pairs:
+            sums.add(boot_s, unix_s, 1.0)
+        sums.updates = 0
+        return sums
+
+    def add(self, boot_s: float, unix_s: float, sign: float) -> None:
+        """Add (``sign`` 1) or remove (-1) one pair."""
+        if self.origin is None:
+            self.origin = (boot_s, unix_s)
+        b, u = boot_s - self.origin[0], unix_s - self.origin[1]
+        self.boot += sign * b
+        self.unix += sign * u
+        self.boot_boot += sign * b * b
+        self.boot_unix += sign * b * u
+        self.unix_unix += sign * u * u
+        self.updates += 1
+
+
 class ClockMapping:
     """Boot clock -> UNIX clock of one autopilot, from (boot_s, unix_s) pairs.
 
@@ -81,6 +118,7 @@ class ClockMapping:
         self.min_span_s = min_span_s
         self.nominal_rate = nominal_rate
         self._pairs: deque[tuple[float, float]] = deque()
+        self._sums = _Sums()
         self._outliers: list[tuple[float, float]] = []
         self._fit: ClockFit | None = None
         self._rate_measured = False  # until then a pair cannot be judged an outlier
@@ -117,35 +155,47 @@ class ClockMapping:
             return True
         self._outliers.clear()
         self._pairs.append((boot_s, unix_s))
+        self._sums.add(boot_s, unix_s, 1.0)
         while self._pairs and self._pairs[-1][0] - self._pairs[0][0] > self.window_s:
-            self._pairs.popleft()
+            self._sums.add(*self._pairs.popleft(), -1.0)
+        if self._sums.updates >= _RESUM_EVERY:
+            self._sums = _Sums.of(self._pairs)
         self._refit()
         return True
 
     def _restart(self, pairs: list[tuple[float, float]]) -> None:
         self.refits += 1
         self._pairs = deque(pairs)
+        self._sums = _Sums.of(self._pairs)
         self._outliers = []
         self._refit()
 
     def _refit(self) -> None:
+        """The least-squares line through the window's pairs, from running sums (a refit at
+        every SYSTEM_TIME must not cost the whole window: at 10 Hz of a clock at 2x, 200 pairs
+        summed five times over, 20 times a second, in every vehicle process)."""
+        sums = self._sums
         count = len(self._pairs)
-        boots = [b for b, _ in self._pairs]
-        unixes = [u for _, u in self._pairs]
-        mean_boot, mean_unix = sum(boots) / count, sum(unixes) / count
-        span = boots[-1] - boots[0]
+        mean_boot, mean_unix = sums.boot / count, sums.unix / count
+        sxx = max(sums.boot_boot - sums.boot * mean_boot, 0.0)
+        sxy = sums.boot_unix - sums.boot * mean_unix
+        syy = max(sums.unix_unix - sums.unix * mean_unix, 0.0)
         rate = self.nominal_rate
-        self._rate_measured = span >= self.min_span_s
-        if self._rate_measured:
-            sxx = sum((b - mean_boot) ** 2 for b in boots)
-            sxy = sum((b - mean_boot) * (u - mean_unix) for b, u in self._pairs)
+        self._rate_measured = self._pairs[-1][0] - self._pairs[0][0] >= self.min_span_s
+        if self._rate_measured and sxx > 0.0:
             fitted = sxy / sxx
             if MIN_RATE <= fitted <= MAX_RATE:
                 rate = fitted
-        residual = math.sqrt(
-            sum((u - (mean_unix + rate * (b - mean_boot))) ** 2 for b, u in self._pairs) / count
+        misfit = syy - 2.0 * rate * sxy + rate * rate * sxx
+        assert sums.origin is not None  # a window is never empty here
+        origin_boot, origin_unix = sums.origin
+        self._fit = ClockFit(
+            origin_boot + mean_boot,
+            origin_unix + mean_unix,
+            rate,
+            math.sqrt(max(misfit, 0.0) / count),
+            count,
         )
-        self._fit = ClockFit(mean_boot, mean_unix, rate, residual, count)
 
     def unix_s(self, boot_s: float) -> float:
         """UNIX time of boot time ``boot_s``: interpolated between the pairs that bracket it

@@ -149,3 +149,25 @@ def test_a_jittery_simulated_clock_is_followed_between_pairs():
     for unix in np.arange(5.03, 19.9, 0.37):
         assert mapping.unix_s(boot_at(unix)) == pytest.approx(UNIX_AT_BOOT + unix, abs=2e-3)
         assert mapping.boot_s(UNIX_AT_BOOT + unix) == pytest.approx(boot_at(unix), abs=2e-3)
+
+
+def test_the_running_fit_is_the_windows_least_squares_line_after_hours():
+    """The fit is kept from running sums (a refit at every SYSTEM_TIME must not cost the whole
+    window); after four hours of pairs at 10 Hz, a jump and a sliding window it is still the
+    least-squares line through exactly the pairs in the window."""
+    mapping = ClockMapping()
+    sequence = pairs(1.93, 4 * 3600.0, every_s=0.1, jitter_s=0.003, seed=7)
+    jumped = [(boot_s, unix_s + 30.0) for boot_s, unix_s in sequence[-400:]]  # NTP stepped
+    for boot_s, unix_s in sequence[:-400] + jumped:
+        mapping.add(boot_s, unix_s)
+    window = [pair for pair in sequence[:-400] + jumped if pair[0] >= jumped[-1][0] - 20.0]
+    boots, unixes = np.array(window).T
+    rate, intercept = np.polyfit(boots - boots[0], unixes - unixes[0], 1)
+    fit = mapping.fit
+    assert mapping.refits == 1 and fit.pairs == len(window)
+    assert fit.rate == pytest.approx(rate, rel=1e-9)
+    assert fit.unix_s(boots[-1]) == pytest.approx(  # a microsecond: 1.7e9 s in a double
+        unixes[0] + intercept + rate * (boots[-1] - boots[0]), abs=1e-6
+    )
+    residual = unixes - (unixes[0] + intercept + rate * (boots - boots[0]))
+    assert fit.residual_s == pytest.approx(np.sqrt(np.mean(residual**2)), rel=1e-4)
