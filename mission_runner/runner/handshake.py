@@ -13,6 +13,7 @@ steps in the past or hover for hours: it is logged and ignored, and the wait goe
 from __future__ import annotations
 
 import asyncio
+import gc
 import logging
 import math
 import time
@@ -33,6 +34,16 @@ MAX_START_LEAD_S = 120.0
 MAX_START_LAG_S = 5.0
 
 _warnings = RateLimitedWarnings(logger)
+
+
+def freeze_heap() -> None:
+    """Collect once and move every object alive now out of the collector's sight
+    (:func:`gc.freeze`), between the start command and k = 0. What a process built to get
+    there (MAVSDK, numpy, pydantic, the bus) is never garbage, yet every full collection walked
+    it: 150 ms pauses in flight, two a minute in each vehicle process at speed factor 2 (more
+    than a step of 62 ms of wall time)."""
+    gc.collect()
+    gc.freeze()
 
 
 def start_problem(command: MissionControl, unix_now_s: float) -> str | None:

@@ -52,7 +52,7 @@ from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
 from .controller import StepRecord, VehicleController, build_controller
 from .errors import RunnerError, RunnerTimeoutError
-from .handshake import next_command
+from .handshake import freeze_heap, next_command
 from .links import SAFE_STATE_TIMEOUT_S, MavsdkVehicle, connected_vehicles
 from .operator import (
     ENDING_ACTIONS,
@@ -253,6 +253,7 @@ async def _fly(  # noqa: PLR0917
             hovering.cancel()
             await _abort(vehicle, report, run, scenario, command)
             return
+        freeze_heap()
         rate = command.clock_rate or 1.0
         mission_time.set(rate, command.clock_reference_s or command.time_s)
         run.clock_rate, run.start_s = rate, command.time_s

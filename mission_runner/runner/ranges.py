@@ -60,7 +60,7 @@ from ..scenario import target_positions
 from ..sim.metrics import TruthSample
 from ..world.world import step_measurements
 from .errors import RunnerError
-from .handshake import start_command
+from .handshake import freeze_heap, start_command
 from .links import MavsdkVehicle, connected_vehicles
 from .odometry import OdometrySample, OdometryTrack
 from .timesync import ClockMapping, MissionTime
@@ -488,6 +488,7 @@ async def run_range_provider(
         else:
             await _gps_source(stack, positions, list(urls), mission_time, group)
         start = await start_command(control, timeout_s=start_timeout_s)
+        freeze_heap()
         mission_time.set(start.clock_rate or 1.0, start.clock_reference_s or start.time_s)
         if mission_time.rate != 1.0:
             for protocol in truth:
