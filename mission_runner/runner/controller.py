@@ -84,6 +84,9 @@ class ControllerSettings:
     law runs without the missing ones. wall_deadline_s: the same in wall seconds, for lockstep
     runs whose mission clock stands still while controllers wait. release_s: in lockstep, how far
     past t_k the world may run while the controller samples (at least one telemetry period).
+    odometry_extrapolate_s: in real time, how far past its newest odometry sample t_k is taken
+    at that sample's velocity rather than waiting for the next (1.5 periods of 50 Hz; lockstep
+    waits: the world is there in an instant and results stay exact).
     target_lost_after_s: the longest the target is predicted without an observation [s];
     target_on_lost: then ``hold`` (hover) or ``orbit`` (the law around the last estimate).
     """
@@ -92,6 +95,7 @@ class ControllerSettings:
     step_deadline_s: float = 0.04
     wall_deadline_s: float = 0.5
     release_s: float = 0.03
+    odometry_extrapolate_s: float = 0.03
     odometry_timeout_s: float = 1.0
     lost_after_missed_steps: int = 3
     target_lost_after_s: float = 10.0
@@ -545,9 +549,10 @@ class VehicleController:
     async def _odometry_at(self, t_k: float) -> tuple[float, float, float] | None:
         """Own odometry (north, east, down) at t_k, or None if telemetry stopped."""
         track = self.link.odometry
+        ahead_s = 0.0 if self.clock.lockstep else self.settings.odometry_extrapolate_s
         try:
             async with asyncio.timeout(self.settings.odometry_timeout_s):
-                while (sample := track.at(t_k)) is None:
+                while (sample := track.at(t_k, extrapolate_s=ahead_s)) is None:
                     await self.link.odometry_updated()
         except TimeoutError:
             logger.warning("vehicle %s: no odometry around t=%.3f s", self.vehicle_id, t_k)

@@ -136,14 +136,17 @@ class MappedTrack:
     def latest(self) -> OdometrySample | None:
         return self._track.latest
 
-    def at(self, mission_s: float) -> tuple[float, float, float] | None:
+    def at(
+        self, mission_s: float, *, extrapolate_s: float = 0.0
+    ) -> tuple[float, float, float] | None:
         """``(north_m, east_m, down_m)`` at mission time ``mission_s``, or None (no two samples
-        bracket it, or the autopilot's clock is not known yet)."""
+        bracket it and the newest is more than ``extrapolate_s`` of the autopilot's clock
+        before it, see :meth:`OdometryTrack.at`; or the autopilot's clock is not known yet)."""
         try:
             boot_s = self._boot_s_at(mission_s)
         except ClockMappingError:
             return None
-        return self._track.at(boot_s)
+        return self._track.at(boot_s, extrapolate_s=extrapolate_s)
 
 
 #: How long the runner waits for a vehicle in the air to reach a safe state (landed and
@@ -234,7 +237,13 @@ class MavsdkVehicle:
                     continue
                 fields = json.loads(message.fields_json)
                 sample = OdometrySample(
-                    fields["time_boot_ms"] / 1000.0, fields["x"], fields["y"], fields["z"]
+                    fields["time_boot_ms"] / 1000.0,
+                    fields["x"],
+                    fields["y"],
+                    fields["z"],
+                    fields["vx"],
+                    fields["vy"],
+                    fields["vz"],
                 )
                 if self.track.add(sample):
                     self._updated.set()

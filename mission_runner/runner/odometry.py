@@ -7,18 +7,23 @@ bracket t_k, so every vehicle's o_i(t_k) refers to the same instant whatever the
 """
 
 import bisect
+import math
 from collections import deque
 from dataclasses import dataclass
 
 
 @dataclass(frozen=True, slots=True)
 class OdometrySample:
-    """One LOCAL_POSITION_NED sample on the mission clock: time [s], north/east/down [m]."""
+    """One LOCAL_POSITION_NED sample: time [s], north/east/down [m] and, where the source gives
+    it, the velocity [m per second of the same clock] (NaN: none)."""
 
     time_s: float
     north_m: float
     east_m: float
     down_m: float
+    north_m_s: float = math.nan
+    east_m_s: float = math.nan
+    down_m_s: float = math.nan
 
 
 class OdometryTrack:
@@ -41,16 +46,22 @@ class OdometryTrack:
         """The newest sample, or None."""
         return self._samples[-1] if self._samples else None
 
-    def at(self, time_s: float) -> tuple[float, float, float] | None:
+    def at(self, time_s: float, *, extrapolate_s: float = 0.0) -> tuple[float, float, float] | None:
         """``(north_m, east_m, down_m)`` at ``time_s``, or None if no two samples bracket it.
 
-        A sample exactly at ``time_s`` is returned as is.
+        A sample exactly at ``time_s`` is returned as is. With ``extrapolate_s`` > 0, a time
+        after the newest sample by no more than that is extrapolated from it at its velocity
+        (when it has one) instead of waiting for the next: at 50 Hz, the wait was 10 ms on
+        average, a quarter of what a step's command took to go out, and an autopilot's velocity
+        over 20 ms moves the estimate by under a millimetre.
         """
         index = bisect.bisect_left(self._times, time_s)
         if index < len(self._times) and self._times[index] == time_s:
             sample = self._samples[index]
             return sample.north_m, sample.east_m, sample.down_m
-        if index == 0 or index == len(self._times):
+        if index == len(self._times) and index > 0:
+            return self._extrapolated(self._samples[-1], time_s, extrapolate_s)
+        if index == 0:
             return None
         before, after = self._samples[index - 1], self._samples[index]
         weight = (time_s - before.time_s) / (after.time_s - before.time_s)
@@ -62,4 +73,18 @@ class OdometryTrack:
             between(before.north_m, after.north_m),
             between(before.east_m, after.east_m),
             between(before.down_m, after.down_m),
+        )
+
+    @staticmethod
+    def _extrapolated(
+        sample: OdometrySample, time_s: float, extrapolate_s: float
+    ) -> tuple[float, float, float] | None:
+        ahead_s = time_s - sample.time_s
+        velocity = (sample.north_m_s, sample.east_m_s, sample.down_m_s)
+        if ahead_s > extrapolate_s or not all(map(math.isfinite, velocity)):
+            return None
+        return (
+            sample.north_m + velocity[0] * ahead_s,
+            sample.east_m + velocity[1] * ahead_s,
+            sample.down_m + velocity[2] * ahead_s,
         )

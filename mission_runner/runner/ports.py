@@ -56,8 +56,10 @@ class OdometrySource(Protocol):
         """The newest sample, or None before the first."""
         ...
 
-    def at(self, time_s: float) -> tuple[float, float, float] | None:
-        """``(north_m, east_m, down_m)`` at mission time ``time_s``, or None if not known."""
+    def at(self, time_s: float, *, extrapolate_s: float = 0.0) -> tuple[float, float, float] | None:
+        """``(north_m, east_m, down_m)`` at mission time ``time_s``, or None if not known
+        (extrapolated from the newest sample up to ``extrapolate_s`` past it, where the source
+        can)."""
         ...
 
 

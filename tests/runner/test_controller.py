@@ -109,7 +109,7 @@ class FakeOdometry:
         self.path = path
         self.latest = None
 
-    def at(self, time_s):
+    def at(self, time_s, *, extrapolate_s=0.0):
         sample = self.path(time_s - START_S)
         if sample is not None:
             self.latest = OdometrySample(time_s, *sample)
