@@ -85,6 +85,10 @@ STALE_AFTER_S = 1.0
 PUBLISH_TIMEOUT_S = 0.25
 #: Longest wait after t_k for the positions bracketing it.
 MAX_WAIT_S = 0.25
+#: How far past a vehicle's newest truth sample t_k is taken at that sample's velocity instead of
+#: waiting for the next one, in periods of the truth rate (the wait was half a period on average
+#: and put every step's ranges, and every vehicle's step behind them, that much later).
+EXTRAPOLATE_PERIODS = 1.5
 
 
 def flat_earth_ned(
@@ -247,24 +251,37 @@ class _Positions:
         self.changed = asyncio.Event()
 
     def add(
-        self, vehicle_id: int, unix_s: float, lat_deg: float, lon_deg: float, alt_m: float
+        self,
+        vehicle_id: int,
+        unix_s: float,
+        lat_deg: float,
+        lon_deg: float,
+        alt_m: float,
+        *,
+        velocity_ned_m_s: tuple[float, float, float] = (math.nan, math.nan, math.nan),
     ) -> None:
+        """A fix received at ``unix_s``; ``velocity_ned_m_s`` per host second (NaN: unknown)."""
         local = self.frame.local(vehicle_id, lat_deg, lon_deg, alt_m)
         if local is None:
             return
         positions = self.vehicles[vehicle_id]
-        if positions.track.add(OdometrySample(unix_s, *local)):
+        if positions.track.add(OdometrySample(unix_s, *local, *velocity_ned_m_s)):
             positions.received += 1
             self.changed.set()
 
-    async def bracketing(self, unix_s: float, max_wait_s: float) -> NDArray[np.float64]:
-        """Wait until every vehicle heard recently has a sample after ``unix_s`` (or
-        ``max_wait_s``); return ``(n, 3)`` positions at ``unix_s``, NaN rows where unknown."""
+    async def bracketing(
+        self, unix_s: float, max_wait_s: float, *, extrapolate_s: float = 0.0
+    ) -> NDArray[np.float64]:
+        """Wait until every vehicle heard recently has a sample after ``unix_s``, or one at
+        most ``extrapolate_s`` before it with a velocity (or ``max_wait_s``); return ``(n, 3)``
+        positions at ``unix_s``, NaN rows where unknown."""
+
+        def known(p: VehiclePositions) -> bool:
+            return p.track.at(unix_s, extrapolate_s=extrapolate_s) is not None
 
         def ready() -> bool:
             return all(
-                p.newest_s() >= unix_s or p.newest_s() < unix_s - STALE_AFTER_S
-                for p in self.vehicles.values()
+                known(p) or p.newest_s() < unix_s - STALE_AFTER_S for p in self.vehicles.values()
             )
 
         with contextlib.suppress(TimeoutError):
@@ -274,7 +291,7 @@ class _Positions:
                     await self.changed.wait()
         rows: list[tuple[float, float, float]] = []
         for vehicle_id in self.ids:
-            at = self.vehicles[vehicle_id].track.at(unix_s)
+            at = self.vehicles[vehicle_id].track.at(unix_s, extrapolate_s=extrapolate_s)
             rows.append(at if at is not None else (math.nan,) * 3)
         return np.asarray(rows, dtype=float)
 
@@ -322,8 +339,19 @@ class _TruthProtocol(asyncio.DatagramProtocol):
                 continue
             if not self.asked:
                 self._ask_rate(addr)
+            # cm per second of PX4's clock -> m per host second (the aid's time base)
+            per_host_s = 0.01 * self.clock_rate
             self.positions.add(
-                self.vehicle_id, arrived_s, message.lat / 1e7, message.lon / 1e7, message.alt / 1e3
+                self.vehicle_id,
+                arrived_s,
+                message.lat / 1e7,
+                message.lon / 1e7,
+                message.alt / 1e3,
+                velocity_ned_m_s=(
+                    message.vx * per_host_s,
+                    message.vy * per_host_s,
+                    message.vz * per_host_s,
+                ),
             )
             if self.vision is not None and self.transport is not None:
                 odometry = self.vision.message(arrived_s, message)
@@ -493,6 +521,7 @@ async def run_range_provider(
         if mission_time.rate != 1.0:
             for protocol in truth:
                 protocol.ask_rate(mission_time.rate)
+        extrapolate_s = EXTRAPOLATE_PERIODS / truth_rate_hz if truth and truth_rate_hz else 0.0
         started_s = time.time()
         received = {i: p.received for i, p in positions.vehicles.items()}
         sent = {i: o.sent for i, o in odometry.items()}
@@ -500,7 +529,7 @@ async def run_range_provider(
             t_k = start.time_s + k * scenario.timing.step_s
             unix_k = mission_time.to_unix(t_k)
             await asyncio.sleep(max(0.0, unix_k - time.time()))
-            now = await positions.bracketing(unix_k, MAX_WAIT_S)
+            now = await positions.bracketing(unix_k, MAX_WAIT_S, extrapolate_s=extrapolate_s)
             await _publish_step(bus, topics, scenario, now, k, t_k, start.time_s, rng, stats)
             stats.lateness_s.append(mission_time.now_s() - t_k)
         elapsed_s = max(time.time() - started_s, 1e-9)

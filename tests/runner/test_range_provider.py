@@ -2,6 +2,7 @@
 their GPS on the GCS link or from their SIH-like ground-truth stream, publishing over a real
 mosquitto once the ground station's start arrives."""
 
+import asyncio
 import math
 import time
 
@@ -22,6 +23,7 @@ from mission_runner.runner.errors import RunnerError
 from mission_runner.runner.ranges import (
     RangeStats,
     VisionSettings,
+    _Positions,
     _publish_step,
     run_range_provider,
 )
@@ -231,3 +233,32 @@ async def test_a_message_not_handed_over_in_time_is_dropped_and_counted():
     assert stats.unsent == 1
     assert stats.ranges == 5 and len(sent) == 6  # five ranges and the target observation
     assert topics.range(1, 2) not in sent
+
+
+async def test_just_past_its_newest_truth_a_vehicle_is_taken_at_that_velocity_at_once():
+    """A step's ranges went out only once every vehicle had a truth sample after t_k (half a
+    truth period late on average, and every vehicle's step waited for them). A sample at most
+    ``extrapolate_s`` before t_k, with its velocity, answers at once; further back, the aid
+    waits as before."""
+    broker = type("Broker", (), {"host": "127.0.0.1", "port": 1883})()
+    positions = _Positions(scenario(broker))
+    north_per_deg = 111_195.0  # m per degree of latitude (the aid's flat earth)
+    for unix_s, north_m in ((100.00, 0.0), (100.01, 0.02)):
+        positions.add(
+            1, unix_s, north_m / north_per_deg, 0.0, 10.0, velocity_ned_m_s=(2.0, 0.0, -1.0)
+        )
+
+    async def at(unix_s, extrapolate_s):
+        task = asyncio.create_task(positions.bracketing(unix_s, 5.0, extrapolate_s=extrapolate_s))
+        await asyncio.sleep(0)
+        await asyncio.sleep(0)
+        return task
+
+    quick = await at(100.02, 0.015)
+    assert quick.done()
+    assert quick.result()[0] == pytest.approx([0.04, 0.0, -0.01], abs=1e-3)
+    assert np.isnan(quick.result()[1:]).all()  # never heard of: not waited for
+    slow = await at(100.03, 0.015)  # 20 ms past the newest: waits for the next sample
+    assert not slow.done()
+    positions.add(1, 100.04, 0.08 / north_per_deg, 0.0, 10.0)
+    assert (await slow)[0] == pytest.approx([0.06, 0.0, 0.0], abs=1e-3)
