@@ -20,7 +20,9 @@ from pymavlink.dialects.v20 import common as mavlink2
 from mission_runner import px4sitl
 from mission_runner.config import Scenario, validate_scenario
 from mission_runner.px4sitl import (
+    DEFAULT_NICE,
     EARTH_RADIUS_M,
+    MAX_NICE,
     Px4BuildNotFoundError,
     Px4Instance,
     Px4SitlError,
@@ -286,6 +288,7 @@ def test_the_command_line_arguments() -> None:
     arguments = parser.parse_args(
         ["s.yaml", "--px4-dir", "/px4", "--first-instance", "6", "--speed", "2", "--work-dir", "w"]
     )
+    assert arguments.nice == DEFAULT_NICE
     assert arguments.config == Path("s.yaml")
     assert arguments.px4_dir == Path("/px4")
     assert (arguments.first_instance, arguments.speed) == (6, 2.0)
@@ -293,6 +296,10 @@ def test_the_command_line_arguments() -> None:
     assert callable(arguments.handler)
     with pytest.raises(SystemExit):
         parser.parse_args(["s.yaml", "--px4-dir", "/px4", "--speed", "0"])
+    assert parser.parse_args(["s.yaml", "--px4-dir", "/px4", "--nice", "0"]).nice == 0
+    for bad in ("-1", "20", "x"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["s.yaml", "--px4-dir", "/px4", "--nice", bad])
 
 
 # --- a fake PX4 that never gets ready, or dies ------------------------------------------------
@@ -468,6 +475,52 @@ async def test_an_instance_that_dies_is_reported_and_the_others_fly_on(tmp_path:
     pids = [int(path.read_text()) for path in (tmp_path / "work").glob("*/instance-*/pid")]
     assert len(pids) == 2
     assert all(process_gone(pid) for pid in pids)
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("nice", [None, 0, 4])
+async def test_instances_run_at_a_lower_cpu_priority_than_the_mission(
+    tmp_path: Path, nice: int | None
+) -> None:
+    """Each instance (its process and, on Linux, its session's scheduling autogroup, which is
+    what the kernel shares the CPU between) runs ``nice`` lower: by default 10, so that where
+    cores are short the simulation slows rather than the controllers missing deadlines."""
+    build = script_build(
+        tmp_path / "px4",
+        "cut -d ' ' -f 19 /proc/self/stat > nice\n"
+        "cat /proc/self/autogroup > autogroup 2>/dev/null\n"
+        'echo "Ready for takeoff!"\nexec sleep 60\n',
+    )
+    read = asyncio.Event()
+    found: dict[str, str] = {}
+
+    async def look_then_stop() -> None:
+        while not found:
+            files = sorted((tmp_path / "work").glob("*/instance-*/nice"))
+            if files and files[0].read_text().strip():
+                found["nice"] = files[0].read_text().strip()
+                autogroup = files[0].with_name("autogroup")
+                found["autogroup"] = autogroup.read_text() if autogroup.exists() else ""
+            await asyncio.sleep(0.05)
+        read.set()
+
+    options = {} if nice is None else {"nice": nice}
+    await asyncio.gather(
+        look_then_stop(),
+        run_px4_sitl_command(
+            scenario(ids=(31,), positions_m=((0.0, 0.0),)),
+            build,
+            first_instance=30,
+            work_dir=tmp_path / "work",
+            until=read.wait(),
+            report=lambda line: None,
+            **options,
+        ),
+    )
+    expected = min(os.nice(0) + (DEFAULT_NICE if nice is None else nice), MAX_NICE)
+    assert int(found["nice"]) == expected
+    if found["autogroup"] and nice != 0:
+        assert found["autogroup"].strip().endswith(f"nice {nice or DEFAULT_NICE}")
 
 
 @pytest.mark.asyncio
