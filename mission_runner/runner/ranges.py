@@ -83,7 +83,10 @@ ATTITUDE_NOISE_STD_RAD = 0.01
 STALE_AFTER_S = 1.0
 #: Longest wait for one message to be handed to the broker before it is dropped.
 PUBLISH_TIMEOUT_S = 0.25
-#: Longest wait after t_k for the positions bracketing it.
+#: Longest wait after t_k for the positions bracketing it; never past the step's deadline
+#: (``flight.step_deadline_s``): what comes later is no vehicle's, and a wait of 0.25 s for one
+#: vehicle whose truth paused (PX4 short of CPU at speed factor 2) put the aid, and every
+#: vehicle behind it, seconds late.
 MAX_WAIT_S = 0.25
 #: How far past a vehicle's newest truth sample t_k is taken at that sample's velocity instead of
 #: waiting for the next one, in periods of the truth rate (the wait was half a period on average
@@ -529,7 +532,9 @@ async def run_range_provider(
             t_k = start.time_s + k * scenario.timing.step_s
             unix_k = mission_time.to_unix(t_k)
             await asyncio.sleep(max(0.0, unix_k - time.time()))
-            now = await positions.bracketing(unix_k, MAX_WAIT_S, extrapolate_s=extrapolate_s)
+            deadline_s = mission_time.to_unix(t_k + scenario.flight.step_deadline_s)
+            wait_s = min(MAX_WAIT_S, max(0.0, deadline_s - time.time()))
+            now = await positions.bracketing(unix_k, wait_s, extrapolate_s=extrapolate_s)
             await _publish_step(bus, topics, scenario, now, k, t_k, start.time_s, rng, stats)
             stats.lateness_s.append(mission_time.now_s() - t_k)
         elapsed_s = max(time.time() - started_s, 1e-9)

@@ -21,6 +21,7 @@ from mission_runner.bus import (
 from mission_runner.config import validate_scenario
 from mission_runner.runner.errors import RunnerError
 from mission_runner.runner.ranges import (
+    MAX_WAIT_S,
     RangeStats,
     VisionSettings,
     _Positions,
@@ -50,11 +51,19 @@ def scenario(broker):
 
 
 async def fly_aid(
-    mosquitto, *, source, truth=False, truth_rate_hz=100.0, vision=None, seen=None, clock_rate=None
+    mosquitto,
+    *,
+    source,
+    truth=False,
+    truth_rate_hz=100.0,
+    vision=None,
+    seen=None,
+    clock_rate=None,
+    kill_after_start_s=None,
 ):
     """Run the aid for 8 steps against three parked emulated vehicles; returns the start time,
     the aid's stats and what it published. ``seen(emulator)`` looks at the emulator before it
-    stops."""
+    stops; ``kill_after_start_s``: vehicle 3 dies that long after k = 0."""
     mission = scenario(mosquitto)
     ports = free_port_config(3, gcs=True)
     config = EmulatorConfig(
@@ -72,6 +81,8 @@ async def fly_aid(
         bus.subscribe(topics.all_targets(), queue_size=10_000) as targets,
     ):
         start_s = math.ceil((time.time() + 2.0) / STEP_S) * STEP_S
+        if kill_after_start_s is not None:
+            emulator.kill_vehicle(2, emulator.time_s + start_s + kill_after_start_s - time.time())
         # Retained, as the aid may subscribe after the ground station spoke.
         start = MissionControl(
             ControlCommand.START,
@@ -262,3 +273,17 @@ async def test_just_past_its_newest_truth_a_vehicle_is_taken_at_that_velocity_at
     assert not slow.done()
     positions.add(1, 100.04, 0.08 / north_per_deg, 0.0, 10.0)
     assert (await slow)[0] == pytest.approx([0.06, 0.0, 0.0], abs=1e-3)
+
+
+@pytest.mark.timeout(60)
+async def test_a_vehicle_whose_truth_stops_costs_no_step_more_than_its_deadline(mosquitto):
+    """Vehicle 3 dies mid-mission: its truth stops, and for STALE_AFTER_S it still counts as
+    heard. The aid used to wait 0.25 s for it at every step, longer than a step, and fell
+    further behind at each (seconds behind on four SIH at speed factor 2, every vehicle waiting
+    on it); it now waits no longer than the step's deadline and publishes the others."""
+    _, stats, measured, _ = await fly_aid(
+        mosquitto, source="sih", truth=True, kill_after_start_s=2.5 * STEP_S
+    )
+    assert stats.missing_vehicles >= 4  # vehicle 3 had no position in its last steps
+    assert stats.ranges == len(measured) < 8 * 6
+    assert max(stats.lateness_s) < MAX_WAIT_S  # every wait ended at the deadline, not later
