@@ -45,7 +45,7 @@ argument                meaning
                         ``PX4_SITL_DIR``; required if that is unset)
 ``--first-instance``    int >= 0, default 0: instance of the first vehicle
 ``--speed``             float > 0, default 1.0: ``PX4_SIM_SPEED_FACTOR``
-``--nice``              int 0..19, default 10: the instances' CPU priority (see
+``--nice``              int 0..19, default 0: the instances' CPU priority (see
                         :data:`DEFAULT_NICE`)
 ``--work-dir``          :class:`pathlib.Path`, default None: where the instances' working
                         directories go (kept); default a temporary directory, removed
@@ -98,13 +98,14 @@ from .tasks import first_completed
 
 logger = logging.getLogger(__name__)
 
-#: The instances' niceness, also given to each one's scheduling autogroup (Linux puts every
-#: session in its own group and shares the CPU between groups, whatever the niceness of the
-#: processes inside them). A simulated autopilot that gets less CPU runs its simulated clock
-#: slower, which the mission clock and each vehicle's clock mapping follow; a controller that
-#: gets less misses its deadlines. Measured with four SIH instances at speed factor 2 on two
-#: cores (README "Real PX4"): 50-100 of 600 steps skipped per vehicle at 0, 1-7 at 10.
-DEFAULT_NICE = 10
+#: The instances' default niceness (``--nice``), also given to each one's scheduling autogroup
+#: (Linux puts every session in its own group and shares the CPU between groups, whatever the
+#: niceness of the processes inside them). A simulated autopilot that gets less CPU runs its
+#: simulated clock slower, which the mission clock and each vehicle's clock mapping follow; a
+#: controller that gets less misses its deadlines. Not lowered by default: with four SIH
+#: instances at speed factor 2 on two cores, nice 10 flew one mission of two to its bounds, which
+#: is no evidence it helps, and at 1x it slowed SIH's clock from 0.985x to 0.957-0.986x.
+DEFAULT_NICE = 0
 #: The most a niceness can be on Linux.
 MAX_NICE = 19
 
@@ -857,9 +858,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--nice",
         type=_niceness,
         default=DEFAULT_NICE,
-        help=f"CPU priority of the instances, 0-{MAX_NICE} (default {DEFAULT_NICE}: where cores "
-        "are short, the simulation slows, which the mission clock follows, rather than the "
-        "mission's own processes missing their deadlines; 0: the shell's priority)",
+        help=f"lower the instances' CPU priority by this, 0-{MAX_NICE} (default {DEFAULT_NICE}): "
+        "where cores are short, the simulation slows (the mission clock follows it) rather "
+        "than the mission's own processes missing their deadlines",
     )
     parser.add_argument(
         "--work-dir",
