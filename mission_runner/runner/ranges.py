@@ -74,6 +74,8 @@ EARTH_RADIUS_M = 6_371_000.0
 POSITION_RATE_HZ = 20.0
 SOURCES = ("sih", "gps")
 TRUTH_PORT_BASE = 19410
+#: SIH's own ground-truth rate [Hz], when the aid asks for none.
+SIH_TRUTH_RATE_HZ = 25.0
 #: The ground truth's rate asked of each SIH instance [Hz] (PX4 streams 25): a step's ranges wait
 #: for the first sample after t_k, so this bounds that wait (10 ms).
 TRUTH_RATE_HZ = 100.0
@@ -462,12 +464,19 @@ async def _gps_stream(vehicle: MavsdkVehicle, mapping: ClockMapping, positions: 
             if message.system_id != vehicle.system_id:
                 continue
             fields = json.loads(message.fields_json)
+            # cm per second of the autopilot's clock -> m per host second (the aid's time base)
+            per_host_s = 0.01 * mapping.fit.boot_rate
             positions.add(
                 vehicle.system_id,
                 mapping.unix_s(fields["time_boot_ms"] / 1000.0),
                 fields["lat"] / 1e7,
                 fields["lon"] / 1e7,
                 fields["alt"] / 1000.0,
+                velocity_ned_m_s=(
+                    fields["vx"] * per_host_s,
+                    fields["vy"] * per_host_s,
+                    fields["vz"] * per_host_s,
+                ),
             )
 
 
@@ -524,7 +533,9 @@ async def run_range_provider(
         if mission_time.rate != 1.0:
             for protocol in truth:
                 protocol.ask_rate(mission_time.rate)
-        extrapolate_s = EXTRAPOLATE_PERIODS / truth_rate_hz if truth and truth_rate_hz else 0.0
+        # Up to 1.5 periods of the positions' rate: SIH's truth as asked, or the GPS stream's.
+        rate_hz = (truth_rate_hz or SIH_TRUTH_RATE_HZ) if source == "sih" else POSITION_RATE_HZ
+        extrapolate_s = EXTRAPOLATE_PERIODS / rate_hz
         started_s = time.time()
         received = {i: p.received for i, p in positions.vehicles.items()}
         sent = {i: o.sent for i, o in odometry.items()}
