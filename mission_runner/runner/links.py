@@ -359,11 +359,10 @@ class MavsdkVehicle:
         mission second is multiplied by to be the setpoint the autopilot integrates on its own
         clock. 1 where boot time is mission time (the in-process emulator) and before the
         mission starts (holds); with :meth:`follow_clock`, once the ground's start has set the
-        mission clock, its rate over the fitted boot-clock rate. PX4 SIH's
-        clock runs at 0.986x wall time at speed factor 1 (the mission clock then is UNIX time)
-        and at 1.93-1.96x at 2 (the mission clock the ground chose at start): unscaled, every
-        vehicle moves 1.4 % (up to 7 % at 2x) off what the law commanded. Bounded to
-        [1/MAX_VELOCITY_SCALE, MAX_VELOCITY_SCALE]."""
+        mission clock, its rate over the fitted boot-clock rate. PX4 SIH's clock runs at
+        0.95-0.99x wall time at speed factor 1 and 1.93-1.96x at 2, and the mission clock at
+        the rate the ground chose at the start: unscaled, a vehicle moved up to 2 % (7 % at 2x)
+        off what the law commanded. Bounded to [1/MAX_VELOCITY_SCALE, MAX_VELOCITY_SCALE]."""
         mapping, mission_time = self.clock_mapping, self._mission_time
         if mapping is None or mission_time is None or not mission_time.started:
             return 1.0

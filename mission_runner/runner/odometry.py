@@ -2,8 +2,10 @@
 
 Telemetry arrives at its own rate (LOCAL_POSITION_NED at 30-50 Hz) with the autopilot's
 timestamp; step k needs the odometry at t_k = start + kT on every vehicle. :class:`OdometryTrack`
-keeps the recent samples on the mission clock and interpolates linearly between the two that
-bracket t_k, so every vehicle's o_i(t_k) refers to the same instant whatever the telemetry phase.
+keeps the recent samples and interpolates linearly between the two that bracket t_k, so every
+vehicle's o_i(t_k) refers to the same instant whatever the telemetry phase; asked to, it
+extrapolates a little past the newest sample at that sample's velocity rather than wait for the
+next one.
 """
 
 import bisect
