@@ -210,6 +210,18 @@ class VisionOdometry:
         ).pack(self.packer)
 
 
+def _per_host_second(
+    velocity_cm_s: tuple[float, float, float], clock_rate: float
+) -> tuple[float, float, float]:
+    """A MAVLink velocity (cm per second of an autopilot's clock running ``clock_rate`` x the
+    host's) in m per host second, the aid's time base."""
+    return (
+        velocity_cm_s[0] * 0.01 * clock_rate,
+        velocity_cm_s[1] * 0.01 * clock_rate,
+        velocity_cm_s[2] * 0.01 * clock_rate,
+    )
+
+
 def _diagonal_covariance(linear: float, angular: float) -> list[float]:
     """MAVLink's upper-triangular 6x6 covariance: ``linear`` on the x, y, z diagonal entries,
     ``angular`` on the three rotations', the rest unknown (NaN)."""
@@ -344,18 +356,14 @@ class _TruthProtocol(asyncio.DatagramProtocol):
                 continue
             if not self.asked:
                 self._ask_rate(addr)
-            # cm per second of PX4's clock -> m per host second (the aid's time base)
-            per_host_s = 0.01 * self.clock_rate
             self.positions.add(
                 self.vehicle_id,
                 arrived_s,
                 message.lat / 1e7,
                 message.lon / 1e7,
                 message.alt / 1e3,
-                velocity_ned_m_s=(
-                    message.vx * per_host_s,
-                    message.vy * per_host_s,
-                    message.vz * per_host_s,
+                velocity_ned_m_s=_per_host_second(
+                    (message.vx, message.vy, message.vz), self.clock_rate
                 ),
             )
             if self.vision is not None and self.transport is not None:
@@ -464,18 +472,14 @@ async def _gps_stream(vehicle: MavsdkVehicle, mapping: ClockMapping, positions: 
             if message.system_id != vehicle.system_id:
                 continue
             fields = json.loads(message.fields_json)
-            # cm per second of the autopilot's clock -> m per host second (the aid's time base)
-            per_host_s = 0.01 * mapping.fit.boot_rate
             positions.add(
                 vehicle.system_id,
                 mapping.unix_s(fields["time_boot_ms"] / 1000.0),
                 fields["lat"] / 1e7,
                 fields["lon"] / 1e7,
                 fields["alt"] / 1000.0,
-                velocity_ned_m_s=(
-                    fields["vx"] * per_host_s,
-                    fields["vy"] * per_host_s,
-                    fields["vz"] * per_host_s,
+                velocity_ned_m_s=_per_host_second(
+                    (fields["vx"], fields["vy"], fields["vz"]), mapping.fit.boot_rate
                 ),
             )
 
