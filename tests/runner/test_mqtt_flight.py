@@ -37,11 +37,15 @@ def mqtt_scenario(broker, steps, clock="lockstep"):
 @pytest.mark.timeout(300)
 # Killed once converged; at 1x the broker stays down 5 s (40 steps): the target moves on 4 m
 # meanwhile, and the formation needs ~250 steps to close that gap and converge again.
+# Converged again: lockstep is exact; at real time the final error also depends on how loaded
+# the machine is (0.02 m idle; with two busy loops on both cores 0.04-0.12 m, 1.7 m before each
+# step's measurements were published at once; 0.18 m on a loaded CI machine then).
 @pytest.mark.parametrize(
-    ("clock", "kill_at", "outage_steps"), [("lockstep", 280, 20), ("realtime", 200, 40)]
+    ("clock", "kill_at", "outage_steps", "final_error_m"),
+    [("lockstep", 280, 20, 0.1), ("realtime", 200, 40, 0.25)],
 )
 async def test_broker_restart_mid_mission_holds_then_recovers(
-    mosquitto, clock, kill_at, outage_steps
+    mosquitto, clock, kill_at, outage_steps, final_error_m
 ):
     scenario = mqtt_scenario(mosquitto, STEPS, clock)
     restart_at = kill_at + outage_steps
@@ -68,5 +72,5 @@ async def test_broker_restart_mid_mission_holds_then_recovers(
     spread = np.linalg.norm(positions - result.target_m[kill_at : max(held) + 1, None], axis=-1)
     assert spread.max() < 2 * scenario.algorithm.radius_m + 3.0
     assert metrics["vehicles_in_formation_at_end"] == 4
-    assert metrics["final_tracking_error_m"] < 0.1
+    assert metrics["final_tracking_error_m"] < final_error_m
     assert metrics["vehicles_disarmed_at_end"] == 4
