@@ -99,6 +99,8 @@ class World:
         self._task: asyncio.Task[None] | None = None
         self._closing = False
         self.published = 0
+        self.dropped = 0  # measurements the bus did not take
+        self._dropping = 0  # of them since the last one it took
         self.samples: list[TruthSample] = []  # per step, for scoring only
 
     async def __aenter__(self) -> Self:
@@ -278,8 +280,16 @@ class World:
             for (topic, _), error in zip(measured, errors, strict=True):
                 if error is None:
                     self.published += 1
-                else:
-                    logger.warning("world: could not publish %s: %s", topic, error)
+                    if self._dropping:
+                        logger.info("world: publishing again (%d dropped)", self._dropping)
+                        self._dropping = 0
+                    continue
+                # Once per outage: a warning per message (13 a step with four vehicles) filled
+                # a pipe nobody read and stopped the emulator with it.
+                if not self._dropping:
+                    logger.warning("world: could not publish %s: %s (dropping)", topic, error)
+                self._dropping += 1
+                self.dropped += 1
 
 
 async def publish_measurements(

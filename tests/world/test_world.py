@@ -1,12 +1,19 @@
 """The world around emulated vehicles: UWB ranging and the target tracker on the bus."""
 
 import asyncio
+import logging
 import math
 
 import numpy as np
 import pytest
 
-from mission_runner.bus import InProcessBus, RangeMessage, TargetObservation, Topics
+from mission_runner.bus import (
+    BusConnectionError,
+    InProcessBus,
+    RangeMessage,
+    TargetObservation,
+    Topics,
+)
 from mission_runner.config import CirclePath, EventConfig, SensorConfig
 from mission_runner.world import World
 from sitl.config import ClockConfig, EmulatorConfig
@@ -134,6 +141,33 @@ async def test_a_steps_measurements_go_out_at_once_target_observations_first():
     assert bus.most == per_step
     firsts = [bus.order[i] for i in range(0, len(bus.order), per_step)]
     assert all(isinstance(m, TargetObservation) for m in firsts)
+
+
+class Outage:
+    """Refuses what is published for the first ``steps`` steps' measurements."""
+
+    def __init__(self, bus, steps):
+        self.bus, self.steps, self.start_s = bus, steps, None
+
+    async def publish_message(self, topic, message, *, timeout):
+        self.start_s = message.time_s if self.start_s is None else self.start_s
+        if message.time_s < self.start_s + self.steps * STEP_S - 1e-9:
+            raise BusConnectionError("broker", "not connected")
+        await self.bus.publish_message(topic, message, timeout=timeout)
+
+
+async def test_a_bus_outage_is_one_warning_and_a_count_not_a_line_per_message(caplog):
+    """13 lines a step with four vehicles filled the stderr pipe of an ``emulate`` process
+    nobody read until the end, and its event loop (the emulator with it) stopped."""
+    caplog.set_level(logging.INFO, logger="mission_runner.world.world")
+    wrapped = []
+    ranges, targets, world = await collect(
+        SensorConfig(), seconds=3, wrap=lambda bus: wrapped.append(Outage(bus, 8)) or wrapped[0]
+    )
+    assert world.dropped == 8 * 7 and world.published == len(ranges) + len(targets) > 0
+    lines = [r for r in caplog.records if r.name == "mission_runner.world.world"]
+    assert [r.levelname for r in lines] == ["WARNING", "INFO"]
+    assert "publishing again (56 dropped)" in lines[1].getMessage()
 
 
 async def test_a_failed_uwb_stops_every_range_from_and_to_it():
