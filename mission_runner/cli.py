@@ -1147,7 +1147,8 @@ def _ranges(arguments: argparse.Namespace) -> int:
     write_truth_csv(stats.truth, [v.id for v in scenario.vehicles], out_dir / "truth.csv")
     lateness = ", ".join(f"{k} {v:.1f} ms" for k, v in stats.lateness_percentiles_ms().items())
     print(
-        f"ranges: {stats.steps} steps, {stats.ranges} ranges published, "
+        f"ranges: {stats.steps} steps ({stats.skipped} skipped: past their deadline), "
+        f"{stats.ranges} ranges published, "
         f"{stats.missing_vehicles} vehicle-steps without a position, {stats.unsent} messages "
         f"dropped (not handed to the broker in time); after t_k: {lateness}; "
         "positions per second: "

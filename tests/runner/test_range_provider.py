@@ -60,6 +60,8 @@ async def fly_aid(
     seen=None,
     clock_rate=None,
     kill_after_start_s=None,
+    start_in_s=2.0,
+    steps=8,
 ):
     """Run the aid for 8 steps against three parked emulated vehicles; returns the start time,
     the aid's stats and what it published. ``seen(emulator)`` looks at the emulator before it
@@ -80,7 +82,7 @@ async def fly_aid(
         bus.subscribe(topics.all_ranges(), queue_size=10_000) as ranges,
         bus.subscribe(topics.all_targets(), queue_size=10_000) as targets,
     ):
-        start_s = math.ceil((time.time() + 2.0) / STEP_S) * STEP_S
+        start_s = math.ceil((time.time() + start_in_s) / STEP_S) * STEP_S
         if kill_after_start_s is not None:
             emulator.kill_vehicle(2, emulator.time_s + start_s + kill_after_start_s - time.time())
         # Retained, as the aid may subscribe after the ground station spoke.
@@ -99,7 +101,7 @@ async def fly_aid(
             truth_port_base=config.truth_stream.remote_base,
             truth_rate_hz=truth_rate_hz,
             vision=vision,
-            steps=8,
+            steps=steps,
         )
         if seen is not None:
             seen(emulator)
@@ -169,6 +171,23 @@ async def test_the_truth_rate_asked_is_per_second_of_host_time(mosquitto):
     assert stats.ranges == len(measured) == 8 * 6
     for rate in stats.position_rates_hz.values():
         assert 30 < rate < 50  # 20 Hz of the emulator's clock at 2x: 40 Hz of the host's
+
+
+@pytest.mark.timeout(60)
+async def test_steps_past_their_deadline_are_skipped_so_the_aid_catches_up(mosquitto):
+    """An aid behind (here: started a second after k = 0) measures the steps whose deadline
+    has passed for the truth and publishes none of them, then every step from the first it
+    can still make on."""
+    _, stats, measured, _ = await fly_aid(mosquitto, source="gps", start_in_s=-1.0, steps=40)
+    assert 8 <= stats.skipped < 40
+    published = sorted({m.step for m in measured})
+    # Steps 0-7 were past their deadline before the aid started; from then on it keeps up
+    # (a step may still be skipped on a busy machine).
+    assert published[0] >= 8 and published[-1] == 39
+    assert len(published) == 40 - stats.skipped
+    assert stats.ranges == len(measured)
+    assert [sample.step for sample in stats.truth] == list(range(40))
+    assert len(stats.lateness_s) == len(published)
 
 
 @pytest.mark.timeout(60)
