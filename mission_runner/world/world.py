@@ -55,7 +55,9 @@ class World:
         vehicle_ids: the scenario id of emulator vehicle index i is ``vehicle_ids[i]``.
         time_offset_s: mission time = simulated time + offset (0 in-process; the emulator's UNIX
         epoch when vehicles in other processes keep UNIX time). Every time the world takes or
-        stamps is mission time.
+        stamps is mission time. stale_after_steps: a step's measurements not yet published when
+        the world has sampled this many steps more are dropped (the bus was down: stale is worse
+        than none); None: never (an emulator racing ahead in lockstep, with nobody to wait for).
         senses_target: ``(N,)`` bool. sensors: the scenario's ``SensorConfig``. The first vehicle
         position the emulator places is the scenario's frame origin, so ``target_path`` shares it.
     """
@@ -75,8 +77,10 @@ class World:
         seed: int = 0,
         time_offset_s: float = 0.0,
         events: Sequence[EventConfig] = (),
+        stale_after_steps: int | None = 2,
     ) -> None:
         self.emulator = emulator
+        self.stale_after_steps = stale_after_steps
         self.bus = bus
         self.topics = topics
         self.vehicle_ids = list(vehicle_ids)
@@ -272,7 +276,8 @@ class World:
         while not self._closing:
             k, measured = await self._queue.get()
             try:
-                if self._next_step - k > 2:
+                stale = self.stale_after_steps
+                if stale is not None and self._next_step - k > stale:
                     continue  # the bus was down: a stale measurement is worse than none
                 errors = await publish_measurements(self.bus, measured, timeout_s=self.step_s)
             finally:
