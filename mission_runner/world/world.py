@@ -150,6 +150,8 @@ class World:
             seed=scenario.seed,
             time_offset_s=time_offset_s,
             events=scenario.events,
+            # In lockstep the mission waits for its measurements: none is ever stale.
+            stale_after_steps=None if emulator.clock.mode == "lockstep" else 2,
         )
 
     async def drained(self) -> None:
