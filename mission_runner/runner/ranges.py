@@ -548,13 +548,13 @@ async def run_range_provider(
             unix_k = mission_time.to_unix(t_k)
             await asyncio.sleep(max(0.0, unix_k - time.time()))
             deadline_s = mission_time.to_unix(t_k + scenario.flight.step_deadline_s)
-            wait_s = min(MAX_WAIT_S, max(0.0, deadline_s - time.time()))
-            now = await positions.bracketing(unix_k, wait_s, extrapolate_s=extrapolate_s)
-            # Behind (short of CPU: four PX4 at speed factor 2 on two cores), a late step only
-            # costs the time the next ones need: the aid was seconds behind at p95 and stayed
-            # there, every vehicle holding for want of ranges.
+            # Behind (short of CPU: four PX4 at speed factor 2 on two cores), a step already past
+            # its deadline only costs the time the next ones need: the aid was seconds behind at
+            # p95 and stayed there, every vehicle holding for want of ranges.
             publish = time.time() <= deadline_s
             stats.skipped += not publish
+            wait_s = min(MAX_WAIT_S, max(0.0, deadline_s - time.time()))
+            now = await positions.bracketing(unix_k, wait_s, extrapolate_s=extrapolate_s)
             await _publish_step(
                 bus, topics, scenario, now, k, t_k, start.time_s, rng, stats, publish=publish
             )
