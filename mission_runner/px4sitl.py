@@ -31,7 +31,7 @@ SIGTERM to their process group, then SIGKILL after 10 s, also when start-up fail
 Command line (``mission_runner.cli`` registers it)::
 
     mission-runner px4-sitl CONFIG --px4-dir DIR [--first-instance N] [--speed F] [--nice N]
-                                   [--work-dir D]
+                                   [--realtime] [--work-dir D]
 
 :func:`add_arguments` adds exactly these to a sub-parser, and sets ``handler=command`` (the
 CLI's convention, ``arguments.handler(arguments)``):
@@ -47,6 +47,8 @@ argument                meaning
 ``--speed``             float > 0, default 1.0: ``PX4_SIM_SPEED_FACTOR``
 ``--nice``              int 0..19, default 0: the instances' CPU priority (see
                         :data:`DEFAULT_NICE`)
+``--realtime``          flag: let PX4 run its threads real-time (``SCHED_FIFO``) where
+                        it may, as it does by default (see :func:`instance_scheduling`)
 ``--work-dir``          :class:`pathlib.Path`, default None: where the instances' working
                         directories go (kept); default a temporary directory, removed
                         at the end
@@ -74,12 +76,14 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import ctypes
 import dataclasses
 import functools
 import logging
 import math
 import os
 import re
+import resource
 import shutil
 import signal
 import socket
@@ -450,13 +454,41 @@ def _signal_group(pid: int, signal_number: signal.Signals) -> None:
         os.killpg(pid, signal_number)
 
 
-def lower_priority(nice: int) -> None:
-    """In a child about to become an instance (its new session begun): add ``nice`` to its
-    niceness, and give its session's scheduling autogroup the same (Linux; where there is no
-    autogroup file, or it cannot be written, the niceness alone applies)."""
-    os.nice(nice)
-    with contextlib.suppress(OSError):
-        Path("/proc/self/autogroup").write_text(f"{nice}\n")
+#: ``prctl`` option and capability number (linux/prctl.h, linux/capability.h).
+_PR_CAPBSET_DROP = 24
+_CAP_SYS_NICE = 23
+#: The C library's ``prctl``, looked up once in the parent: a child between fork and exec
+#: should call, not load.
+_prctl: Callable[..., int] | None
+try:
+    _prctl = ctypes.CDLL(None, use_errno=True).prctl
+except (OSError, AttributeError):  # not Linux
+    _prctl = None
+
+
+def instance_scheduling(nice: int, realtime: bool) -> None:
+    """In a child about to become an instance (its new session begun), before it execs PX4.
+
+    Unless ``realtime``: no real-time threads. PX4 asks for ``SCHED_FIFO`` for its work queues
+    and tasks and falls back to normal threads where that is refused (an ordinary user); as
+    root it gets them, and a SITL instance's real-time threads then preempt every ordinary
+    process on the machine, the mission's own controllers and range aid among them, whenever
+    they wake. Refused here by a real-time priority limit of 0 and, where the parent may drop
+    it (root), no ``CAP_SYS_NICE`` in the bounding set (so none after exec). Measured with four
+    SIH instances at speed factor 2 on two cores: see the README's speed-factor row.
+
+    ``nice`` > 0: add it to the niceness, and give the session's scheduling autogroup the
+    same (Linux; where there is no autogroup file, or it cannot be written, the niceness alone
+    applies)."""
+    if not realtime:
+        resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))
+        if _prctl is not None:
+            # Fails with EPERM without CAP_SETPCAP, where CAP_SYS_NICE is not held anyway.
+            _prctl(_PR_CAPBSET_DROP, _CAP_SYS_NICE, 0, 0, 0)
+    if nice:
+        os.nice(nice)
+        with contextlib.suppress(OSError):
+            Path("/proc/self/autogroup").write_text(f"{nice}\n")
 
 
 class _Running:
@@ -519,6 +551,7 @@ class Px4SitlInstances:
         params: Mapping[str, float | int] | None = None,
         ready_timeout_s: float = 30.0,
         nice: int = DEFAULT_NICE,
+        realtime: bool = False,
     ) -> None:
         check_instance_ids([vehicle.id for vehicle in scenario.vehicles], first_instance)
         if not 0 <= nice <= MAX_NICE:
@@ -534,6 +567,7 @@ class Px4SitlInstances:
         self.params = merged_params(scenario, params)
         self.ready_timeout_s = ready_timeout_s
         self.nice = nice
+        self.realtime = realtime
         self._work_dir = None if work_dir is None else Path(work_dir).expanduser()
         self._home = (home_lat_deg, home_lon_deg, home_alt_m)
         self._running: list[_Running] = []
@@ -662,7 +696,7 @@ class Px4SitlInstances:
                 # Own process group: the stop signal reaches PX4 and anything it spawned, and a
                 # Ctrl-C in the terminal reaches only this process, which then stops PX4 in order.
                 start_new_session=True,
-                preexec_fn=functools.partial(lower_priority, self.nice) if self.nice else None,
+                preexec_fn=functools.partial(instance_scheduling, self.nice, self.realtime),
             )
         started = dataclasses.replace(instance, pid=process.pid)
         self._running.append(_Running(started, process))
@@ -786,6 +820,7 @@ async def run_px4_sitl_command(
     report: Callable[[str], None] = logger.info,
     ready_timeout_s: float = 30.0,
     nice: int = DEFAULT_NICE,
+    realtime: bool = False,
 ) -> list[Px4Instance]:
     """Start PX4 SITL for ``scenario``, ``report`` the table of what runs where, and keep the
     instances running until ``until`` completes (e.g. a signal event's ``wait()``, which also
@@ -805,6 +840,7 @@ async def run_px4_sitl_command(
             work_dir=work_dir,
             ready_timeout_s=ready_timeout_s,
             nice=nice,
+            realtime=realtime,
         )
         async with sitl:
             ran.extend(sitl.instances)
@@ -863,6 +899,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "than the mission's own processes missing their deadlines",
     )
     parser.add_argument(
+        "--realtime",
+        action="store_true",
+        help="let PX4 run its threads real-time (SCHED_FIFO) where it may, as root: they then "
+        "preempt the mission's own processes on the same machine (default: normal threads)",
+    )
+    parser.add_argument(
         "--work-dir",
         type=Path,
         default=None,
@@ -897,6 +939,7 @@ async def _run_until_signal(arguments: argparse.Namespace, scenario: Scenario) -
             speed_factor=arguments.speed,
             work_dir=arguments.work_dir,
             nice=arguments.nice,
+            realtime=arguments.realtime,
             until=stop.wait(),
             report=_write_stdout,
         )

@@ -297,6 +297,8 @@ def test_the_command_line_arguments() -> None:
     with pytest.raises(SystemExit):
         parser.parse_args(["s.yaml", "--px4-dir", "/px4", "--speed", "0"])
     assert parser.parse_args(["s.yaml", "--px4-dir", "/px4", "--nice", "0"]).nice == 0
+    assert arguments.realtime is False
+    assert parser.parse_args(["s.yaml", "--px4-dir", "/px4", "--realtime"]).realtime is True
     for bad in ("-1", "20", "x"):
         with pytest.raises(SystemExit):
             parser.parse_args(["s.yaml", "--px4-dir", "/px4", "--nice", bad])
@@ -521,6 +523,64 @@ async def test_instances_run_at_a_lower_cpu_priority_than_the_mission(
     assert int(found["nice"]) == min(os.nice(0) + lower, MAX_NICE)
     if found["autogroup"]:  # Linux with autogroups
         assert found["autogroup"].strip().endswith(f"nice {lower}")
+
+
+#: Prints whether the process may make itself real-time (as PX4 asks for its threads).
+TRY_FIFO = (
+    "import os\n"
+    "try:\n"
+    "    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))\n"
+    "    print('real-time')\n"
+    "except PermissionError:\n"
+    "    print('refused')\n"
+)
+
+
+def may_be_real_time() -> bool:
+    """Whether a process started here (no limits added) may make itself real-time: as root."""
+    result = subprocess.run(
+        [sys.executable, "-c", TRY_FIFO], capture_output=True, text=True, check=True
+    )
+    return result.stdout.strip() == "real-time"
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("realtime", [False, True])
+async def test_instances_get_no_real_time_threads_unless_asked(
+    tmp_path: Path, realtime: bool
+) -> None:
+    """As root, PX4's real-time threads would preempt every mission process on the machine:
+    an instance may not make a thread real-time unless ``realtime``, as root too."""
+    build = script_build(
+        tmp_path / "px4",
+        f"{sys.executable} -c \"$(cat <<'PY'\n{TRY_FIFO}PY\n)\" > fifo\n"
+        'echo "Ready for takeoff!"\nexec sleep 60\n',
+    )
+    read = asyncio.Event()
+    found: list[str] = []
+
+    async def look_then_stop() -> None:
+        while not found:
+            files = sorted((tmp_path / "work").glob("*/instance-*/fifo"))
+            if files and files[0].read_text().strip():
+                found.append(files[0].read_text().strip())
+            await asyncio.sleep(0.05)
+        read.set()
+
+    await asyncio.gather(
+        look_then_stop(),
+        run_px4_sitl_command(
+            scenario(ids=(31,), positions_m=((0.0, 0.0),)),
+            build,
+            first_instance=30,
+            work_dir=tmp_path / "work",
+            until=read.wait(),
+            report=lambda line: None,
+            realtime=realtime,
+        ),
+    )
+    expected = "real-time" if realtime and may_be_real_time() else "refused"
+    assert found == [expected]
 
 
 @pytest.mark.asyncio
