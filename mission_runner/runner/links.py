@@ -33,7 +33,7 @@ from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from pymavlink.dialects.v20 import common as mavlink
 
 from .errors import RunnerTimeoutError, VehicleCommandError, VehicleConnectionError
-from .odometry import OdometrySample, OdometryTrack
+from .odometry import FedTrack, OdometrySample, OdometryTrack
 from .timesync import ClockMapping, ClockMappingError, MissionTime
 
 _T = TypeVar("_T")
@@ -123,6 +123,11 @@ async def _discovery_ticks() -> AsyncIterator[None]:
         await asyncio.sleep(DISCOVERY_POLL_S)
 
 
+def _resolve(waiter: asyncio.Future[None]) -> None:
+    if not waiter.done():
+        waiter.set_result(None)
+
+
 class MappedTrack:
     """A vehicle's odometry track (on its autopilot's boot clock) read on the mission clock:
     ``boot_s_at(mission_s)`` maps the query time, so a better clock fit applies at once to every
@@ -171,7 +176,7 @@ class MavsdkVehicle:
         self.offboard = OffboardAsync(system)
         self.param = ParamAsync(system)
         self.raw = MavlinkDirectAsync(system)
-        self.track = OdometryTrack()
+        self.track = FedTrack()
         self.boot_s_at: Callable[[float], float] = float
         self.odometry = MappedTrack(self.track, self._boot_s)
         self.clock_mapping: ClockMapping | None = None
@@ -182,7 +187,8 @@ class MavsdkVehicle:
         )  # (monotonic s, severity, text)
         self._status_text = asyncio.Event()
         self._timeout_s = command_timeout_s
-        self._updated = asyncio.Event()
+        self._odometry_waiters: set[asyncio.Future[None]] = set()
+        self.odometry_malformed = 0  # LOCAL_POSITION_NED samples that could not be read
         self._group: asyncio.TaskGroup | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._stack = contextlib.AsyncExitStack()
@@ -199,7 +205,7 @@ class MavsdkVehicle:
         async with contextlib.AsyncExitStack() as stack:
             self._group = await stack.enter_async_context(asyncio.TaskGroup())
             stack.callback(self._cancel_streams)  # they run for ever: end them, then the group
-            self._spawn(self._stream_odometry(), "odometry")
+            self._stream_odometry(stack)
             self._spawn(self._collect_status_texts(), "statustext")
             self._spawn(self._watch_flight_mode(), "flight-mode")
             self._spawn(self._watch_armed(), "armed")
@@ -229,24 +235,35 @@ class MavsdkVehicle:
             self._group.create_task(coroutine, name=f"vehicle-{self.system_id}-{what}")
         )
 
-    async def _stream_odometry(self) -> None:
-        stream = self.raw.subscribe_message("LOCAL_POSITION_NED")
-        async with contextlib.aclosing(stream):
-            async for message in stream:
-                if message.system_id != self.system_id:
-                    continue
+    def _stream_odometry(self, stack: contextlib.AsyncExitStack) -> None:
+        """LOCAL_POSITION_NED into :attr:`track` straight from MAVSDK's receive thread (see
+        :class:`.odometry.FedTrack`), waking :meth:`odometry_updated`'s waiters only; the
+        subscription ends when ``stack`` closes."""
+        loop = asyncio.get_running_loop()
+        # The blocking plugin under the asyncio one: its callbacks run in MAVSDK's thread.
+        plugin = self.raw._plugin
+
+        def wake() -> None:
+            for waiter in tuple(self._odometry_waiters):
+                loop.call_soon_threadsafe(_resolve, waiter)
+
+        def received(message: Any, _user_data: object) -> None:
+            if message.system_id != self.system_id:
+                return
+            try:
                 fields = json.loads(message.fields_json)
                 sample = OdometrySample(
-                    fields["time_boot_ms"] / 1000.0,
-                    fields["x"],
-                    fields["y"],
-                    fields["z"],
-                    fields["vx"],
-                    fields["vy"],
-                    fields["vz"],
+                    float(fields["time_boot_ms"]) / 1000.0,
+                    *(float(fields[name]) for name in ("x", "y", "z", "vx", "vy", "vz")),
                 )
-                if self.track.add(sample):
-                    self._updated.set()
+            except (ValueError, KeyError, TypeError):
+                self.odometry_malformed += 1
+                return
+            self.track.feed(sample)
+
+        self.track.on_feed = wake
+        handle = plugin.subscribe_message("LOCAL_POSITION_NED", received)
+        stack.callback(plugin.unsubscribe_message, handle)
 
     async def _collect_status_texts(self) -> None:
         stream = self.telemetry.subscribe_status_text()
@@ -408,9 +425,15 @@ class MavsdkVehicle:
             raise VehicleCommandError(f"vehicle {self.system_id}: {error}") from error
 
     async def odometry_updated(self) -> None:
-        """Wait for the next odometry sample."""
-        self._updated.clear()
-        await self._updated.wait()
+        """Wait for the next odometry sample (at once if one came in since the track was last
+        read)."""
+        waiter = asyncio.get_running_loop().create_future()
+        self._odometry_waiters.add(waiter)
+        try:
+            if not self.track.fed:  # checked after joining the waiters: no sample slips between
+                await waiter
+        finally:
+            self._odometry_waiters.discard(waiter)
 
     async def _within(self, awaitable: Awaitable[_T], what: str) -> _T:
         try:
