@@ -189,8 +189,11 @@ def _run_async(coroutine: Coroutine[Any, Any, T], stopping: _Stopping = _Stoppin
     import asyncio  # noqa: PLC0415 - simulate does without
 
     stops = 0
+    # The result stays out of the main task: asyncio's Runner formats that task (its result
+    # included) while restoring SIGINT's handler, a full repr of a flight's arrays (~2 s).
+    outcome: list[T] = []
 
-    async def main() -> T:
+    async def main() -> None:
         task, loop = asyncio.current_task(), asyncio.get_running_loop()
 
         def say(text: str) -> None:
@@ -220,7 +223,7 @@ def _run_async(coroutine: Coroutine[Any, Any, T], stopping: _Stopping = _Stoppin
                 handled.append((number, previous))
         _signals.cancel_main = cancel
         try:
-            return await coroutine
+            outcome.append(await coroutine)
         finally:
             _signals.cancel_main = None
             for number, previous in handled:
@@ -228,7 +231,7 @@ def _run_async(coroutine: Coroutine[Any, Any, T], stopping: _Stopping = _Stoppin
                 signal.signal(number, previous if previous is not None else signal.SIG_DFL)
 
     try:
-        result = asyncio.run(main())
+        asyncio.run(main())
     except BaseException as error:
         if not stops:
             raise
@@ -237,7 +240,7 @@ def _run_async(coroutine: Coroutine[Any, Any, T], stopping: _Stopping = _Stoppin
         raise KeyboardInterrupt from None
     if stops:  # the coroutine ended on its own terms, but the user asked it to stop
         raise KeyboardInterrupt
-    return result
+    return outcome[0]
 
 
 def _emulator_errors() -> tuple[type[Exception], ...]:
