@@ -283,7 +283,7 @@ def bench_lockstep(runs: int, steps: int | None) -> None:
     )
 
 
-def bench_realtime(steps: int, reference: bool) -> None:
+def bench_realtime(steps: int, reference: bool) -> dict[str, float]:
     data = paper_data(steps=steps, clock="realtime")
     step_s = data["timing"]["step_s"]
     print(
@@ -314,6 +314,13 @@ def bench_realtime(steps: int, reference: bool) -> None:
         f"{t.vehicle_steps} vehicle-steps; steps with any miss or late setpoint: "
         f"{len(t.steps_affected)} of {steps}; vehicle-steps holding: {t.holding}"
     )
+    figures = {
+        "setpoint_late_p50_ms": t.percentile_ms(50),
+        "setpoint_late_p99_ms": t.percentile_ms(99),
+        "missed_deadlines": t.late,
+        "vehicle_steps": t.vehicle_steps,
+        "short_handed": t.short_handed,
+    }
     line = (
         f"   final tracking error {flight.metrics['final_tracking_error_m']:.4f} m "
         f"(tail RMS {flight.metrics['tail_tracking_error_rms_m']:.4f} m)"
@@ -325,9 +332,10 @@ def bench_realtime(steps: int, reference: bool) -> None:
             f"(tail RMS {ref.metrics['tail_tracking_error_rms_m']:.4f} m)"
         )
     print(line)
+    return figures
 
 
-def bench_swarm(sizes: list[int], seconds: float, budget_s: float) -> None:
+def bench_swarm(sizes: list[int], seconds: float, budget_s: float) -> dict[str, object]:
     step_s = paper_data()["timing"]["step_s"]
     print(
         f"\n3. Swarm size in real time at T = {step_s:g} s, {seconds:g} s simulated per size, "
@@ -339,6 +347,7 @@ def bench_swarm(sizes: list[int], seconds: float, budget_s: float) -> None:
     )
     started = time.perf_counter()
     holds, below = None, 0
+    on_time: dict[int, float] = {}
     for n in sizes:
         if n > EMULATOR_MAX_VEHICLES:
             print(f"   {n}: above the emulator's {EMULATOR_MAX_VEHICLES} vehicles; stopping")
@@ -356,6 +365,7 @@ def bench_swarm(sizes: list[int], seconds: float, budget_s: float) -> None:
             f"{t.lost:4d}       {_cores(flight)}  "
             f"{outcome.emulator_stats.max_lag_s * 1000:4.0f} ms  {outcome.wall_time_s:6.1f} s"
         )
+        on_time[n] = t.on_time
         if t.on_time >= ON_TIME_TARGET:
             holds, below = n, 0
         else:
@@ -369,6 +379,7 @@ def bench_swarm(sizes: list[int], seconds: float, budget_s: float) -> None:
         print("   no size held real time (>= 99 % on time)")
     else:
         print(f"   largest swarm holding real time (>= 99 % on time): N = {holds}")
+    return {"largest_real_time_swarm": holds, "on_time_by_size": on_time}
 
 
 def main(argv: list[str] | None = None) -> None:
