@@ -629,6 +629,12 @@ class Emulator:
                     self._max_lag_s = max(self._max_lag_s, (due - 1) * dt)
             for _ in range(batch):
                 self._step(dt)
+            # Once a batch: the steps of a batch run back to back without yielding, so their
+            # messages would leave together anyway; a datagram per step was a system call per
+            # link per 5 ms (PX4's mavlink module also sends what a loop queued in one datagram).
+            for link in self._all_links:
+                if link.pending:
+                    link.flush()
             self._progress.set()
             self._progress = asyncio.Event()
             await asyncio.sleep(0)
@@ -667,9 +673,6 @@ class Emulator:
                     msg = build(msg_id, now)
                     if msg is not None:
                         link.send(msg)
-        for link in self._all_links:
-            if link.pending:
-                link.flush()
 
     async def wait_for(
         self, predicate: Callable[[], bool], *, timeout_s: float, what: str = "a condition"
