@@ -34,5 +34,7 @@ lint:
 	$(PYTHON) -m ruff format --check .
 	$(PYTHON) -m mypy
 
+## The headline figures (demo wall time, vehicle-process CPU, 1x lateness, swarm size, simulator),
+## printed and written to out/bench/headline.json (about 6 minutes on 2 cores).
 bench: install
-	$(PYTHON) bench/sim_bench.py
+	$(PYTHON) bench/headline.py
