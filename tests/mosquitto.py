@@ -152,7 +152,8 @@ class MosquittoBroker:
             # Without it mosquitto lets Nagle's algorithm delay small messages to its
             # subscribers by up to a delayed-ACK period (40 ms on Linux).
             "set_tcp_nodelay true",
-            "log_dest stdout",
+            # Flushed line by line (stdout is not, into a file): a test can read who connected.
+            f"log_dest file {self.log_path}",
             "log_type error",
             "log_type warning",
             "log_type notice",

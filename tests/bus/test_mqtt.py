@@ -205,10 +205,10 @@ async def test_duplicate_client_ids_back_off_instead_of_hammering_the_broker(
     # Two buses with one client id make the broker drop whichever connected first, over
     # and over. Connections that drop at once must not reset the backoff.
     options = {"reconnect_initial_s": 0.01, "reconnect_max_s": 0.5}
-    async with (
-        make_bus(mosquitto, "twin", **options) as first,
-        make_bus(mosquitto, "twin", **options) as second,
-    ):
+    first, second = make_bus(mosquitto, "twin", **options), make_bus(mosquitto, "twin", **options)
+    assert first.client_id != second.client_id  # each bus makes its id unguessable
+    second.client_id = first.client_id  # as if someone had seen the first one's
+    async with first, second:
         # An observation window, not synchronisation: count reconnects over 1 s.
         await asyncio.sleep(1.0)
         reconnects = first.connect_count + second.connect_count
