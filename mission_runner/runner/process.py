@@ -58,6 +58,7 @@ from ..bus import (
     lost_vehicle_will,
     open_bus,
 )
+from ..bus.broker import OPERATOR_USER
 from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
 from .controller import StepRecord, VehicleController, build_controller
@@ -650,11 +651,13 @@ async def send_control(
     )
     topics = scenario.bus.topics(scenario.name)
     async with (
-        # The operator's commands are the ground station's: same role, same broker user.
+        # The operator's commands are the ground station's (same role), under a login of their
+        # own: with client ids bound to logins, the ground's would take the ground's connection.
         open_bus(
             scenario.bus,
             sender=Sender.ground(),
-            client_id=f"{scenario.name}-operator-{uuid.uuid4().hex[:6]}",
+            client_id=f"{scenario.name}-operator",
+            login=OPERATOR_USER,
         ) as bus,
         bus.subscribe(topics.control()) as control,
     ):
