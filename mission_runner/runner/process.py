@@ -24,8 +24,9 @@ taken for this one's.
 A vehicle's last will (published by the broker when its connection ends without a goodbye) is a
 drop-off, not a loss: the broker also publishes it when another connection takes the vehicle's
 client id, and the vehicle reconnects and flies on. The ground station takes a will as final only
-when nothing signed by that vehicle (a step or a status) arrives within :func:`rejoin_grace_s`
-after it; a vehicle heard again is not lost, and the drop is counted (``GroundOutcome.bus_drops``).
+when no status of that vehicle (a flying controller sends one every step) arrives within
+:func:`rejoin_grace_s` after it; a vehicle heard again is not lost, and the drop is counted
+(``GroundOutcome.bus_drops``).
 """
 
 from __future__ import annotations
@@ -52,7 +53,6 @@ from ..bus import (
     Sender,
     Subscription,
     TopicError,
-    TopicKind,
     Topics,
     VehicleStatus,
     lost_vehicle_will,
@@ -431,8 +431,7 @@ async def run_ground(
     wills = _Wills(rejoin_grace_s(scenario))
     async with (
         open_bus(scenario.bus, sender=Sender.ground(), client_id=f"{scenario.name}-ground") as bus,
-        # Statuses, and steps: a vehicle still stepping after its last will is not lost.
-        bus.subscribe(f"{topics.prefix}/vehicle/+/+") as heard,
+        bus.subscribe(topics.all_status()) as heard,
     ):
 
         async def control(command: ControlCommand, time_s: float, **fields: Any) -> None:
@@ -462,14 +461,10 @@ async def run_ground(
 
         def hear(topic: str, payload: bytes, now_s: float) -> bool:
             """Take in one message; whether it changed a vehicle's status."""
-            message = _vehicle_message(topics, ids, topic, payload)
-            if message is None:
-                return False
-            vehicle_id, status = message
+            status = _vehicle_status(topics, ids, topic, payload)
             if status is None or not ours(status):
-                if status is None:  # its step: signed by that vehicle, so it is on the bus
-                    wills.heard(vehicle_id)
                 return False
+            vehicle_id = status.vehicle_id
             if status.mission_id is None:  # its last will (ours: after the start, lost)
                 if latest[vehicle_id].state not in ("done", *FINAL_STATES):
                     wills.add(status, now_s)
@@ -480,6 +475,7 @@ async def run_ground(
                         wills.grace_s,
                     )
                 return False
+            # Its own status (a flying controller sends one every step): it is on the bus.
             wills.heard(vehicle_id)
             return accept(status)
 
@@ -571,22 +567,17 @@ async def run_ground(
     return GroundOutcome(mission_id, started["at"], rate, latest, counters, dict(wills.drops))
 
 
-def _vehicle_message(
+def _vehicle_status(
     topics: Topics, ids: set[int], topic: str, payload: bytes
-) -> tuple[int, VehicleStatus | None] | None:
-    """``(vehicle id, None)`` for a step of one of ``ids``, ``(vehicle id, status)`` for its
-    status; None for anything else, an empty payload, or a status that does not decode or is
-    about another vehicle than its topic's (the bus checked who signed the topic, not the body)."""
+) -> VehicleStatus | None:
+    """The status of one of ``ids`` on its status ``topic``; None for an empty payload, or a
+    status that does not decode or is about another vehicle than its topic's (the bus checked
+    who signed for the topic, not what the body says)."""
     try:
-        parsed = topics.parse(topic)
+        vehicle_id = topics.parse(topic).vehicle_id
     except TopicError:
         return None
-    vehicle_id = parsed.vehicle_id
     if vehicle_id not in ids or not payload:
-        return None
-    if parsed.kind is TopicKind.STEP:
-        return vehicle_id, None
-    if parsed.kind is not TopicKind.STATUS:
         return None
     try:
         status = VehicleStatus.from_payload(payload)
@@ -596,7 +587,7 @@ def _vehicle_message(
     if status.vehicle_id != vehicle_id:
         logger.warning("ground: skipping a status of vehicle %s on %s", status.vehicle_id, topic)
         return None
-    return vehicle_id, status
+    return status
 
 
 def _final_already(last: VehicleStatus | None, status: VehicleStatus) -> bool:
