@@ -483,7 +483,10 @@ async def run_ground(
             loop = asyncio.get_running_loop()
             deadline_s = loop.time() + timeout_s
             while True:
-                if any([accept(will) for will in wills.due(loop.time())]) and condition():
+                changed = False
+                for will in wills.due(loop.time()):
+                    changed = accept(will) or changed
+                if changed and condition():
                     return
                 if loop.time() >= deadline_s:
                     raise RunnerTimeoutError(what, timeout_s)
