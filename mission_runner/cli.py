@@ -993,6 +993,12 @@ def _ground(arguments: argparse.Namespace) -> int:
             f"{lost or 'none'}; mission clock {outcome.clock_rate:.4f}x",
             flush=True,
         )
+        if outcome.bus_drops:
+            drops = ", ".join(f"{i} ({n}x)" for i, n in sorted(outcome.bus_drops.items()))
+            print(
+                f"ground: dropped off the bus (last will) and heard again, so not lost: {drops}",
+                flush=True,
+            )
         security = bus_security(outcome.bus_messages, {})
         line = bus_security_line({"bus_security": security})
         if line:  # what each vehicle dropped is in its own summary
@@ -1009,6 +1015,11 @@ def _ground(arguments: argparse.Namespace) -> int:
             figures=not arguments.no_figures,
             vehicles={
                 i: {"state": status.state, "detail": status.detail}
+                | (
+                    {"bus": f"dropped off {outcome.bus_drops[i]}x (last will), heard again"}
+                    if i in outcome.bus_drops
+                    else {}
+                )
                 for i, status in outcome.statuses.items()
             },
             records=mission_records(mission_dir, (v.id for v in scenario.vehicles)),

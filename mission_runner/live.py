@@ -210,6 +210,7 @@ async def serve_bus(
     """Publish what the mission's bus carries until cancelled: each vehicle's step message as
     its state (phase, odometry) and its frame in its odometry, each status change as an event."""
     from .bus import Sender, StepMessage, VehicleStatus, open_bus  # noqa: PLC0415
+    from .bus.broker import VIEWER_USER  # noqa: PLC0415
 
     topics = scenario.bus.topics(scenario.name)
     known = {vehicle.id for vehicle in scenario.vehicles}
@@ -230,9 +231,12 @@ async def serve_bus(
     # Both subscriptions are in place before either is read: a retained status seen means the
     # steps are heard too.
     async with (
-        # A viewer publishes nothing; it checks the messages with the mission's key and logs in
-        # as the ground station, whose login reads the whole mission.
-        open_bus(scenario.bus, sender=Sender.ground(), client_id=client_id) as bus,
+        # A viewer publishes nothing; it checks the messages with the mission's key, under a
+        # read-only login of its own (client ids are bound to logins: the ground's would take
+        # the ground station's connection).
+        open_bus(
+            scenario.bus, sender=Sender.ground(), client_id=client_id, login=VIEWER_USER
+        ) as bus,
         bus.subscribe(topics.all_steps()) as step_messages,
         bus.subscribe(topics.all_status()) as status_messages,
         asyncio.TaskGroup() as group,

@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import secrets
 import shutil
 import signal
 import socket
@@ -32,7 +33,7 @@ from typing import IO
 import pytest
 
 from mission_runner.bus.auth import BusKey
-from mission_runner.bus.broker import BrokerFiles, write_broker_config
+from mission_runner.bus.broker import BrokerFiles, mosquitto_password_hash, write_broker_config
 from mission_runner.bus.topics import Topics
 
 #: The bus key of the tests (MQTT buses refuse to open without one); tests/conftest.py puts it in
@@ -152,7 +153,8 @@ class MosquittoBroker:
             # Without it mosquitto lets Nagle's algorithm delay small messages to its
             # subscribers by up to a delayed-ACK period (40 ms on Linux).
             "set_tcp_nodelay true",
-            "log_dest stdout",
+            # Flushed line by line (stdout is not, into a file): a test can read who connected.
+            f"log_dest file {self.log_path}",
             "log_type error",
             "log_type warning",
             "log_type notice",
@@ -278,3 +280,16 @@ def secured_broker(
         directory / "broker-config", topics, vehicle_ids, port=port, bind_address="127.0.0.1"
     )
     return MosquittoBroker(directory / "broker", port=port, config_file=files.config), files
+
+
+def add_login(files: BrokerFiles, user: str, acl: list[str]) -> None:
+    """Add a login ``user`` (random password, in ``files.credentials``) allowed ``acl`` (mosquitto
+    ACL lines) to ``broker-config``'s files before the broker starts: a login beside the mission's
+    own, for an intruder that must not share (and so take over) one of theirs."""
+    password = secrets.token_urlsafe(24)
+    with files.passwords.open("a", encoding="utf-8") as passwords:
+        passwords.write(f"{user}:{mosquitto_password_hash(password)}\n")
+    with files.credentials.open("a", encoding="utf-8") as credentials:
+        credentials.write(f"{user}:{password}\n")
+    with files.acl.open("a", encoding="utf-8") as acl_file:
+        acl_file.write("\n" + "\n".join([f"user {user}", *acl]) + "\n")

@@ -161,11 +161,13 @@ def open_bus(
     will: LastWill | None = None,
     clock: Clock | None = None,
     rng: random.Random | None = None,
+    login: str | None = None,
 ) -> Bus:
     """The bus ``settings`` describe, not yet entered: use it as ``async with``.
 
     ``sender`` is whom this process signs as (None: each topic's owner, for one process that
-    is the whole swarm) and which broker user it logs in as (see ``broker.broker_login``).
+    is the whole swarm) and which broker user it logs in as (see ``broker.broker_login``),
+    unless ``login`` names another (a client beside the ground station: ``operator``, ``viewer``).
     The key comes from ``settings.bus_key()``: raises BusAuthError when an MQTT bus has none.
     ``client_id`` overrides ``settings.mqtt.client_id`` (give each vehicle its own);
     ``will`` is the MQTT last will (see ``lost_vehicle_will``). ``clock`` and ``rng`` are
@@ -194,6 +196,7 @@ def open_bus(
     username, password = broker_login(
         settings.access.credentials_file or mqtt.credentials_file,
         sender or Sender.ground(),
+        user=login,
     )
     return MqttBus(
         mqtt.host,

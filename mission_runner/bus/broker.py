@@ -4,12 +4,15 @@ credentials each process logs in with.
 ``write_broker_config`` (``mission-runner broker-config CONFIG --out DIR``) writes into DIR:
 
 - ``mosquitto.conf``: one listener (optionally TLS, with certificate files the operator gives),
-  no anonymous access, the password file and the ACL below;
-- ``passwords``: one user per role (``ground``, ``vehicle-<id>``, ``ranges``) with a random
-  password, hashed as mosquitto 2 stores them (``$7$``: PBKDF2-SHA512, 101 iterations, 12-byte
-  salt; computed here, so no password appears on a command line);
-- ``acl``: each vehicle publishes only its own topics, only the ground station publishes on
-  ``control``, the range aid only ranges and target observations; everyone reads the mission;
+  no anonymous access, the password file and the ACL below, and each connection's client id
+  replaced by its login (``use_username_as_clientid``);
+- ``passwords``: one user per client of the mission (``ground``, ``vehicle-<id>``, ``ranges``, and
+  ``operator`` for ``mission-runner control``, ``viewer`` for a live view) with a random password,
+  hashed as mosquitto 2 stores them (``$7$``: PBKDF2-SHA512, 101 iterations, 12-byte salt;
+  computed here, so no password appears on a command line);
+- ``acl``: each vehicle publishes only its own topics, only the ground station and its operator
+  publish on ``control``, the range aid only ranges and target observations, the viewer nothing;
+  everyone reads the mission;
 - ``credentials`` (mode 0600): the users' ``user:password`` lines, for ``--bus-credentials``
   (give each machine only its own line);
 - ``bus.key`` (mode 0600): a fresh random message key for ``--bus-key-file`` (every process).
@@ -17,6 +20,11 @@ credentials each process logs in with.
 mosquitto enforces the ACL per user, whatever the message says: a vehicle's credentials cannot
 publish a ``start``, even with the bus key. A denied publish is dropped by the broker silently
 (MQTT 3.1.1 has no way to say so at QoS 0).
+
+Client ids are bound to logins: mosquitto drops a connection when another arrives with its client
+id, and publishes its last will. With the id replaced by the login, vehicle 1's login can only
+ever take vehicle 1's own connection, never vehicle 2's; the price is one connection per login,
+hence a login for each client that runs beside the ground station (``operator``, ``viewer``).
 """
 
 from __future__ import annotations
@@ -74,28 +82,39 @@ def read_credentials(path: Path) -> dict[str, str]:
     return users
 
 
+#: Logins of clients that run beside the ground station and sign as it (or sign nothing): with
+#: client ids bound to logins, each needs its own, or it would take the ground's connection.
+OPERATOR_USER = "operator"
+VIEWER_USER = "viewer"
+
+
 def broker_login(
-    credentials_file: Path | None, sender: Sender, environ: Mapping[str, str] | None = None
+    credentials_file: Path | None,
+    sender: Sender,
+    environ: Mapping[str, str] | None = None,
+    *,
+    user: str | None = None,
 ) -> tuple[str | None, str | None]:
     """``(user, password)`` for ``sender``'s connection: the environment's
     ``MISSION_BUS_USERNAME``/``MISSION_BUS_PASSWORD`` if set, else ``credentials_file``'s line
-    for the sender's role user (``str(sender)``) or its only line, else ``(None, None)``
-    (anonymous)."""
+    for ``user`` (default: the sender's role user, ``str(sender)``) or its only line, else
+    ``(None, None)`` (anonymous)."""
     environ = os.environ if environ is None else environ
     if environ.get(USERNAME_ENV):
         return environ[USERNAME_ENV], environ.get(PASSWORD_ENV)
     if credentials_file is None:
         return None, None
     users = read_credentials(credentials_file)
-    wanted = str(sender)
+    wanted = user or str(sender)
     if wanted in users:
         return wanted, users[wanted]
     if len(users) == 1:
-        ((user, password),) = users.items()
-        return user, password
+        ((only, password),) = users.items()
+        return only, password
     raise BusAuthError(
         f"the broker credentials file {credentials_file} has no user {wanted!r}",
-        hint=f"this process signs as {wanted}; broker-config writes one user per role",
+        hint=f"this client logs in as {wanted}; broker-config writes one user per client "
+        "(run it again if the file is older than the operator and viewer logins)",
     )
 
 
@@ -129,6 +148,13 @@ def acl_text(topics: Topics, vehicle_ids: Sequence[int]) -> str:
         "",
         "user ground",
         f"topic write {topics.control()}",
+        f"topic read {topics.everything()}",
+        "",
+        f"user {OPERATOR_USER}",
+        f"topic write {topics.control()}",
+        f"topic read {topics.everything()}",
+        "",
+        f"user {VIEWER_USER}",
         f"topic read {topics.everything()}",
         "",
         "user ranges",
@@ -170,7 +196,13 @@ def write_broker_config(
     """Write a mosquitto configuration for the mission (see the module docstring)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     out_dir = out_dir.resolve()
-    users = ("ground", "ranges", *(str(Sender.vehicle(i)) for i in vehicle_ids))
+    users = (
+        "ground",
+        OPERATOR_USER,
+        VIEWER_USER,
+        "ranges",
+        *(str(Sender.vehicle(i)) for i in vehicle_ids),
+    )
     passwords = {user: secrets.token_urlsafe(24) for user in users}
     files = BrokerFiles(
         config=out_dir / "mosquitto.conf",
@@ -209,6 +241,9 @@ def write_broker_config(
         "allow_anonymous false",
         f"password_file {files.passwords}",
         f"acl_file {files.acl}",
+        # The login is the client id: no login can take over another's connection (and have
+        # its last will published).
+        "use_username_as_clientid true",
         # Without it Nagle's algorithm holds step messages to subscribers by up to 40 ms.
         "set_tcp_nodelay true",
     ]

@@ -18,6 +18,14 @@ controllers need none of them, as they hold whenever no neighbour message has ar
 their silence timeout, whatever the cause. A ``LastWill`` on the vehicle's status topic
 tells the others when a vehicle drops off without saying goodbye.
 
+Client ids: every bus appends a random suffix to the id it is given (one per bus, kept across
+reconnects). The broker drops a connection when another one arrives with its id, and publishes
+its will: a guessable id (``<name>-vehicle-2``) let anyone who can reach the broker knock a
+vehicle off the bus and announce it lost. After a reconnect the bus publishes again the last
+retained message it published on its will's topic, so that the will the broker published (and
+retained) does not outlive the connection it was about; receivers treat a will as a drop-off, not
+as final (``runner/process.py``). ``broker-config`` also binds ids to logins at the broker.
+
 Broker setup: set ``set_tcp_nodelay true`` in mosquitto.conf. Without it mosquitto lets
 Nagle's algorithm hold small messages to subscribers for up to a delayed-ACK period (40 ms
 on Linux): on loopback the p99 latency of 8 Hz step messages drops from ~43 ms to ~3 ms
@@ -43,6 +51,7 @@ import logging
 import math
 import os
 import random
+import secrets
 import socket
 import ssl
 import time
@@ -133,6 +142,16 @@ class Backoff:
 def default_client_id(prefix: str = "mission-runner") -> str:
     """A client id unique to this process and call (MQTT ids must not collide)."""
     return f"{prefix}-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+
+
+#: Random hex digits appended to every client id: 64 bits, not to be guessed over a network.
+CLIENT_ID_SUFFIX_CHARS = 16
+
+
+def unguessable_client_id(base: str) -> str:
+    """``base`` with a random suffix: an id nobody can take over without having seen it (the
+    broker drops a connection whose id another connection presents, and publishes its will)."""
+    return f"{base}-{secrets.token_hex(CLIENT_ID_SUFFIX_CHARS // 2)}"
 
 
 def _connack_code(exc: BaseException) -> int | None:
@@ -232,7 +251,7 @@ class MqttBus(Bus):
         self.host = host
         self.port = port
         self.endpoint = f"{host}:{port}"
-        self.client_id = client_id or default_client_id()
+        self.client_id = unguessable_client_id(client_id or default_client_id())
         self.auth = MessageAuth(key, auth_policy, endpoint=self.endpoint, wall_clock=wall_clock)
         self.sender = sender
         self.qos = qos
@@ -266,6 +285,9 @@ class MqttBus(Bus):
         # What the bus owns while entered (the connection task's group), unwound on exit.
         self._stack = contextlib.AsyncExitStack()
         self._connected_since_s: float | None = None
+        # The last retained message published on the will's topic (payload, signer), published
+        # again after a reconnect: the broker may have put the will in its place meanwhile.
+        self._will_topic_retained: tuple[bytes, Sender | None] | None = None
 
     def __repr__(self) -> str:
         state = "connected" if self._connected else "disconnected"
@@ -503,6 +525,7 @@ class MqttBus(Bus):
                         self.endpoint,
                         pattern,
                     )
+        await self._restore_will_topic(client)
         self.connect_count += 1
         self._connected_since_s = self.clock.now_s()
         self._connected = True
@@ -526,6 +549,22 @@ class MqttBus(Bus):
             for subscription in self._subscriptions:
                 if topic_matches(subscription.pattern, topic):
                     subscription.offer(topic, body)
+
+    async def _restore_will_topic(self, client: aiomqtt.Client) -> None:
+        """Publish again, before anything else of this connection, the last retained message
+        this bus published on its will's topic: if the previous connection ended without a
+        goodbye (a network drop, or another connection with this client id), the broker has
+        published and retained the will in its place, though this client goes on."""
+        if self.will is None or self._will_topic_retained is None:
+            return
+        payload, sender = self._will_topic_retained
+        topic = self.will.topic
+        sealed = self._seal(topic, payload, retain=True, sender=sender)
+        await _bounded(
+            client.publish(topic, sealed, qos=self.will.qos, retain=True, timeout=math.inf),
+            self.subscribe_timeout_s,
+        )
+        logger.info("reconnected to %s: published %s again over the will", self.endpoint, topic)
 
     # Publish / subscribe ----------------------------------------------------------------
     def _check_open(self, action: str) -> None:
@@ -563,6 +602,8 @@ class MqttBus(Bus):
                     client.publish(topic, sealed, qos=self.qos, retain=retain, timeout=math.inf),
                     max(deadline - loop.time(), 0.001),
                 )
+                if retain and self.will is not None and topic == self.will.topic:
+                    self._will_topic_retained = (bytes(payload), sender)
                 break
             except MqttCodeError as exc:
                 # The connection died under us before the runner noticed: wait for it to

@@ -20,6 +20,13 @@ The handshake, as an operator expects it:
 
 Statuses and commands carry the mission id, so retained messages of an earlier mission are never
 taken for this one's.
+
+A vehicle's last will (published by the broker when its connection ends without a goodbye) is a
+drop-off, not a loss: the broker also publishes it when another connection takes the vehicle's
+client id, and the vehicle reconnects and flies on. The ground station takes a will as final only
+when no status of that vehicle (a flying controller sends one every step) arrives within
+:func:`rejoin_grace_s` after it; a vehicle heard again is not lost, and the drop is counted
+(``GroundOutcome.bus_drops``).
 """
 
 from __future__ import annotations
@@ -39,15 +46,19 @@ import numpy as np
 from ..bus import (
     Bus,
     BusError,
+    BusTimeoutError,
     ControlCommand,
+    MessageDecodeError,
     MissionControl,
     Sender,
     Subscription,
+    TopicError,
     Topics,
     VehicleStatus,
     lost_vehicle_will,
     open_bus,
 )
+from ..bus.broker import OPERATOR_USER
 from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
 from .controller import StepRecord, VehicleController, build_controller
@@ -77,6 +88,10 @@ logger = logging.getLogger(__name__)
 FINAL_STATES = ("lost", "failed", "aborted", "taken_over")
 
 DEFAULT_API_PORT_BASE = 14540
+
+#: Beyond a vehicle's reconnect (its backoff and connect timeout), how long the ground station
+#: waits after the vehicle's last will for its first message before taking it as lost.
+REJOIN_MARGIN_S = 1.0
 
 
 class MissionAbortedError(RunnerError):
@@ -328,6 +343,52 @@ async def _until_start(
         return command
 
 
+def rejoin_grace_s(scenario: Scenario) -> float:
+    """How long after a vehicle's last will the ground station waits to hear from it again: its
+    longest reconnect delay and connect timeout (``bus.mqtt``), plus :data:`REJOIN_MARGIN_S`."""
+    mqtt = scenario.bus.mqtt
+    return mqtt.reconnect_max_s + mqtt.connect_timeout_s + REJOIN_MARGIN_S
+
+
+class _Wills:
+    """Vehicles' last wills, held until they can be believed (see the module docstring).
+
+    ``pending``: the will of each vehicle not heard from since, with when it arrived (monotonic
+    seconds); ``drops``: by vehicle, the wills it outlived (heard from again after them)."""
+
+    def __init__(self, grace_s: float) -> None:
+        self.grace_s = grace_s
+        self.pending: dict[int, tuple[VehicleStatus, float]] = {}
+        self.drops: dict[int, int] = {}
+
+    def add(self, will: VehicleStatus, now_s: float) -> None:
+        self.pending.setdefault(will.vehicle_id, (will, now_s))
+
+    def heard(self, vehicle_id: int) -> bool:
+        """Vehicle ``vehicle_id`` spoke: its pending will (if any) is not final. Returns whether
+        it had one."""
+        if self.pending.pop(vehicle_id, None) is None:
+            return False
+        self.drops[vehicle_id] = self.drops.get(vehicle_id, 0) + 1
+        logger.warning(
+            "ground: vehicle %s heard again after its last will: not lost (bus drop %d)",
+            vehicle_id,
+            self.drops[vehicle_id],
+        )
+        return True
+
+    def next_due_s(self) -> float:
+        """When the oldest pending will becomes final (inf: none pending)."""
+        return min((at_s + self.grace_s for _, at_s in self.pending.values()), default=math.inf)
+
+    def due(self, now_s: float) -> list[VehicleStatus]:
+        """The wills of vehicles silent for ``grace_s`` since: final now (no longer pending)."""
+        final = [will for will, at_s in self.pending.values() if now_s - at_s >= self.grace_s]
+        for will in final:
+            del self.pending[will.vehicle_id]
+        return final
+
+
 @dataclass
 class GroundOutcome:
     """The mission as the ground station saw it: the final status of every vehicle."""
@@ -338,6 +399,8 @@ class GroundOutcome:
     statuses: dict[int, VehicleStatus]
     #: Received bus messages accepted and dropped by reason (``AuthCounters.as_dict``).
     bus_messages: dict[str, int] = field(default_factory=dict)
+    #: By vehicle, the last wills it outlived: dropped off the bus, then heard again (not lost).
+    bus_drops: dict[int, int] = field(default_factory=dict)
 
     @property
     def lost(self) -> list[int]:
@@ -365,9 +428,10 @@ async def run_ground(
     mission_id = uuid.uuid4().hex[:12]
     latest: dict[int, VehicleStatus] = {}
     started: dict[str, float | None] = {"at": None}
+    wills = _Wills(rejoin_grace_s(scenario))
     async with (
         open_bus(scenario.bus, sender=Sender.ground(), client_id=f"{scenario.name}-ground") as bus,
-        bus.subscribe(topics.all_status()) as statuses,
+        bus.subscribe(topics.all_status()) as heard,
     ):
 
         async def control(command: ControlCommand, time_s: float, **fields: Any) -> None:
@@ -387,21 +451,52 @@ async def run_ground(
                 and status.vehicle_id in latest
             )
 
+        def accept(status: VehicleStatus) -> bool:
+            if _final_already(latest.get(status.vehicle_id), status):
+                return False
+            latest[status.vehicle_id] = status
+            if on_status is not None:
+                on_status(status)
+            return True
+
+        def hear(topic: str, payload: bytes, now_s: float) -> bool:
+            """Take in one message; whether it changed a vehicle's status."""
+            status = _vehicle_status(topics, ids, topic, payload)
+            if status is None or not ours(status):
+                return False
+            vehicle_id = status.vehicle_id
+            if status.mission_id is None:  # its last will (ours: after the start, lost)
+                if latest[vehicle_id].state not in ("done", *FINAL_STATES):
+                    wills.add(status, now_s)
+                    logger.warning(
+                        "ground: vehicle %s dropped off the bus (its last will); lost unless "
+                        "heard again within %.1f s",
+                        vehicle_id,
+                        wills.grace_s,
+                    )
+                return False
+            # Its own status (a flying controller sends one every step): it is on the bus.
+            wills.heard(vehicle_id)
+            return accept(status)
+
         async def until(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-            try:
-                async with asyncio.timeout(timeout_s):
-                    async for _, status in statuses.messages(VehicleStatus):
-                        if status.vehicle_id not in ids or not ours(status):
-                            continue
-                        if _final_already(latest.get(status.vehicle_id), status):
-                            continue
-                        latest[status.vehicle_id] = status
-                        if on_status is not None:
-                            on_status(status)
-                        if condition():
-                            return
-            except TimeoutError:
-                raise RunnerTimeoutError(what, timeout_s) from None
+            loop = asyncio.get_running_loop()
+            deadline_s = loop.time() + timeout_s
+            while True:
+                changed = False
+                for will in wills.due(loop.time()):
+                    changed = accept(will) or changed
+                if changed and condition():
+                    return
+                if loop.time() >= deadline_s:
+                    raise RunnerTimeoutError(what, timeout_s)
+                wake_s = min(deadline_s, wills.next_due_s())
+                try:
+                    topic, payload = await heard.receive(timeout=max(wake_s - loop.time(), 0.0))
+                except BusTimeoutError:
+                    continue
+                if hear(topic, payload, loop.time()) and condition():
+                    return
 
         def states(*wanted: str) -> set[int]:
             return {i for i, s in latest.items() if s.state in wanted}
@@ -472,7 +567,30 @@ async def run_ground(
             with contextlib.suppress(BusError):
                 await bus.publish(topics.control(), b"", retain=True, timeout=2.0)
             counters = bus.auth_counters.as_dict()
-    return GroundOutcome(mission_id, started["at"], rate, latest, counters)
+    return GroundOutcome(mission_id, started["at"], rate, latest, counters, dict(wills.drops))
+
+
+def _vehicle_status(
+    topics: Topics, ids: set[int], topic: str, payload: bytes
+) -> VehicleStatus | None:
+    """The status of one of ``ids`` on its status ``topic``; None for an empty payload, or a
+    status that does not decode or is about another vehicle than its topic's (the bus checked
+    who signed for the topic, not what the body says)."""
+    try:
+        vehicle_id = topics.parse(topic).vehicle_id
+    except TopicError:
+        return None
+    if vehicle_id not in ids or not payload:
+        return None
+    try:
+        status = VehicleStatus.from_payload(payload)
+    except MessageDecodeError as error:
+        logger.warning("ground: skipping a status on %s: %s", topic, error)
+        return None
+    if status.vehicle_id != vehicle_id:
+        logger.warning("ground: skipping a status of vehicle %s on %s", status.vehicle_id, topic)
+        return None
+    return status
 
 
 def _final_already(last: VehicleStatus | None, status: VehicleStatus) -> bool:
@@ -527,11 +645,13 @@ async def send_control(
     )
     topics = scenario.bus.topics(scenario.name)
     async with (
-        # The operator's commands are the ground station's: same role, same broker user.
+        # The operator's commands are the ground station's (same role), under a login of their
+        # own: with client ids bound to logins, the ground's would take the ground's connection.
         open_bus(
             scenario.bus,
             sender=Sender.ground(),
-            client_id=f"{scenario.name}-operator-{uuid.uuid4().hex[:6]}",
+            client_id=f"{scenario.name}-operator",
+            login=OPERATOR_USER,
         ) as bus,
         bus.subscribe(topics.control()) as control,
     ):

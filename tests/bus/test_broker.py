@@ -26,6 +26,8 @@ from mission_runner.bus import (
     Sender,
     StepMessage,
     Topics,
+    VehicleStatus,
+    lost_vehicle_will,
 )
 from mission_runner.bus.broker import (
     BrokerFiles,
@@ -82,17 +84,20 @@ def test_the_files_written(tmp_path: Path) -> None:
     for secret in (files.passwords, files.credentials, files.bus_key):
         assert stat.S_IMODE(secret.stat().st_mode) == 0o600, secret
     users = read_credentials(files.credentials)
-    assert sorted(users) == ["ground", "ranges", "vehicle-1", "vehicle-3"]
-    assert len(set(users.values())) == 4 and all(len(p) >= 24 for p in users.values())
+    assert sorted(users) == ["ground", "operator", "ranges", "vehicle-1", "vehicle-3", "viewer"]
+    assert len(set(users.values())) == 6 and all(len(p) >= 24 for p in users.values())
     assert not any(password in files.passwords.read_text() for password in users.values())
     assert len(BusKey.from_file(files.bus_key).secret) == 64
     config = files.config.read_text().splitlines()
     assert "listener 8883" in config and "allow_anonymous false" in config
+    assert "use_username_as_clientid true" in config
     assert f"certfile {cert}" in config and f"keyfile {key}" in config
     acl = files.acl.read_text()
     assert "user ground\ntopic write enclosing/acl-test/control\n" in acl
     assert "user vehicle-3\ntopic write enclosing/acl-test/vehicle/3/step\n" in acl
-    assert acl.count("topic write enclosing/acl-test/control") == 1
+    assert "user operator\ntopic write enclosing/acl-test/control\n" in acl
+    assert "user viewer\ntopic read enclosing/acl-test/#\n" in acl
+    assert acl.count("topic write enclosing/acl-test/control") == 2
 
 
 @pytest.fixture
@@ -120,7 +125,9 @@ def client(
         broker.host,
         broker.port,
         key=key or bus_test_key(),
-        sender=sender or Sender.parse(user),
+        # The operator and the viewer sign (if at all) as the ground station.
+        sender=sender
+        or (Sender.ground() if user in ("operator", "viewer") else Sender.parse(user)),
         client_id=f"test-{user}",
         username=user,
         password=password if password is not None else users[user],
@@ -157,13 +164,15 @@ async def test_a_vehicles_credentials_cannot_publish_a_control_message(
     async with (
         client(server, files, "vehicle-1") as vehicle_1,
         vehicle_1.subscribe(TOPICS.everything()) as everything,
-        client(server, files, "vehicle-2", sender=Sender.ground()) as as_ground,
-        client(server, files, "vehicle-2") as vehicle_2,
     ):
-        await as_ground.publish_message(TOPICS.control(), forged_start, timeout=5.0)
-        await vehicle_2.publish_message(TOPICS.control(), forged_start, timeout=5.0)
-        await vehicle_2.publish_message(TOPICS.step(1), StepMessage(1, 0, 0, 0, 0, 0), timeout=5)
-        await vehicle_2.publish_message(TOPICS.step(2), StepMessage(2, 0, 0, 0, 0, 0), timeout=5)
+        # One after the other: one connection per login (the second would take the first's).
+        async with client(server, files, "vehicle-2", sender=Sender.ground()) as as_ground:
+            await as_ground.publish_message(TOPICS.control(), forged_start, timeout=5.0)
+        async with client(server, files, "vehicle-2") as vehicle_2:
+            await vehicle_2.publish_message(TOPICS.control(), forged_start, timeout=5.0)
+            step_1, step_2 = StepMessage(1, 0, 0, 0, 0, 0), StepMessage(2, 0, 0, 0, 0, 0)
+            await vehicle_2.publish_message(TOPICS.step(1), step_1, timeout=5)
+            await vehicle_2.publish_message(TOPICS.step(2), step_2, timeout=5)
         topic, _ = await everything.receive(timeout=5.0)
     assert topic == TOPICS.step(2)  # the start and vehicle 1's step never left the broker
     assert vehicle_1.auth_counters.rejected == 0  # nothing even reached the bus to be dropped
@@ -178,14 +187,15 @@ async def test_the_range_aid_publishes_ranges_only_and_the_ground_commands(
     async with (
         client(server, files, "vehicle-1") as vehicle_1,
         vehicle_1.subscribe(TOPICS.everything()) as everything,
-        client(server, files, "ranges", sender=Sender.vehicle(2)) as ranges_as_vehicle,
-        client(server, files, "ranges") as ranges,
         client(server, files, "ground") as ground,
     ):
-        await ranges_as_vehicle.publish_message(
-            TOPICS.step(2), StepMessage(2, 0, 0, 0, 0, 0), timeout=5
-        )
-        await ranges.publish_message(TOPICS.range(1, 2), RangeMessage(1, 2, 0.0, 4.0), timeout=5)
+        # One after the other: one connection per login (the second would take the first's).
+        async with client(server, files, "ranges", sender=Sender.vehicle(2)) as ranges_as_vehicle:
+            step = StepMessage(2, 0, 0, 0, 0, 0)
+            await ranges_as_vehicle.publish_message(TOPICS.step(2), step, timeout=5)
+        async with client(server, files, "ranges") as ranges:
+            range_m = RangeMessage(1, 2, 0.0, 4.0)
+            await ranges.publish_message(TOPICS.range(1, 2), range_m, timeout=5)
         await ground.publish_message(TOPICS.control(), hold, timeout=5.0)
         received = [(await everything.receive(timeout=5.0))[0] for _ in range(2)]
     assert sorted(received) == sorted([TOPICS.range(1, 2), TOPICS.control()])
@@ -242,3 +252,35 @@ async def test_forged_replayed_oversized_and_malformed_ranges_are_dropped_and_co
         "stale": 0,
         "replayed": 1,
     }
+
+
+@pytest.mark.asyncio
+async def test_a_vehicles_login_cannot_take_another_vehicles_client_id(
+    broker: tuple[MosquittoBroker, BrokerFiles],
+) -> None:
+    """Vehicle 1's login connecting with vehicle 2's client id (seen on the network) used to make
+    mosquitto drop vehicle 2 and publish its genuinely signed last will, "lost". The broker binds
+    ids to logins now: vehicle 2 stays connected, and the ground hears its own status, no will."""
+    server, files = broker
+    users = read_credentials(files.credentials)
+    will = lost_vehicle_will(TOPICS, 2, time_s=0.0)
+    alive = VehicleStatus(2, 1.0, "ready", 0, False, "", mission_id="m")
+    vehicle_2 = client(server, files, "vehicle-2")
+    vehicle_2.will = will
+    async with (
+        client(server, files, "ground") as ground,
+        ground.subscribe(TOPICS.status(2)) as status,
+        vehicle_2,
+    ):
+        async with aiomqtt.Client(
+            server.host,
+            server.port,
+            username="vehicle-1",
+            password=users["vehicle-1"],
+            identifier=vehicle_2.client_id,
+        ):
+            pass
+        await vehicle_2.publish_message(TOPICS.status(2), alive, retain=True, timeout=5.0)
+        _, heard = await status.receive_message(VehicleStatus, timeout=5.0)
+        assert vehicle_2.connect_count == 1
+    assert heard == alive

@@ -205,10 +205,10 @@ async def test_duplicate_client_ids_back_off_instead_of_hammering_the_broker(
     # Two buses with one client id make the broker drop whichever connected first, over
     # and over. Connections that drop at once must not reset the backoff.
     options = {"reconnect_initial_s": 0.01, "reconnect_max_s": 0.5}
-    async with (
-        make_bus(mosquitto, "twin", **options) as first,
-        make_bus(mosquitto, "twin", **options) as second,
-    ):
+    first, second = make_bus(mosquitto, "twin", **options), make_bus(mosquitto, "twin", **options)
+    assert first.client_id != second.client_id  # each bus makes its id unguessable
+    second.client_id = first.client_id  # as if someone had seen the first one's
+    async with first, second:
         # An observation window, not synchronisation: count reconnects over 1 s.
         await asyncio.sleep(1.0)
         reconnects = first.connect_count + second.connect_count
@@ -522,3 +522,27 @@ async def test_a_bounded_broker_call_times_out_as_aiomqtt_would() -> None:
     never = asyncio.get_running_loop().create_future()
     with pytest.raises(aiomqtt.MqttError, match="Operation timed out"):
         await _bounded(never, 0.01)
+
+
+@pytest.mark.asyncio
+async def test_after_a_takeover_the_vehicle_puts_its_status_back_over_its_will(
+    mosquitto: MosquittoBroker,
+) -> None:
+    """Someone connects with the vehicle's client id: mosquitto drops the vehicle and publishes
+    (and retains) its will. The vehicle reconnects and publishes its last retained status again,
+    so whoever subscribes later is told what the vehicle said, not "lost"."""
+    ready = VehicleStatus(2, 1.0, "ready", 0, False, "", mission_id="m")
+    vehicle = make_bus(mosquitto, "vehicle-2", will=lost_vehicle_will(TOPICS, 2, time_s=0.0))
+    async with vehicle, make_bus(mosquitto, "watch") as watch:
+        await vehicle.publish_message(TOPICS.status(2), ready, retain=True, timeout=2.0)
+        async with watch.subscribe(TOPICS.status(2)) as status:
+            assert (await status.receive_message(VehicleStatus, timeout=5.0))[1] == ready
+            async with aiomqtt.Client(mosquitto.host, mosquitto.port, identifier=vehicle.client_id):
+                pass
+            heard = [(await status.receive_message(VehicleStatus, timeout=5.0))[1].state]
+            heard.append((await status.receive_message(VehicleStatus, timeout=5.0))[1].state)
+        assert heard == ["lost", "ready"]  # the will, then the vehicle again
+        async with make_bus(mosquitto, "late") as late, late.subscribe(TOPICS.status(2)) as later:
+            _, retained = await later.receive_message(VehicleStatus, timeout=5.0)
+    assert retained == ready
+    assert vehicle.connect_count == 2

@@ -32,7 +32,7 @@ from mission_runner.runner.handshake import (
 )
 from mission_runner.runner.mission import fly
 from mission_runner.sim.metrics import run_metrics
-from tests.mosquitto import bus_test_key, secured_broker
+from tests.mosquitto import add_login, bus_test_key, secured_broker
 
 from .flying import free_ports, load
 
@@ -98,23 +98,25 @@ async def test_a_forged_start_with_time_1000_does_nothing(tmp_path):
         async with (
             mqtt_client(broker, files, "vehicle-1") as vehicle,
             vehicle.subscribe(topics.control()) as control,
-            mqtt_client(broker, files, "ground") as ground,
             mqtt_client(broker, files, "vehicle-2", sender=Sender.ground()) as vehicle_as_ground,
-            raw_client(broker, files, "ground") as stolen_login,
         ):
-            prepare = MissionControl(ControlCommand.PREPARE, now_s, mission_id="m1")
-            await ground.publish_message(topics.control(), prepare, retain=True, timeout=5)
+            # The ground's login in turns: one connection per login (ids are bound to logins).
+            async with mqtt_client(broker, files, "ground") as ground:
+                prepare = MissionControl(ControlCommand.PREPARE, now_s, mission_id="m1")
+                await ground.publish_message(topics.control(), prepare, retain=True, timeout=5)
             got = await next_command(control, {ControlCommand.PREPARE}, timeout_s=5)
             assert got.mission_id == "m1"
             # No key: the issue's attack as it was made.
-            await stolen_login.publish(topics.control(), forged.to_payload(), qos=1)
+            async with raw_client(broker, files, "ground") as stolen_login:
+                await stolen_login.publish(topics.control(), forged.to_payload(), qos=1)
             # A vehicle's login with the key, signing as the ground: the broker's ACL.
             await vehicle_as_ground.publish_message(topics.control(), forged, timeout=5)
             # The ground role (its key and login) with an insane start time: the handshake.
-            await ground.publish_message(topics.control(), forged, timeout=5)
-            await ground.publish_message(topics.control(), start(now_s + 3600), timeout=5)
-            real = start(now_s + 2.0)
-            await ground.publish_message(topics.control(), real, timeout=5)
+            async with mqtt_client(broker, files, "ground") as ground:
+                await ground.publish_message(topics.control(), forged, timeout=5)
+                await ground.publish_message(topics.control(), start(now_s + 3600), timeout=5)
+                real = start(now_s + 2.0)
+                await ground.publish_message(topics.control(), real, timeout=5)
             got = await next_command(
                 control, {ControlCommand.START}, mission_id="m1", unix_clock=lambda: now_s
             )
@@ -133,13 +135,16 @@ async def test_a_forged_start_with_time_1000_does_nothing(tmp_path):
 @pytest.mark.timeout(240)
 async def test_forged_ranges_for_every_pair_leave_the_mission_unharmed(tmp_path):
     """The tracking mission flown over mosquitto with the ACL on, every vehicle with its own
-    login, while someone with the range aid's stolen login and no key publishes 40 m for every
-    pair at every step: the mission converges as without them, and the summary counts them."""
+    login, while someone with a login that may publish ranges (as the range aid's may) and no
+    key publishes 40 m for every pair at every step: the mission converges as without them, and
+    the summary counts them. (The range aid's own login, stolen, would take over the range aid's
+    connection instead: client ids are bound to logins.)"""
     data = load("paper_tracking_flyable").model_dump(mode="json")
     data["name"] = "forged_ranges"
     data["timing"]["steps"] = 320
     topics = Topics.for_mission("forged_ranges")
     broker, files = secured_broker(tmp_path, topics, [v["id"] for v in data["vehicles"]])
+    add_login(files, "intruder", [f"topic write {topics.all_ranges()}"])
     data["bus"] = {"kind": "mqtt", "mqtt": {"host": broker.host, "port": broker.port}}
     scenario = validate_scenario(data)
     scenario = scenario.model_copy(
@@ -149,7 +154,7 @@ async def test_forged_ranges_for_every_pair_leave_the_mission_unharmed(tmp_path)
     await broker.astart()
     forging = []
     try:
-        async with raw_client(broker, files, "ranges") as attacker:
+        async with raw_client(broker, files, "intruder") as attacker:
             wrong_key = MessageAuth(BusKey.from_text("attacker-" * 8, "attacker"))
 
             async def forge(step):
