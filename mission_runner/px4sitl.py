@@ -950,6 +950,6 @@ async def _run_until_signal(arguments: argparse.Namespace, scenario: Scenario) -
 
 def command(arguments: argparse.Namespace) -> int:
     """``mission-runner px4-sitl``: run the instances until SIGINT/SIGTERM; 0 when stopped so."""
-    scenario = load_scenario(arguments.config)
+    scenario = load_scenario(arguments.config, flying=True)
     asyncio.run(_run_until_signal(arguments, scenario))
     return 0
