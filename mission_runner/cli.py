@@ -60,7 +60,7 @@ from . import argtypes
 from .bus.cli_options import add_bus_arguments, with_bus_access
 from .bus.errors import BusConnectionError, BusTimeoutError
 from .config import load_scenario
-from .errors import ConfigError, MissionRunnerError
+from .errors import ConfigError, MissionRunnerError, leaf_errors
 from .recording import LogCapture
 from .runner.errors import RunnerError
 
@@ -255,17 +255,7 @@ def _unwrapped(handler: Handler, arguments: argparse.Namespace) -> int:
     try:
         return handler(arguments)
     except BaseExceptionGroup as group:
-        leaves: list[BaseException] = []
-
-        def collect(error: BaseException) -> None:
-            if isinstance(error, BaseExceptionGroup):
-                for inner in error.exceptions:
-                    collect(inner)
-            else:
-                leaves.append(error)
-
-        collect(group)
-        for leaf in leaves:
+        for leaf in leaf_errors(group):
             if isinstance(leaf, (MissionRunnerError, KeyboardInterrupt, *_emulator_errors())):
                 raise leaf from group
         raise
@@ -787,7 +777,7 @@ def _run(arguments: argparse.Namespace) -> int:
     from .runner.mission import fly  # noqa: PLC0415
     from .sim.simulator import check_memory  # noqa: PLC0415
 
-    scenario = load_scenario(arguments.config)
+    scenario = load_scenario(arguments.config, flying=True)
     if arguments.realtime or arguments.speed is not None:
         data = scenario.model_dump(mode="json")
         data["flight"]["clock"] = "realtime"
@@ -866,7 +856,7 @@ def _vehicle(arguments: argparse.Namespace) -> int:
     )
     from .runner.process import VehicleRun, run_vehicle  # noqa: PLC0415
 
-    scenario = with_bus_access(load_scenario(arguments.config), arguments)
+    scenario = with_bus_access(load_scenario(arguments.config, flying=True), arguments)
     # No summary.json until the end: the ground station takes one as "this vehicle is done".
     out_dir = prepare_out_dir(
         arguments.out or _mission_dir(scenario) / f"vehicle_{arguments.id}", VEHICLE_FILES
@@ -929,7 +919,7 @@ def _ground(arguments: argparse.Namespace) -> int:
     from .runner.process import run_ground, wait_and_merge  # noqa: PLC0415
     from .runner.scoring import mission_records  # noqa: PLC0415
 
-    scenario = with_bus_access(load_scenario(arguments.config), arguments)
+    scenario = with_bus_access(load_scenario(arguments.config, flying=True), arguments)
     mission_dir = prepare_out_dir(arguments.out or _mission_dir(scenario), RUN_FILES)
 
     last_state: dict[int, str] = {}
@@ -1053,9 +1043,17 @@ def _score_without_truth(
 def _control(arguments: argparse.Namespace) -> int:
     import asyncio  # noqa: PLC0415
 
+    from .runner.operator import OperatorInputError, operator_command  # noqa: PLC0415
     from .runner.process import send_control  # noqa: PLC0415
 
     scenario = with_bus_access(load_scenario(arguments.config), arguments)
+    try:  # before connecting: a command for a vehicle not in the scenario is bad input
+        operator_command(
+            arguments.command, [v.id for v in scenario.vehicles], vehicle_id=arguments.vehicle
+        )
+    except OperatorInputError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     mission_id = asyncio.run(
         send_control(
             scenario, arguments.command, vehicle_id=arguments.vehicle, reason=arguments.reason
@@ -1122,7 +1120,7 @@ def _ranges(arguments: argparse.Namespace) -> int:
     from .runner.ranges import TRUTH_RATE_HZ, VisionSettings, run_range_provider  # noqa: PLC0415
     from .runner.scoring import write_truth_csv  # noqa: PLC0415
 
-    scenario = with_bus_access(load_scenario(arguments.config), arguments)
+    scenario = with_bus_access(load_scenario(arguments.config, flying=True), arguments)
     out_dir = prepare_out_dir(arguments.out or _mission_dir(scenario) / "truth", TRUTH_FILES)
     print(
         f"ranges: SIMULATION AID - ranges are synthesised from {arguments.source.upper()} "
@@ -1235,6 +1233,8 @@ def _summary_text(document: Mapping[str, Any], out_dir: Path) -> str:
                 text = " / ".join(_format(value) for value in values)
                 if stats.get("never_converged"):
                     text += f"  ({stats['never_converged']} never)"
+                if stats.get("not_finite"):
+                    text += f"  ({stats['not_finite']} not finite)"
                 lines.append(f"    {name:<{width}}  {text}")
         lines.append(
             f"    runs passing expectations: {document['batch']['runs_passing_expectations']}"
