@@ -59,7 +59,13 @@ from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 from . import argtypes
 from .bus.cli_options import add_bus_arguments, with_bus_access
 from .bus.errors import BusConnectionError, BusTimeoutError
-from .config import load_scenario
+from .config import (
+    MAX_CLOCK_SPEED,
+    MAX_MAVLINK_ID,
+    MAX_NOISE_STD_M,
+    MAX_WAIT_S,
+    load_scenario,
+)
 from .errors import ConfigError, MissionRunnerError, leaf_errors
 from .recording import LogCapture
 from .runner.errors import RunnerError
@@ -83,6 +89,9 @@ T = TypeVar("T")
 Handler = Callable[[argparse.Namespace], int]
 
 EXIT_OK, EXIT_EXPECTATION_FAILED, EXIT_BAD_INPUT, EXIT_RUNTIME_FAILURE = 0, 1, 2, 3
+#: The fastest MAVLink stream an option asks of an autopilot [Hz]: PX4's own loops run at 250 Hz
+#: to 1 kHz; a faster stream would only flood the link.
+MAX_STREAM_HZ = 1000.0
 #: 128 + the signal's number, as a shell reports a process that signal ended.
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
 
@@ -325,7 +334,10 @@ def _parser() -> argparse.ArgumentParser:
         "--realtime", action="store_true", help="real-time clock instead of the scenario's"
     )
     run.add_argument(
-        "--speed", type=argtypes.positive_float, default=None, help="real-time speed factor (> 0)"
+        "--speed",
+        type=argtypes.at_most(argtypes.positive_float, MAX_CLOCK_SPEED),
+        default=None,
+        help=f"real-time speed factor (> 0, <= {MAX_CLOCK_SPEED:g})",
     )
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress view, no summary")
@@ -344,13 +356,16 @@ def _parser() -> argparse.ArgumentParser:
         "--every", type=argtypes.positive_int, default=1, help="one frame every N steps (default 1)"
     )
     replay.add_argument(
-        "--fps", type=argtypes.positive_float, default=20.0, help="frames per second (default 20)"
+        "--fps",
+        type=argtypes.at_most(argtypes.positive_float, 100.0),  # GIF frames last >= 10 ms
+        default=20.0,
+        help="frames per second (default 20, at most 100)",
     )
     replay.add_argument(
         "--width",
-        type=argtypes.positive_int,
+        type=argtypes.at_most(argtypes.positive_int, 7680),  # 8K: every frame is held in memory
         default=800,
-        help="frame width in pixels (default 800)",
+        help="frame width in pixels (default 800, at most 7680)",
     )
     replay.add_argument(
         "--trail",
@@ -369,7 +384,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     vehicle.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
     vehicle.add_argument(
-        "--id", type=argtypes.positive_int, required=True, help="this vehicle's id"
+        "--id",
+        type=argtypes.at_most(argtypes.positive_int, MAX_MAVLINK_ID),
+        required=True,
+        help="this vehicle's id (its MAVLink system id, 1..255)",
     )
     vehicle.add_argument(
         "--url", help="MAVSDK connection URL (default: the scenario's, else PX4 SITL's)"
@@ -389,7 +407,7 @@ def _parser() -> argparse.ArgumentParser:
     ground.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
     ground.add_argument(
         "--start-delay",
-        type=argtypes.non_negative_float,
+        type=argtypes.at_most(argtypes.non_negative_float, MAX_WAIT_S),
         default=2.0,
         help="seconds from ready to k = 0",
     )
@@ -446,14 +464,14 @@ def _parser() -> argparse.ArgumentParser:
     )
     ranges.add_argument(
         "--truth-rate",
-        type=argtypes.non_negative_float,
+        type=argtypes.at_most(argtypes.non_negative_float, MAX_STREAM_HZ),
         default=None,
         help="with --source sih: ground-truth rate to ask of each instance, Hz (PX4 SIH streams "
         "25; a step's ranges wait for the first sample after t_k; 0: leave it; default 100)",
     )
     ranges.add_argument(
         "--vision",
-        type=argtypes.non_negative_float,
+        type=argtypes.at_most(argtypes.non_negative_float, MAX_STREAM_HZ),
         default=0.0,
         metavar="HZ",
         help="with --source sih: also send each instance a vision odometry (ODOMETRY, VIO, local "
@@ -462,7 +480,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     ranges.add_argument(
         "--vision-noise",
-        type=argtypes.non_negative_float,
+        type=argtypes.at_most(argtypes.non_negative_float, MAX_NOISE_STD_M),
         nargs=2,
         default=(0.02, 0.05),
         metavar=("POSITION_M", "VELOCITY_M_S"),

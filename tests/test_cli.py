@@ -239,6 +239,25 @@ def test_a_speed_that_is_not_a_positive_number_exits_2(speed, capsys):
     assert "argument --speed" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("arguments", "option", "bound"),
+    [
+        (["run", "paper_tracking_flyable.yaml", "--speed", "1e300"], "--speed", "1000"),
+        (["replay", "out", "--width", "100000"], "--width", "7680"),
+        (["replay", "out", "--fps", "1e9"], "--fps", "100"),
+        (["ground", "px4_sih_tracking.yaml", "--start-delay", "1e300"], "--start-delay", "3600"),
+        (["ranges", "px4_sih_tracking.yaml", "--truth-rate", "1e9"], "--truth-rate", "1000"),
+        (["vehicle", "px4_sih_tracking.yaml", "--id", "256"], "--id", "255"),
+    ],
+)
+def test_an_option_beyond_its_bound_exits_2_naming_it(arguments, option, bound, capsys):
+    command, config, *rest = arguments
+    with pytest.raises(SystemExit) as stopped:
+        main([command, str(CONFIGS / config), *rest])
+    assert stopped.value.code == EXIT_BAD_INPUT
+    assert f"argument {option}: must be <= {bound}, got" in capsys.readouterr().err
+
+
 def test_an_error_during_the_run_leaves_a_summary_saying_so(tmp_path, monkeypatch, capsys):
     # A failure the simulator finds at step 10 (injected: no bundled input fails mid-run).
     from mission_runner.errors import SimulationError
