@@ -218,25 +218,24 @@ def summary(
         document["bus_security"] = dict(bus_security)
     if wall_time_s is not None:
         document["wall_time_s"] = round(wall_time_s, 4)
-    return _finite(document, "", [])
+    return _finite(document)
 
 
-def _finite(value: Any, path: str, found: list[str]) -> Any:
-    """``value`` with every non-finite float replaced by None, its path added to ``found``."""
+def _finite(value: Any) -> Any:
+    """``value`` (nested dicts and lists) with every NaN and infinity replaced by None."""
     if isinstance(value, float | np.floating) and not np.isfinite(value):
-        found.append(path)
         return None
     if isinstance(value, dict):
-        return {k: _finite(v, f"{path}.{k}" if path else str(k), found) for k, v in value.items()}
+        return {key: _finite(item) for key, item in value.items()}
     if isinstance(value, list | tuple):
-        return [_finite(v, f"{path}[{i}]", found) for i, v in enumerate(value)]
+        return [_finite(item) for item in value]
     return value
 
 
 def _json_text(document: Mapping[str, Any]) -> str:
     """``document`` as JSON text, never with NaN or Infinity (which JSON does not have: strict
     readers refuse the file): any left are written as null."""
-    return json.dumps(_finite(document, "", []), indent=2, allow_nan=False) + "\n"
+    return json.dumps(_finite(document), indent=2, allow_nan=False) + "\n"
 
 
 def bus_security(
