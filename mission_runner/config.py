@@ -11,6 +11,7 @@ Python code.
 from __future__ import annotations
 
 import itertools
+import json
 import logging
 import math
 import os
@@ -1218,12 +1219,17 @@ def _separation_problems(scenario: Scenario) -> list[Problem]:
 def _emulator_problems(scenario: Scenario) -> list[Problem]:
     """Check ``flight.emulator`` at load time; the vehicle count is checked when flying (a
     simulate-only scenario may have more vehicles than one emulator process holds)."""
-    from .wiring import emulator_config  # noqa: PLC0415 - wiring imports this module
+    from sitl.config import EmulatorConfig  # noqa: PLC0415 - the simulator does not need sitl
+
+    from .wiring import emulator_settings  # noqa: PLC0415 - wiring imports this module
 
     if not scenario.flight.emulator:
         return []
+    data = emulator_settings(scenario, vehicles=1, placement={})
     try:
-        emulator_config(scenario, vehicles=1, placement={})
+        # As strict as the rest of the scenario ("2" is not a number): the YAML holds JSON's
+        # types, and strict in JSON mode still takes file names as strings.
+        EmulatorConfig.model_validate_json(json.dumps(data, default=str), strict=True)
     except ValidationError as error:
         return [
             (yaml_path(("flight", "emulator", *location)), message)

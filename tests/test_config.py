@@ -495,6 +495,18 @@ GE = "Input should be greater than or equal to"
             "expect.final_tracking_error_m",
             "min 2 is above max 1: no value can pass",
         ),
+        (  # the emulator's settings as strict as the rest of the file
+            ("flight",),
+            {"emulator": {"clock": {"speed": "2"}}},
+            "flight.emulator.clock.speed",
+            "Input should be a valid number",
+        ),
+        (
+            ("flight",),
+            {"emulator": {"ports": {"gcs_enabled": "yes", "api_remote_base": 14540.0}}},
+            "flight.emulator.ports.gcs_enabled",
+            "Input should be a valid boolean",
+        ),
         (("name",), "..", "name", "must be a plain file name, not '..'"),
         (("name",), ".", "name", "must be a plain file name, not '.'"),
     ],
