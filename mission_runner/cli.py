@@ -1067,7 +1067,10 @@ def _control(arguments: argparse.Namespace) -> int:
     scenario = with_bus_access(load_scenario(arguments.config), arguments)
     try:  # before connecting: a command for a vehicle not in the scenario is bad input
         operator_command(
-            arguments.command, [v.id for v in scenario.vehicles], vehicle_id=arguments.vehicle
+            arguments.command,
+            [v.id for v in scenario.vehicles],
+            vehicle_id=arguments.vehicle,
+            reason=arguments.reason,
         )
     except OperatorInputError as error:
         print(f"error: {error}", file=sys.stderr)

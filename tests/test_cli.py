@@ -761,6 +761,18 @@ def test_control_of_a_vehicle_not_in_the_scenario_is_bad_input_before_connecting
     assert error == "error: vehicle 9 is not in the mission (ids 1, 2, 3, 4)\n"
 
 
+def test_control_with_a_reason_too_long_to_be_received_is_bad_input(tmp_path, capsys):
+    # Once sent and reported as sent, then dropped unread by every vehicle as oversized.
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    config = mqtt_scenario(tmp_path, port)
+    assert main(["control", str(config), "land", "--reason", "x" * 20_000]) == EXIT_BAD_INPUT
+    assert "the reason has 20000 characters; a command carries at most 1000" in (
+        capsys.readouterr().err
+    )
+
+
 @pytest.mark.timeout(60)
 def test_control_with_another_key_says_the_key_does_not_match(tmp_path, mosquitto, capsys):
     import asyncio
