@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Callable
 
 
 def integer(text: str) -> int:
@@ -62,3 +63,15 @@ def non_negative_float(text: str) -> float:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
     return value
+
+
+def at_most(parse: Callable[[str], float], limit: float) -> Callable[[str], float]:
+    """``parse``, then refuse a value above ``limit``: the option's bound, named in the error."""
+
+    def bounded(text: str) -> float:
+        value = parse(text)
+        if value > limit:
+            raise argparse.ArgumentTypeError(f"must be <= {limit:g}, got {text}")
+        return value
+
+    return bounded

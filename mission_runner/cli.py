@@ -59,8 +59,14 @@ from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 from . import argtypes
 from .bus.cli_options import add_bus_arguments, with_bus_access
 from .bus.errors import BusConnectionError, BusTimeoutError
-from .config import load_scenario
-from .errors import ConfigError, MissionRunnerError
+from .config import (
+    MAX_CLOCK_SPEED,
+    MAX_MAVLINK_ID,
+    MAX_NOISE_STD_M,
+    MAX_WAIT_S,
+    load_scenario,
+)
+from .errors import ConfigError, MissionRunnerError, leaf_errors
 from .recording import LogCapture
 from .runner.errors import RunnerError
 
@@ -83,6 +89,9 @@ T = TypeVar("T")
 Handler = Callable[[argparse.Namespace], int]
 
 EXIT_OK, EXIT_EXPECTATION_FAILED, EXIT_BAD_INPUT, EXIT_RUNTIME_FAILURE = 0, 1, 2, 3
+#: The fastest MAVLink stream an option asks of an autopilot [Hz]: PX4's own loops run at 250 Hz
+#: to 1 kHz; a faster stream would only flood the link.
+MAX_STREAM_HZ = 1000.0
 #: 128 + the signal's number, as a shell reports a process that signal ended.
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
 
@@ -258,17 +267,7 @@ def _unwrapped(handler: Handler, arguments: argparse.Namespace) -> int:
     try:
         return handler(arguments)
     except BaseExceptionGroup as group:
-        leaves: list[BaseException] = []
-
-        def collect(error: BaseException) -> None:
-            if isinstance(error, BaseExceptionGroup):
-                for inner in error.exceptions:
-                    collect(inner)
-            else:
-                leaves.append(error)
-
-        collect(group)
-        for leaf in leaves:
+        for leaf in leaf_errors(group):
             if isinstance(leaf, (MissionRunnerError, KeyboardInterrupt, *_emulator_errors())):
                 raise leaf from group
         raise
@@ -338,7 +337,10 @@ def _parser() -> argparse.ArgumentParser:
         "--realtime", action="store_true", help="real-time clock instead of the scenario's"
     )
     run.add_argument(
-        "--speed", type=argtypes.positive_float, default=None, help="real-time speed factor (> 0)"
+        "--speed",
+        type=argtypes.at_most(argtypes.positive_float, MAX_CLOCK_SPEED),
+        default=None,
+        help=f"real-time speed factor (> 0, <= {MAX_CLOCK_SPEED:g})",
     )
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress view, no summary")
@@ -357,13 +359,16 @@ def _parser() -> argparse.ArgumentParser:
         "--every", type=argtypes.positive_int, default=1, help="one frame every N steps (default 1)"
     )
     replay.add_argument(
-        "--fps", type=argtypes.positive_float, default=20.0, help="frames per second (default 20)"
+        "--fps",
+        type=argtypes.at_most(argtypes.positive_float, 100.0),  # GIF frames last >= 10 ms
+        default=20.0,
+        help="frames per second (default 20, at most 100)",
     )
     replay.add_argument(
         "--width",
-        type=argtypes.positive_int,
+        type=argtypes.at_most(argtypes.positive_int, 7680),  # 8K: every frame is held in memory
         default=800,
-        help="frame width in pixels (default 800)",
+        help="frame width in pixels (default 800, at most 7680)",
     )
     replay.add_argument(
         "--trail",
@@ -382,7 +387,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     vehicle.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
     vehicle.add_argument(
-        "--id", type=argtypes.positive_int, required=True, help="this vehicle's id"
+        "--id",
+        type=argtypes.at_most(argtypes.positive_int, MAX_MAVLINK_ID),
+        required=True,
+        help="this vehicle's id (its MAVLink system id, 1..255)",
     )
     vehicle.add_argument(
         "--url", help="MAVSDK connection URL (default: the scenario's, else PX4 SITL's)"
@@ -402,7 +410,7 @@ def _parser() -> argparse.ArgumentParser:
     ground.add_argument("config", type=Path, help="scenario YAML file (bus.kind: mqtt)")
     ground.add_argument(
         "--start-delay",
-        type=argtypes.non_negative_float,
+        type=argtypes.at_most(argtypes.non_negative_float, MAX_WAIT_S),
         default=2.0,
         help="seconds from ready to k = 0",
     )
@@ -459,14 +467,14 @@ def _parser() -> argparse.ArgumentParser:
     )
     ranges.add_argument(
         "--truth-rate",
-        type=argtypes.non_negative_float,
+        type=argtypes.at_most(argtypes.non_negative_float, MAX_STREAM_HZ),
         default=None,
         help="with --source sih: ground-truth rate to ask of each instance, Hz (PX4 SIH streams "
         "25; a step's ranges wait for the first sample after t_k; 0: leave it; default 100)",
     )
     ranges.add_argument(
         "--vision",
-        type=argtypes.non_negative_float,
+        type=argtypes.at_most(argtypes.non_negative_float, MAX_STREAM_HZ),
         default=0.0,
         metavar="HZ",
         help="with --source sih: also send each instance a vision odometry (ODOMETRY, VIO, local "
@@ -475,7 +483,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     ranges.add_argument(
         "--vision-noise",
-        type=argtypes.non_negative_float,
+        type=argtypes.at_most(argtypes.non_negative_float, MAX_NOISE_STD_M),
         nargs=2,
         default=(0.02, 0.05),
         metavar=("POSITION_M", "VELOCITY_M_S"),
@@ -790,7 +798,7 @@ def _run(arguments: argparse.Namespace) -> int:
     from .runner.mission import fly  # noqa: PLC0415
     from .sim.simulator import check_memory  # noqa: PLC0415
 
-    scenario = load_scenario(arguments.config)
+    scenario = load_scenario(arguments.config, flying=True)
     if arguments.realtime or arguments.speed is not None:
         data = scenario.model_dump(mode="json")
         data["flight"]["clock"] = "realtime"
@@ -869,7 +877,7 @@ def _vehicle(arguments: argparse.Namespace) -> int:
     )
     from .runner.process import VehicleRun, run_vehicle  # noqa: PLC0415
 
-    scenario = with_bus_access(load_scenario(arguments.config), arguments)
+    scenario = with_bus_access(load_scenario(arguments.config, flying=True), arguments)
     # No summary.json until the end: the ground station takes one as "this vehicle is done".
     out_dir = prepare_out_dir(
         arguments.out or _mission_dir(scenario) / f"vehicle_{arguments.id}", VEHICLE_FILES
@@ -932,7 +940,7 @@ def _ground(arguments: argparse.Namespace) -> int:
     from .runner.process import run_ground, wait_and_merge  # noqa: PLC0415
     from .runner.scoring import mission_records  # noqa: PLC0415
 
-    scenario = with_bus_access(load_scenario(arguments.config), arguments)
+    scenario = with_bus_access(load_scenario(arguments.config, flying=True), arguments)
     mission_dir = prepare_out_dir(arguments.out or _mission_dir(scenario), RUN_FILES)
 
     last_state: dict[int, str] = {}
@@ -1067,9 +1075,20 @@ def _score_without_truth(
 def _control(arguments: argparse.Namespace) -> int:
     import asyncio  # noqa: PLC0415
 
+    from .runner.operator import OperatorInputError, operator_command  # noqa: PLC0415
     from .runner.process import send_control  # noqa: PLC0415
 
     scenario = with_bus_access(load_scenario(arguments.config), arguments)
+    try:  # before connecting: a command for a vehicle not in the scenario is bad input
+        operator_command(
+            arguments.command,
+            [v.id for v in scenario.vehicles],
+            vehicle_id=arguments.vehicle,
+            reason=arguments.reason,
+        )
+    except OperatorInputError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     mission_id = asyncio.run(
         send_control(
             scenario, arguments.command, vehicle_id=arguments.vehicle, reason=arguments.reason
@@ -1136,7 +1155,7 @@ def _ranges(arguments: argparse.Namespace) -> int:
     from .runner.ranges import TRUTH_RATE_HZ, VisionSettings, run_range_provider  # noqa: PLC0415
     from .runner.scoring import write_truth_csv  # noqa: PLC0415
 
-    scenario = with_bus_access(load_scenario(arguments.config), arguments)
+    scenario = with_bus_access(load_scenario(arguments.config, flying=True), arguments)
     out_dir = prepare_out_dir(arguments.out or _mission_dir(scenario) / "truth", TRUTH_FILES)
     print(
         f"ranges: SIMULATION AID - ranges are synthesised from {arguments.source.upper()} "
@@ -1249,6 +1268,8 @@ def _summary_text(document: Mapping[str, Any], out_dir: Path) -> str:
                 text = " / ".join(_format(value) for value in values)
                 if stats.get("never_converged"):
                     text += f"  ({stats['never_converged']} never)"
+                if stats.get("not_finite"):
+                    text += f"  ({stats['not_finite']} not finite)"
                 lines.append(f"    {name:<{width}}  {text}")
         lines.append(
             f"    runs passing expectations: {document['batch']['runs_passing_expectations']}"

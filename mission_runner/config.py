@@ -11,17 +11,29 @@ Python code.
 from __future__ import annotations
 
 import itertools
+import json
 import logging
 import math
+import os
+import selectors
+import stat
 import sys
+import time
 from collections.abc import Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal, get_args
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Self, get_args
 
 import numpy as np
 import yaml
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from .bus.settings import BusSettings
 from .errors import ConfigError
@@ -45,6 +57,45 @@ MAX_COORDINATE_M = 1e6
 #: Nothing the runner flies is smaller (a Crazyflie is 92 mm across): vehicles closer than this at
 #: the start, or as neighbours on the enclosing circle, would touch.
 MIN_SPACING_M = 0.1
+#: Heights above home [m]: far above any mission a multicopter swarm flies (open-category drones
+#: stay below 120 m); beyond it the number is a typo, not a flight.
+MAX_ALTITUDE_M = 1000.0
+#: Speeds [m/s]: racing multicopters top out near 50 m/s.
+MAX_SPEED_M_S = 100.0
+#: Accelerations [m/s^2]: 10 g, beyond any multicopter's thrust.
+MAX_ACCELERATION_M_S2 = 100.0
+#: The law's step [s]: a radio and an odometry give nothing faster than 1 kHz, and a step of a
+#: minute leaves nothing to control.
+MIN_STEP_S, MAX_STEP_S = 1e-3, 60.0
+#: Durations of a run [s]: longer than the longest run (timing.steps <= 1e7 steps of <= 60 s);
+#: the bound keeps step counts derived from them integers (1e308 s overflowed).
+MAX_DURATION_S = 1e9
+#: What one wait of a flight may last [s] (timeouts, delays): an hour is beyond any of them, and
+#: the event loop's timers overflow long before 1e300.
+MAX_WAIT_S = 3600.0
+#: Frequencies of the oscillators [rad/s]: 100 rad/s is 16 turns a second, beyond any formation.
+MAX_RATE_RAD_S = 100.0
+#: Phases [rad]: every angle is within one turn; far larger numbers are typos and lose the
+#: precision of sin and cos.
+MAX_PHASE_RAD = 1000.0
+#: Noise figures (standard deviations) [m]: a ranging radio or an odometry worse than this
+#: measures nothing.
+MAX_NOISE_STD_M = 100.0
+#: Gains of the law and of the controllers [1/s, 1/s^2, dimensionless]: far beyond a stable one.
+MAX_GAIN = 1000.0
+#: Fastest speed factor of the bundled emulator's real-time clock (sitl.config).
+MAX_CLOCK_SPEED = 1000.0
+#: PX4 parameters are INT32 or REAL32 (MAVLink PARAM_SET): values beyond these do not fit.
+INT32_RANGE = (-(2**31), 2**31 - 1)
+REAL32_MAX = 3.4028234663852886e38
+
+Phase = Annotated[float, Field(ge=-MAX_PHASE_RAD, le=MAX_PHASE_RAD)]
+Altitude = Annotated[float, Field(gt=0, le=MAX_ALTITUDE_M)]
+Speed = Annotated[float, Field(gt=0, le=MAX_SPEED_M_S)]
+Wait = Annotated[float, Field(gt=0, le=MAX_WAIT_S)]
+Distance = Annotated[float, Field(gt=0, le=MAX_COORDINATE_M)]
+NoiseStd = Annotated[float, Field(ge=0, le=MAX_NOISE_STD_M)]
+Gain = Annotated[float, Field(gt=0, le=MAX_GAIN)]
 
 
 class Model(BaseModel):
@@ -87,7 +138,7 @@ class SinusoidSignal(Model):
     offset: float = Field(0.0, title="Offset", description="Mean value.")
     amplitude: float = Field(title="Amplitude", description="Peak deviation from the offset.")
     period_s: PositiveFloat = Field(title="Period", description="Period in seconds.")
-    phase_rad: float = Field(0.0, title="Phase", description="Phase at t = 0, radians.")
+    phase_rad: Phase = Field(0.0, title="Phase", description="Phase at t = 0, radians.")
 
 
 class WaypointSignal(Model):
@@ -138,7 +189,7 @@ class SinusoidPath(Model):
     velocity_m_s: Pair = Field([0.0, 0.0], title="Drift", description="Mean velocity [m/s].")
     amplitude_m: Pair = Field(title="Amplitude", description="[north, east] amplitude [m].")
     period_s: PositiveFloat = Field(title="Period", description="Period of the oscillation [s].")
-    phase_rad: float = Field(0.0, title="Phase", description="Phase at t = 0 [rad].")
+    phase_rad: Phase = Field(0.0, title="Phase", description="Phase at t = 0 [rad].")
 
 
 class CirclePath(Model):
@@ -148,7 +199,7 @@ class CirclePath(Model):
     center_m: Pair = Field([0.0, 0.0], title="Centre", description="[north, east] [m].")
     radius_m: PositiveFloat = Field(title="Radius", description="Circle radius [m].")
     period_s: PositiveFloat = Field(title="Period", description="Time for one lap [s].")
-    phase_rad: float = Field(0.0, title="Phase", description="Angle at t = 0 [rad].")
+    phase_rad: Phase = Field(0.0, title="Phase", description="Angle at t = 0 [rad].")
 
 
 class WaypointPath(Model):
@@ -182,7 +233,13 @@ class TargetConfig(Model):
     """The moving target (index 0 of the paper)."""
 
     path: TargetPath = Field(title="Path", description="The target's planar path.")
-    altitude_m: float = Field(0.0, title="Altitude", description="Height above home [m].")
+    altitude_m: float = Field(
+        0.0,
+        ge=-MAX_ALTITUDE_M,
+        le=MAX_ALTITUDE_M,
+        title="Altitude",
+        description="Height above home [m].",
+    )
 
 
 # --- Algorithm ------------------------------------------------------------------------------------
@@ -206,12 +263,12 @@ class EstimatorSettingsConfig(Model):
     odometry: ``flight.emulator.odometry``); on real hardware give the ranging radio's and the
     odometry's own figures here."""
 
-    range_noise_std_m: NonNegativeFloat | None = Field(
+    range_noise_std_m: NoiseStd | None = Field(
         None,
         title="Range noise",
         description="Std of one range [m] the filter assumes (default: sensors.range_noise_std_m).",
     )
-    displacement_noise_std_m: NonNegativeFloat | None = Field(
+    displacement_noise_std_m: NoiseStd | None = Field(
         None,
         title="Displacement noise",
         description="Per-axis std of one vehicle's displacement over one step [m] the filter "
@@ -219,7 +276,7 @@ class EstimatorSettingsConfig(Model):
         "x timing.step_s added in quadrature; flown, from the emulator's odometry model "
         "flight.emulator.odometry; on real autopilots give it here).",
     )
-    gate_chi2: PositiveFloat | None = Field(
+    gate_chi2: Annotated[float, Field(gt=0, le=1e6)] | None = Field(
         10.83,
         title="Outlier gate",
         description="A range whose squared innovation exceeds this many innovation variances "
@@ -244,7 +301,7 @@ class EstimatorSettingsConfig(Model):
         title="Hand-over updates",
         description="Start-up RLSE updates before the filter may take an edge over.",
     )
-    handover_std_m: PositiveFloat = Field(
+    handover_std_m: Distance = Field(
         1.0,
         title="Hand-over std",
         description="The filter takes an edge over once the start-up RLSE's error bound (1 "
@@ -256,18 +313,16 @@ class AlgorithmConfig(Model):
     """The paper's parameters (ALGORITHM.md)."""
 
     beta: PositiveFloat = Field(title="beta", description="Consensus gain, < 1/step_s.")
-    saturation_m_s: PositiveFloat = Field(
-        title="Ubar", description="Bound of the consensus term [m/s]."
-    )
+    saturation_m_s: Speed = Field(title="Ubar", description="Bound of the consensus term [m/s].")
     forgetting_factor: float = Field(
         gt=0, le=1, title="beta_f", description="RLSE forgetting factor in (0, 1]."
     )
-    omega_rad_s: PositiveFloat = Field(
+    omega_rad_s: Annotated[float, Field(gt=0, le=MAX_RATE_RAD_S)] = Field(
         title="omega", description="Natural frequency of the oscillators [rad/s]."
     )
-    coupling_gain: PositiveFloat = Field(1.0, title="K_l", description="K_l for l < n (> 0).")
+    coupling_gain: Gain = Field(1.0, title="K_l", description="K_l for l < n (> 0).")
     coupling_gain_last: float = Field(
-        -1.0, lt=0, title="K_n", description="K_n (< 0, small in magnitude)."
+        -1.0, lt=0, ge=-MAX_GAIN, title="K_n", description="K_n (< 0, small in magnitude)."
     )
     radius_m: PositiveFloat = Field(
         le=MAX_COORDINATE_M,
@@ -296,7 +351,7 @@ class AlgorithmConfig(Model):
         "formation centre, and each sees half the range variance. false: the paper's own ranges.",
     )
     shape: ShapeConfig = Field(ShapeConfig(), title="Shape", description="Affine shaping.")
-    target_lost_after_s: PositiveFloat = Field(
+    target_lost_after_s: Annotated[float, Field(gt=0, le=MAX_DURATION_S)] = Field(
         10.0,
         title="Target lost after",
         description="While nobody senses the target every vehicle predicts it (constant "
@@ -314,7 +369,7 @@ class AlgorithmConfig(Model):
 class TimingConfig(Model):
     """Discrete time of the law."""
 
-    step_s: PositiveFloat = Field(title="T", description="Step length [s].")
+    step_s: float = Field(ge=MIN_STEP_S, le=MAX_STEP_S, title="T", description="Step length [s].")
     steps: Annotated[int, Field(gt=0, le=10_000_000)] = Field(
         title="Steps", description="Number of steps to run."
     )
@@ -330,17 +385,17 @@ class VehicleConfig(Model):
     initial_position_m: Pair = Field(
         title="Initial position", description="[north, east] at k = 0 [m] (truth; never seen)."
     )
-    initial_phase_rad: float = Field(title="theta(0)", description="Initial oscillator phase.")
+    initial_phase_rad: Phase = Field(title="theta(0)", description="Initial oscillator phase.")
     senses_target: bool = Field(
         False, title="Senses target", description="Ranges to the target (edge to index 0)."
     )
-    omega_rad_s: PositiveFloat | None = Field(
+    omega_rad_s: Annotated[float, Field(gt=0, le=MAX_RATE_RAD_S)] | None = Field(
         None, title="omega_i", description="This vehicle's own frequency (default: algorithm's)."
     )
-    speed_limit_m_s: PositiveFloat = Field(
+    speed_limit_m_s: Speed = Field(
         10.0, title="U_i", description="Horizontal speed bound of the vehicle [m/s]."
     )
-    altitude_m: PositiveFloat | None = Field(
+    altitude_m: Altitude | None = Field(
         None,
         title="Altitude",
         description="Flying only: height above home it holds [m] (default: flight.altitude_m).",
@@ -356,13 +411,13 @@ class VehicleConfig(Model):
 class SensorConfig(Model):
     """Measurement imperfections (all off by default: the paper's noise-free model)."""
 
-    range_noise_std_m: NonNegativeFloat = Field(
+    range_noise_std_m: NoiseStd = Field(
         0.0, title="Range noise", description="Std of Gaussian range noise [m] (UWB: 0.05-0.1)."
     )
     range_dropout_probability: float = Field(
         0.0, ge=0, lt=1, title="Range dropout", description="Probability a range is missing."
     )
-    range_max_m: PositiveFloat | None = Field(
+    range_max_m: Distance | None = Field(
         None, title="Range limit", description="Ranges beyond this are not measured [m]."
     )
     range_outlier_probability: float = Field(
@@ -379,15 +434,15 @@ class SensorConfig(Model):
         description="[low, high] of the extra length of an outlying range [m] (UWB through an "
         "obstacle reads long, never short).",
     )
-    displacement_noise_std_m: NonNegativeFloat = Field(
+    displacement_noise_std_m: NoiseStd = Field(
         0.0, title="Flow noise", description="Std of per-step displacement noise, per axis [m]."
     )
-    displacement_drift_m_s: NonNegativeFloat = Field(
+    displacement_drift_m_s: Annotated[float, Field(ge=0, le=MAX_SPEED_M_S)] = Field(
         0.0,
         title="Flow drift",
         description="Magnitude of a constant odometry drift per vehicle, random direction [m/s].",
     )
-    target_sensing_range_m: PositiveFloat | None = Field(
+    target_sensing_range_m: Distance | None = Field(
         None,
         title="Target sensing range",
         description="A tracker sees the target only within this horizontal distance [m]: as "
@@ -405,8 +460,8 @@ class SensorConfig(Model):
     @field_validator("range_outlier_bias_m")
     @classmethod
     def _bias_interval(cls, bias: list[float]) -> list[float]:
-        if not 0 <= bias[0] <= bias[1]:
-            raise ValueError("must be [low, high] with 0 <= low <= high")
+        if not 0 <= bias[0] <= bias[1] <= MAX_COORDINATE_M:
+            raise ValueError(f"must be [low, high] with 0 <= low <= high <= {MAX_COORDINATE_M:g} m")
         return bias
 
 
@@ -435,7 +490,7 @@ class EventConfig(Model):
     )
     at_step: Annotated[int, Field(ge=0)] | None = Field(None, title="Step", description="k.")
     at_s: NonNegativeFloat | None = Field(None, title="Time", description="Time after k = 0 [s].")
-    duration_s: PositiveFloat | None = Field(
+    duration_s: Annotated[float, Field(gt=0, le=MAX_DURATION_S)] | None = Field(
         None,
         title="Duration",
         description="link_lost / sensor_lost / target_hidden: how long (default: for good).",
@@ -461,13 +516,14 @@ class EventConfig(Model):
         """How many steps a ``duration_s`` window covers from :meth:`step` (None: for good)."""
         if self.duration_s is None:
             return None
-        return max(1, math.ceil(self.duration_s / step_s - 1e-9))
+        steps = self.duration_s / step_s - 1e-9
+        return max(1, math.ceil(steps)) if math.isfinite(steps) else sys.maxsize
 
 
 class BatchConfig(Model):
     """How ``--runs N`` varies the runs after the first (run 0 is the scenario as pinned)."""
 
-    position_spread_m: NonNegativeFloat = Field(
+    position_spread_m: Annotated[float, Field(ge=0, le=MAX_COORDINATE_M)] = Field(
         2.0, title="Position spread", description="Initial positions jitter, uniform in a disc."
     )
     randomize_phases: bool = Field(
@@ -478,11 +534,11 @@ class BatchConfig(Model):
 class MetricsConfig(Model):
     """Tolerances that define 'converged' in the summary."""
 
-    tracking_tolerance_m: PositiveFloat = Field(0.05, title="Tracking tol.", description="[m].")
-    localization_tolerance_m: PositiveFloat = Field(
-        1e-3, title="Localization tol.", description="[m]."
+    tracking_tolerance_m: Distance = Field(0.05, title="Tracking tol.", description="[m].")
+    localization_tolerance_m: Distance = Field(1e-3, title="Localization tol.", description="[m].")
+    phase_tolerance_rad: float = Field(
+        0.01, gt=0, le=math.pi, title="Phase tol.", description="[rad]."
     )
-    phase_tolerance_rad: PositiveFloat = Field(0.01, title="Phase tol.", description="[rad].")
 
 
 SimulationMetricName = Literal[
@@ -519,24 +575,32 @@ class Expectation(Model):
     max: float | None = Field(None, title="Maximum", description="Metric must be <= this.")
     min: float | None = Field(None, title="Minimum", description="Metric must be >= this.")
 
+    @model_validator(mode="after")
+    def _can_pass(self) -> Self:
+        if self.min is not None and self.max is not None and self.min > self.max:
+            raise ValueError(
+                f"min {self.min:g} is above max {self.max:g}: no value can pass; give min <= max"
+            )
+        return self
+
 
 class RangeCheckConfig(Model):
     """Which ranges are physically possible: the rest are dropped where they enter a vehicle's
     controller, before the estimator, and counted (``mission_runner.runner.plausibility``)."""
 
-    max_range_m: PositiveFloat | None = Field(
+    max_range_m: Distance | None = Field(
         None,
         title="Radio reach",
         description="Longest range the radio measures [m]; None: sensors.range_max_m, else "
         "300 m (UWB line of sight).",
     )
-    max_relative_speed_m_s: PositiveFloat | None = Field(
+    max_relative_speed_m_s: Annotated[float, Field(gt=0, le=2 * MAX_SPEED_M_S)] | None = Field(
         None,
         title="Relative speed bound",
         description="How fast a range can change [m/s]; None: twice the fastest vehicle's "
         "speed limit (the target is slower than the vehicles that enclose it).",
     )
-    margin_m: NonNegativeFloat | None = Field(
+    margin_m: Annotated[float, Field(ge=0, le=MAX_COORDINATE_M)] | None = Field(
         None,
         title="Noise margin",
         description="Change a range may show beyond the speed bound, from noise [m]; None: "
@@ -547,19 +611,19 @@ class RangeCheckConfig(Model):
 class DisplacementTrackingConfig(Model):
     """A PI correction that makes the vehicle realise the displacement the law commands."""
 
-    gain_1_s: NonNegativeFloat = Field(
+    gain_1_s: Annotated[float, Field(ge=0, le=MAX_GAIN)] = Field(
         0.0,
         title="Proportional gain",
         description="Velocity added per metre between the vehicle's odometry and where the law's "
         "commands would have taken it [1/s] (0: off).",
     )
-    integral_gain_1_s2: NonNegativeFloat = Field(
+    integral_gain_1_s2: Annotated[float, Field(ge=0, le=MAX_GAIN)] = Field(
         0.0,
         title="Integral gain",
         description="Velocity added per metre-second of that error [1/s^2]: removes a steady "
         "shortfall, e.g. a velocity loop losing to drag (0: off).",
     )
-    max_correction_m_s: PositiveFloat = Field(
+    max_correction_m_s: Speed = Field(
         2.0, title="Correction bound", description="Largest correction [m/s]."
     )
 
@@ -568,34 +632,34 @@ class SafetyConfig(Model):
     """Keeping vehicles apart: the paper has no collision avoidance, so the guard is an addition
     (off by default, to keep the paper's behaviour)."""
 
-    min_separation_m: PositiveFloat | None = Field(
+    min_separation_m: Distance | None = Field(
         None,
         title="Minimum separation",
         description="Vehicles keep at least this horizontal distance [m]: a guard between the "
         "law and the setpoint, from measured ranges and the estimates (never truth), in simulate "
         "and in flight. None: no guard.",
     )
-    separation_gain_1_s: PositiveFloat = Field(
+    separation_gain_1_s: Gain = Field(
         4.0,
         title="Separation gain",
         description="How fast two vehicles may close on the minimum separation [1/s]: their "
         "distance above it shrinks by at most gain x step_s (capped at 1) of itself per step; "
         "up to 0.5 per step the guard stays safe even when the pair's step messages are lost.",
     )
-    separation_margin_m: NonNegativeFloat = Field(
+    separation_margin_m: Annotated[float, Field(ge=0, le=MAX_COORDINATE_M)] = Field(
         0.0,
         title="Separation margin",
         description="Distance the guard keeps beyond min_separation_m [m], for range noise and "
         "estimate error.",
     )
-    separation_braking_m_s2: PositiveFloat | None = Field(
+    separation_braking_m_s2: Annotated[float, Field(gt=0, le=MAX_ACCELERATION_M_S2)] | None = Field(
         None,
         title="Braking",
         description="Deceleration each vehicle can count on [m/s^2]: two vehicles close no "
         "faster than they could still stop before the minimum separation. None: velocity "
         "changes at once (the numeric model); flying, about half the autopilot's MPC_ACC_HOR.",
     )
-    separation_latency_s: NonNegativeFloat = Field(
+    separation_latency_s: Annotated[float, Field(ge=0, le=MAX_WAIT_S)] = Field(
         0.0,
         title="Command latency",
         description="How long commands in force keep closing a pair before a new one acts [s] "
@@ -606,7 +670,7 @@ class SafetyConfig(Model):
 class FlightConfig(Model):
     """How ``mission-runner run`` flies the scenario (ignored by ``simulate``)."""
 
-    altitude_m: PositiveFloat = Field(
+    altitude_m: Altitude = Field(
         5.0, title="Altitude", description="Default height above home every vehicle holds [m]."
     )
     end_action: Literal["land", "hold", "return"] = Field(
@@ -635,22 +699,28 @@ class FlightConfig(Model):
         description="Emulator time: lockstep (as fast as the controllers go, deterministic "
         "timing) or realtime (optionally sped up by speed).",
     )
-    speed: PositiveFloat = Field(1.0, title="Speed", description="Real-time speed factor.")
-    start_delay_s: NonNegativeFloat = Field(
+    speed: float = Field(
+        1.0,
+        gt=0,
+        le=MAX_CLOCK_SPEED,
+        title="Speed",
+        description="Real-time speed factor (the emulator runs up to 1000x).",
+    )
+    start_delay_s: Annotated[float, Field(ge=0, le=MAX_WAIT_S)] = Field(
         1.0, title="Start delay", description="Hover time between OFFBOARD and k = 0 [s]."
     )
-    step_deadline_s: PositiveFloat = Field(
+    step_deadline_s: Wait = Field(
         0.04,
         title="Step deadline",
         description="How long after t_k a vehicle waits for the step's messages and ranges [s].",
     )
-    lockstep_wait_s: PositiveFloat = Field(
+    lockstep_wait_s: Wait = Field(
         0.5,
         title="Lockstep wait",
         description="In lockstep, simulated time stands still while a vehicle waits for a step's "
         "messages; after this many wall seconds it goes on without the missing ones.",
     )
-    silence_timeout_s: PositiveFloat = Field(
+    silence_timeout_s: Wait = Field(
         1.0,
         title="Silence timeout",
         description="No fresh neighbour data for this long: stop following the law and hold [s].",
@@ -660,10 +730,10 @@ class FlightConfig(Model):
         title="Member timeout",
         description="A neighbour unheard for this many steps leaves the formation (n shrinks).",
     )
-    max_vertical_speed_m_s: PositiveFloat = Field(
+    max_vertical_speed_m_s: Speed = Field(
         1.0, title="Vertical speed", description="Bound of the altitude-hold velocity [m/s]."
     )
-    velocity_lead_s: NonNegativeFloat = Field(
+    velocity_lead_s: Annotated[float, Field(ge=0, le=10.0)] = Field(
         0.0,
         title="Velocity lead",
         description="Command u + lead * du/dt to offset the vehicle's velocity response time and "
@@ -688,6 +758,22 @@ class FlightConfig(Model):
         description="Settings passed to the bundled emulator (sitl.config.EmulatorConfig: "
         "physics, wind, odometry, telemetry, ports, params, tlog_dir).",
     )
+
+    @field_validator("autopilot_params")
+    @classmethod
+    def _fit_mavlink(cls, params: dict[str, float | int]) -> dict[str, float | int]:
+        # PARAM_SET carries INT32 or REAL32: a larger number would reach the autopilot changed.
+        for name, value in params.items():
+            if isinstance(value, int) and not INT32_RANGE[0] <= value <= INT32_RANGE[1]:
+                raise ValueError(
+                    f"{name}: {value} does not fit an INT32 parameter "
+                    f"({INT32_RANGE[0]}..{INT32_RANGE[1]})"
+                )
+            if isinstance(value, float) and abs(value) > REAL32_MAX:
+                raise ValueError(
+                    f"{name}: {value:g} does not fit a REAL32 parameter (|x| <= {REAL32_MAX:.7g})"
+                )
+        return params
 
 
 class Scenario(Model):
@@ -724,6 +810,14 @@ class Scenario(Model):
         {}, title="Expectations", description="Pass/fail bounds on summary metrics."
     )
 
+    @field_validator("name")
+    @classmethod
+    def _plain_file_name(cls, name: str) -> str:
+        # The name is a folder under out/: "." or ".." would write into out/ or beside it.
+        if name in (".", ".."):
+            raise ValueError(f"must be a plain file name, not {name!r} (it names output folders)")
+        return name
+
 
 # --- Loading --------------------------------------------------------------------------------------
 
@@ -750,15 +844,26 @@ MAX_DEPTH = 32
 MAX_NODES = 1_000_000
 
 
-def load_scenario(path: PathName) -> Scenario:
-    """Read and validate a scenario file. Raises :class:`ConfigError` listing every problem."""
+#: How long a scenario that is not a regular file (a named pipe, ``<(generate)``, a terminal) may
+#: take to arrive [s]: a pipe nobody writes to would otherwise block the command for ever.
+READ_TIMEOUT_S = 5.0
+
+
+def load_scenario(path: PathName, *, flying: bool = False) -> Scenario:
+    """Read and validate a scenario file. Raises :class:`ConfigError` listing every problem.
+    ``flying``: also what only a flight needs (:func:`flight_problems`)."""
     file = Path(path)
     try:
-        with file.open("rb") as handle:
-            raw = handle.read(MAX_FILE_BYTES + 1)
+        raw = _read_bounded(file, READ_TIMEOUT_S)
     except OSError as error:
         reason = error.strerror or str(error)
         raise ConfigError(str(file), [("", f"cannot read file: {reason}")]) from None
+    if raw is None:
+        problem = (
+            f"not a regular file, and nothing more came from it within {READ_TIMEOUT_S:g} s "
+            "(a named pipe nobody writes to?)"
+        )
+        raise ConfigError(str(file), [("", problem)])
     if len(raw) > MAX_FILE_BYTES:
         raise ConfigError(str(file), [("", _too_large())])
     try:
@@ -768,7 +873,59 @@ def load_scenario(path: PathName) -> Scenario:
         byte = raw[error.start]
         problem = f"not UTF-8 text: byte 0x{byte:02x} on line {line} (save the file as UTF-8)"
         raise ConfigError(str(file), [("", problem)]) from None
-    return parse_scenario(text, source=str(file))
+    scenario = parse_scenario(text, source=str(file))
+    if flying:
+        problems = flight_problems(scenario)
+        if problems:
+            raise ConfigError(str(file), problems)
+    return scenario
+
+
+def _read_bounded(file: Path, timeout_s: float) -> bytes | None:
+    """Up to ``MAX_FILE_BYTES + 1`` bytes of ``file``; None if it is not a regular file and
+    gives no bytes for ``timeout_s`` before its end. Raises OSError."""
+    # Non-blocking open: opening a named pipe for reading otherwise waits for a writer.
+    descriptor = os.open(file, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        regular = stat.S_ISREG(os.fstat(descriptor).st_mode)
+        chunks: list[bytes] = []
+        size = 0
+        deadline_s = time.monotonic() + timeout_s
+        # poll, not epoll: epoll refuses character devices such as /dev/zero.
+        with getattr(selectors, "PollSelector", selectors.SelectSelector)() as selector:
+            selector.register(descriptor, selectors.EVENT_READ)
+            while size <= MAX_FILE_BYTES:
+                remaining_s = max(0.0, deadline_s - time.monotonic())
+                if not regular and not selector.select(remaining_s):
+                    return None
+                try:
+                    chunk = os.read(descriptor, MAX_FILE_BYTES + 1 - size)
+                except BlockingIOError:  # woken, but another reader took the bytes
+                    continue
+                if not chunk:  # the end (a pipe: readable with nothing left, the writer closed)
+                    break
+                chunks.append(chunk)
+                size += len(chunk)
+        return b"".join(chunks)
+    finally:
+        os.close(descriptor)
+
+
+#: MAVLink system ids are one byte (0 is broadcast): a flying vehicle's id is its system id.
+MAX_MAVLINK_ID = 255
+
+
+def flight_problems(scenario: Scenario) -> list[Problem]:
+    """What a scenario valid for the numeric model cannot fly: vehicle ids beyond MAVLink's."""
+    return [
+        (
+            f"vehicles[{index}].id",
+            f"{vehicle.id} is not a MAVLink system id (1..{MAX_MAVLINK_ID}); a flying vehicle's "
+            "id is its autopilot's system id",
+        )
+        for index, vehicle in enumerate(scenario.vehicles)
+        if vehicle.id > MAX_MAVLINK_ID
+    ]
 
 
 def parse_scenario(text: str, source: str = "<string>") -> Scenario:
@@ -1062,12 +1219,17 @@ def _separation_problems(scenario: Scenario) -> list[Problem]:
 def _emulator_problems(scenario: Scenario) -> list[Problem]:
     """Check ``flight.emulator`` at load time; the vehicle count is checked when flying (a
     simulate-only scenario may have more vehicles than one emulator process holds)."""
-    from .wiring import emulator_config  # noqa: PLC0415 - wiring imports this module
+    from sitl.config import EmulatorConfig  # noqa: PLC0415 - the simulator does not need sitl
+
+    from .wiring import emulator_settings  # noqa: PLC0415 - wiring imports this module
 
     if not scenario.flight.emulator:
         return []
+    data = emulator_settings(scenario, vehicles=1, placement={})
     try:
-        emulator_config(scenario, vehicles=1, placement={})
+        # As strict as the rest of the scenario ("2" is not a number): the YAML holds JSON's
+        # types, and strict in JSON mode still takes file names as strings.
+        EmulatorConfig.model_validate_json(json.dumps(data, default=str), strict=True)
     except ValidationError as error:
         return [
             (yaml_path(("flight", "emulator", *location)), message)

@@ -41,3 +41,18 @@ class SimulationError(MissionRunnerError):
 class ReplayError(MissionRunnerError):
     """A run cannot be replayed: its folder has no ``recording.mcap``, or one without the truth
     to draw (a vehicle process's own)."""
+
+
+def leaf_errors(error: BaseException) -> list[BaseException]:
+    """The errors inside ``error``, exception groups (a task group's failure) opened, in order."""
+    if isinstance(error, BaseExceptionGroup):
+        return [leaf for inner in error.exceptions for leaf in leaf_errors(inner)]
+    return [error]
+
+
+def error_reason(error: BaseException) -> str:
+    """What went wrong, in one line: a group's first error of ours (else its first error), not
+    "unhandled errors in a TaskGroup"."""
+    leaves = leaf_errors(error)
+    leaf = next((e for e in leaves if isinstance(e, MissionRunnerError)), leaves[0])
+    return str(leaf) or repr(leaf)

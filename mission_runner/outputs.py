@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from . import __version__
-from .errors import OutputError
+from .errors import OutputError, error_reason
 from .sim.metrics import MetricValue, check_expectations, distribution, run_metrics
 
 if TYPE_CHECKING:
@@ -218,7 +218,24 @@ def summary(
         document["bus_security"] = dict(bus_security)
     if wall_time_s is not None:
         document["wall_time_s"] = round(wall_time_s, 4)
-    return document
+    return _finite(document)
+
+
+def _finite(value: Any) -> Any:
+    """``value`` (nested dicts and lists) with every NaN and infinity replaced by None."""
+    if isinstance(value, float | np.floating) and not np.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {key: _finite(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(item) for item in value]
+    return value
+
+
+def _json_text(document: Mapping[str, Any]) -> str:
+    """``document`` as JSON text, never with NaN or Infinity (which JSON does not have: strict
+    readers refuse the file): any left are written as null."""
+    return json.dumps(_finite(document), indent=2, allow_nan=False) + "\n"
 
 
 def bus_security(
@@ -339,7 +356,7 @@ def write_results(
         from .figures import write_figures  # noqa: PLC0415 - matplotlib is slow to import
 
         document["figures"] = write_figures(result, out_dir)
-    write_atomic(out_dir / "summary.json", json.dumps(document, indent=2) + "\n")
+    write_atomic(out_dir / "summary.json", _json_text(document))
     return document
 
 
@@ -479,7 +496,7 @@ def write_vehicle_run(
         "config": None if config_path is None else str(config_path),
         "versions": versions(),
     }
-    write_atomic(out_dir / "summary.json", json.dumps(document, indent=2) + "\n")
+    write_atomic(out_dir / "summary.json", _json_text(document))
     return document
 
 
@@ -523,7 +540,7 @@ class RunSummary:
             detail = "stopped by SIGINT or SIGTERM"
         else:
             status = "error"
-            detail = "ended without results" if error is None else str(error) or repr(error)
+            detail = "ended without results" if error is None else error_reason(error)
         try:
             self.finish(status, detail)
         except OSError as failure:  # the run's own error is the one to report
@@ -572,5 +589,5 @@ class RunSummary:
             **(known or {}),
             **_provenance(self._scenario),
         }
-        write_atomic(self.out_dir / "summary.json", json.dumps(document, indent=2) + "\n")
+        write_atomic(self.out_dir / "summary.json", _json_text(document))
         return document

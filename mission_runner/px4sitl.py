@@ -96,7 +96,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from . import argtypes
-from .config import Scenario, load_scenario
+from .config import MAX_CLOCK_SPEED, Scenario, load_scenario
 from .runner.errors import RunnerError, RunnerTimeoutError
 from .tasks import first_completed
 
@@ -886,7 +886,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--speed",
-        type=argtypes.positive_float,
+        type=argtypes.at_most(argtypes.positive_float, MAX_CLOCK_SPEED),
         default=1.0,
         help="simulation speed factor (default 1)",
     )
@@ -950,6 +950,6 @@ async def _run_until_signal(arguments: argparse.Namespace, scenario: Scenario) -
 
 def command(arguments: argparse.Namespace) -> int:
     """``mission-runner px4-sitl``: run the instances until SIGINT/SIGTERM; 0 when stopped so."""
-    scenario = load_scenario(arguments.config)
+    scenario = load_scenario(arguments.config, flying=True)
     asyncio.run(_run_until_signal(arguments, scenario))
     return 0

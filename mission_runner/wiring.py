@@ -178,6 +178,11 @@ def emulator_config(scenario: Scenario, **overrides: Any) -> EmulatorConfig:
     divides T)."""
     from sitl.config import EmulatorConfig  # noqa: PLC0415 - the simulator does not need sitl
 
+    return EmulatorConfig.model_validate(emulator_settings(scenario, **overrides))
+
+
+def emulator_settings(scenario: Scenario, **overrides: Any) -> dict[str, Any]:
+    """What :func:`emulator_config` validates, as plain data."""
     data = {**scenario.flight.emulator, **overrides}
     # Sensors sample at t_k exactly only if the physics step divides T: >= 200 Hz, a divisor of T.
     physics = dict(data.get("physics") or {})
@@ -196,4 +201,4 @@ def emulator_config(scenario: Scenario, **overrides: Any) -> EmulatorConfig:
             ]
         },
     )
-    return EmulatorConfig.model_validate(data)
+    return data

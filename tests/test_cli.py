@@ -9,8 +9,10 @@ import socket
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -235,6 +237,25 @@ def test_a_speed_that_is_not_a_positive_number_exits_2(speed, capsys):
         main(["run", str(CONFIGS / "paper_tracking_flyable.yaml"), "--speed", speed])
     assert stopped.value.code == EXIT_BAD_INPUT
     assert "argument --speed" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("arguments", "option", "bound"),
+    [
+        (["run", "paper_tracking_flyable.yaml", "--speed", "1e300"], "--speed", "1000"),
+        (["replay", "out", "--width", "100000"], "--width", "7680"),
+        (["replay", "out", "--fps", "1e9"], "--fps", "100"),
+        (["ground", "px4_sih_tracking.yaml", "--start-delay", "1e300"], "--start-delay", "3600"),
+        (["ranges", "px4_sih_tracking.yaml", "--truth-rate", "1e9"], "--truth-rate", "1000"),
+        (["vehicle", "px4_sih_tracking.yaml", "--id", "256"], "--id", "255"),
+    ],
+)
+def test_an_option_beyond_its_bound_exits_2_naming_it(arguments, option, bound, capsys):
+    command, config, *rest = arguments
+    with pytest.raises(SystemExit) as stopped:
+        main([command, str(CONFIGS / config), *rest])
+    assert stopped.value.code == EXIT_BAD_INPUT
+    assert f"argument {option}: must be <= {bound}, got" in capsys.readouterr().err
 
 
 def test_an_error_during_the_run_leaves_a_summary_saying_so(tmp_path, monkeypatch, capsys):
@@ -686,3 +707,94 @@ def test_a_ground_station_without_truth_scores_only_what_it_saw(tmp_path):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert code == EXIT_OK
     assert summary["status"] == "unchecked"  # never "passed" on what it could not see
+
+
+# --- Inputs that once crashed, hung or wrote where they should not --------------------------------
+
+
+def test_a_scenario_named_dot_dot_writes_nothing_outside_out(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    config = scenario_file(tmp_path, set_value("name", ".."))
+    assert main(["simulate", str(config), "--quiet", "--no-figures"]) == EXIT_BAD_INPUT
+    assert "name: must be a plain file name, not '..'" in capsys.readouterr().err
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.yaml"]
+
+
+def test_diverged_batch_runs_write_no_nan_into_summary_json(tmp_path, capsys):
+    # An absurd (but finite) initial gain: every estimate of every run diverges.
+    def absurd_gain(data):
+        data["algorithm"]["initial_gain"] = 1e300
+        data["expect"] = {}
+
+    config = scenario_file(tmp_path, absurd_gain)
+    out = tmp_path / "out"
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        code = main(["simulate", str(config), "--runs", "3", "--out", str(out), "--no-figures"])
+    assert code == EXIT_OK
+
+    def refuse(constant):
+        raise AssertionError(f"summary.json holds {constant}, which is not JSON")
+
+    summary = json.loads((out / "summary.json").read_text(), parse_constant=refuse)
+    assert summary["batch"]["final_localization_error_m"] == {
+        "median": None,
+        "p95": None,
+        "worst": None,
+        "not_finite": 3,
+    }
+    assert "(3 not finite)" in capsys.readouterr().out
+
+
+def mqtt_scenario(tmp_path, port, name="control.yaml"):
+    def mqtt(data):
+        data["bus"] = {"kind": "mqtt", "mqtt": {"port": port, "connect_timeout_s": 2.0}}
+
+    return scenario_file(tmp_path, mqtt, name=name)
+
+
+def test_control_of_a_vehicle_not_in_the_scenario_is_bad_input_before_connecting(tmp_path, capsys):
+    with socket.socket() as probe:  # a port nothing listens on: nothing must try it
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    config = mqtt_scenario(tmp_path, port)
+    assert main(["control", str(config), "land", "--vehicle", "9"]) == EXIT_BAD_INPUT
+    error = capsys.readouterr().err
+    assert error == "error: vehicle 9 is not in the mission (ids 1, 2, 3, 4)\n"
+
+
+def test_control_with_a_reason_too_long_to_be_received_is_bad_input(tmp_path, capsys):
+    # Once sent and reported as sent, then dropped unread by every vehicle as oversized.
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    config = mqtt_scenario(tmp_path, port)
+    assert main(["control", str(config), "land", "--reason", "x" * 20_000]) == EXIT_BAD_INPUT
+    assert "the reason has 20000 characters; a command carries at most 1000" in (
+        capsys.readouterr().err
+    )
+
+
+@pytest.mark.timeout(60)
+def test_control_with_another_key_says_the_key_does_not_match(tmp_path, mosquitto, capsys):
+    import asyncio
+
+    from mission_runner.bus import ControlCommand, MissionControl, Sender, open_bus
+
+    config = mqtt_scenario(tmp_path, mosquitto.port)
+    scenario = load_scenario(config)
+
+    async def prepare():  # what a running ground station leaves on the control topic
+        async with open_bus(scenario.bus, sender=Sender.ground()) as bus:
+            message = MissionControl(ControlCommand.PREPARE, time.time(), mission_id="m1")
+            topic = scenario.bus.topics(scenario.name).control()
+            await bus.publish_message(topic, message, retain=True, timeout=5.0)
+
+    asyncio.run(prepare())
+    other_key = tmp_path / "other.key"
+    other_key.write_text("another-key-0123456789abcdef0123456789abcdef\n")
+    code = main(["control", str(config), "hold", "--bus-key-file", str(other_key)])
+    assert code == EXIT_RUNTIME_FAILURE
+    error = capsys.readouterr().err
+    assert "the bus key does not match the mission's" in error, error
+    assert "no mission" not in error

@@ -1,5 +1,7 @@
 """Every invalid scenario stops with one clear error naming the YAML path and the rule."""
 
+import os
+import threading
 from pathlib import Path
 
 import pytest
@@ -420,7 +422,7 @@ def test_bundled_scenarios_load_without_warnings(path, caplog):
 def test_outlier_bias_must_be_an_interval():
     data = edit(("sensors",), {"range_outlier_bias_m": [2.0, 0.5]})
     assert problems_of(data) == [
-        ("sensors.range_outlier_bias_m", "must be [low, high] with 0 <= low <= high")
+        ("sensors.range_outlier_bias_m", "must be [low, high] with 0 <= low <= high <= 1e+06 m")
     ]
 
 
@@ -433,3 +435,116 @@ def test_estimator_settings_are_checked_at_their_paths():
         "algorithm.estimator_settings.gate_chi2",
         "algorithm.estimator_settings.handover_updates",
     ]
+
+
+# --- Numbers that passed validation and then crashed, hung or meant nothing -----------------------
+
+LE = "Input should be less than or equal to"
+GE = "Input should be greater than or equal to"
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "where", "rule"),
+    [
+        (  # once an OverflowError traceback when the event's steps were counted
+            ("events",),
+            [{"kind": "target_hidden", "at_step": 3, "duration_s": 1e308}],
+            "events[0].duration_s",
+            f"{LE} 1000000000",
+        ),
+        (("flight",), {"clock": "realtime", "speed": 1e300}, "flight.speed", f"{LE} 1000"),
+        (("target", "altitude_m"), 1e300, "target.altitude_m", f"{LE} 1000"),
+        (("target", "altitude_m"), -1e300, "target.altitude_m", f"{GE} -1000"),
+        (("batch",), {"position_spread_m": 1e300}, "batch.position_spread_m", f"{LE} 1000000"),
+        (("vehicles", 1, "altitude_m"), 1e300, "vehicles[1].altitude_m", f"{LE} 1000"),
+        (("flight",), {"altitude_m": 5e4}, "flight.altitude_m", f"{LE} 1000"),
+        (("vehicles", 0, "speed_limit_m_s"), 1e300, "vehicles[0].speed_limit_m_s", f"{LE} 100"),
+        (("vehicles", 3, "omega_rad_s"), 1e300, "vehicles[3].omega_rad_s", f"{LE} 100"),
+        (
+            ("vehicles", 2, "initial_phase_rad"),
+            1e300,
+            "vehicles[2].initial_phase_rad",
+            f"{LE} 1000",
+        ),
+        (("algorithm", "coupling_gain"), 1e300, "algorithm.coupling_gain", f"{LE} 1000"),
+        (
+            ("algorithm", "coupling_gain_last"),
+            -1e300,
+            "algorithm.coupling_gain_last",
+            f"{GE} -1000",
+        ),
+        (("timing", "step_s"), 1e-300, "timing.step_s", f"{GE} 0.001"),
+        (("sensors",), {"range_noise_std_m": 1e300}, "sensors.range_noise_std_m", f"{LE} 100"),
+        (("flight",), {"silence_timeout_s": 1e300}, "flight.silence_timeout_s", f"{LE} 3600"),
+        (("flight",), {"start_delay_s": 1e300}, "flight.start_delay_s", f"{LE} 3600"),
+        (
+            ("flight",),
+            {"autopilot_params": {"MPC_ACC_HOR": 1e300}},
+            "flight.autopilot_params",
+            "MPC_ACC_HOR: 1e+300 does not fit a REAL32 parameter (|x| <= 3.402823e+38)",
+        ),
+        (
+            ("flight",),
+            {"autopilot_params": {"COM_OBL_RC_ACT": 2**40}},
+            "flight.autopilot_params",
+            "COM_OBL_RC_ACT: 1099511627776 does not fit an INT32 parameter",
+        ),
+        (
+            ("expect",),
+            {"final_tracking_error_m": {"min": 2.0, "max": 1.0}},
+            "expect.final_tracking_error_m",
+            "min 2 is above max 1: no value can pass",
+        ),
+        (  # the emulator's settings as strict as the rest of the file
+            ("flight",),
+            {"emulator": {"clock": {"speed": "2"}}},
+            "flight.emulator.clock.speed",
+            "Input should be a valid number",
+        ),
+        (
+            ("flight",),
+            {"emulator": {"ports": {"gcs_enabled": "yes", "api_remote_base": 14540.0}}},
+            "flight.emulator.ports.gcs_enabled",
+            "Input should be a valid boolean",
+        ),
+        (("name",), "..", "name", "must be a plain file name, not '..'"),
+        (("name",), ".", "name", "must be a plain file name, not '.'"),
+    ],
+)
+def test_numbers_beyond_what_is_physical_are_refused_naming_the_bound(path, value, where, rule):
+    problems = problems_of(edit(path, value))
+    assert any(location == where and rule in message for location, message in problems), problems
+
+
+def test_a_flight_refuses_vehicle_ids_beyond_mavlink_but_the_model_does_not(tmp_path):
+    data = base()
+    data["vehicles"][1]["id"] = 256
+    data["vehicles"][2]["id"] = 65535
+    config = tmp_path / "ids.yaml"
+    config.write_text(yaml.safe_dump(data))
+    assert load_scenario(config).vehicles[1].id == 256  # numeric model: any number of vehicles
+    with pytest.raises(ConfigError) as caught:
+        load_scenario(config, flying=True)
+    assert [where for where, _ in caught.value.problems] == ["vehicles[1].id", "vehicles[2].id"]
+    assert "256 is not a MAVLink system id (1..255)" in caught.value.problems[0][1]
+
+
+@pytest.mark.timeout(30)
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes")
+def test_a_named_pipe_is_read_while_written_and_refused_when_nobody_writes(tmp_path, monkeypatch):
+    import mission_runner.config as config_module
+
+    pipe = tmp_path / "scenario.yaml"
+    os.mkfifo(pipe)
+    text = (CONFIGS / "paper_tracking.yaml").read_bytes()
+    writer = threading.Thread(target=pipe.write_bytes, args=(text,))
+    writer.start()  # as `simulate <(generate)` gives it
+    assert load_scenario(pipe).name == "paper_tracking"
+    writer.join()
+    monkeypatch.setattr(config_module, "READ_TIMEOUT_S", 0.05)
+    with pytest.raises(ConfigError) as caught:
+        load_scenario(pipe)
+    [(where, message)] = caught.value.problems
+    assert where == "" and "not a regular file, and nothing more came from it within 0.05 s" in (
+        message
+    )

@@ -371,6 +371,12 @@ class TargetObservation(Message):
         )
 
 
+#: The longest note a command carries: with the rest of the message it stays far below the
+#: receivers' max_message_bytes (a larger command would be sent, then dropped unread by every
+#: vehicle as oversized).
+MAX_REASON_CHARS = 1000
+
+
 @dataclass(frozen=True, slots=True)
 class MissionControl(Message):
     """A mission command from the ground station (see :class:`ControlCommand`).
@@ -402,6 +408,10 @@ class MissionControl(Message):
         _require(
             self.clock_rate is None or 0.01 <= self.clock_rate <= 100.0,
             f"clock_rate must be in [0.01, 100], got {self.clock_rate}",
+        )
+        _require(
+            self.reason is None or len(self.reason) <= MAX_REASON_CHARS,
+            f"reason must have at most {MAX_REASON_CHARS} characters",
         )
 
 

@@ -26,7 +26,7 @@ import ssl
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Self
+from typing import Annotated, Literal, Self
 
 from pydantic import (
     BaseModel,
@@ -34,6 +34,7 @@ from pydantic import (
     Field,
     PrivateAttr,
     SecretStr,
+    Strict,
     field_validator,
     model_validator,
 )
@@ -43,25 +44,37 @@ from mission_runner.bus.base import DEFAULT_QUEUE_SIZE
 from mission_runner.bus.inprocess import LinkModel
 from mission_runner.bus.topics import DEFAULT_PREFIX_ROOT, Topics
 
+#: As strict as the rest of a scenario: ``"0.01"``, ``true`` or ``1883.0`` where a number or a
+#: port is meant are errors, not guesses (``true`` read as a loss probability of 1.0), and so are
+#: NaN and infinities.
+_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+#: A file name: a string in the YAML (a strict Path would take only Path objects).
+FilePath = Annotated[Path, Strict(False)]
+#: The longest any wait on the broker may be [s]: the event loop's timers overflow long before
+#: 1e300, and an hour is beyond any sensible connect or subscribe timeout.
+MAX_TIMEOUT_S = 3600.0
+#: The simulated link's longest delay [s]: a minute is beyond any network's.
+MAX_LINK_DELAY_S = 60.0
+
 
 class TlsSettings(BaseModel):
     """TLS towards the broker: whom to trust and, optionally, a client certificate."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _STRICT
 
-    ca_file: Path | None = Field(
+    ca_file: FilePath | None = Field(
         None,
         title="CA certificate file",
         description="PEM file of the CA(s) that signed the broker's certificate; "
         "None trusts the system's default CAs.",
     )
-    cert_file: Path | None = Field(
+    cert_file: FilePath | None = Field(
         None,
         title="Client certificate file",
         description="PEM client certificate, for brokers that authenticate clients by "
         "certificate (mutual TLS). Needs key_file unless the key is in the same file.",
     )
-    key_file: Path | None = Field(
+    key_file: FilePath | None = Field(
         None,
         title="Client key file",
         description="PEM private key of cert_file.",
@@ -105,7 +118,7 @@ class TlsSettings(BaseModel):
 class MqttSettings(BaseModel):
     """Where the MQTT broker is, how to log in, and how to ride out broker outages."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _STRICT
 
     host: str = Field(
         "127.0.0.1",
@@ -128,7 +141,7 @@ class MqttSettings(BaseModel):
         description="Must be unique per connection: a second client with the same id makes "
         "the broker drop the first. None generates one; the runner passes one per vehicle.",
     )
-    credentials_file: Path | None = Field(
+    credentials_file: FilePath | None = Field(
         None,
         title="Broker credentials file",
         description="File of 'user:password' lines (as `mission-runner broker-config` writes, "
@@ -157,6 +170,7 @@ class MqttSettings(BaseModel):
     connect_timeout_s: float = Field(
         5.0,
         gt=0.0,
+        le=MAX_TIMEOUT_S,
         title="Connect timeout (s)",
         description="Bound on one connection attempt, and on the wait for the first "
         "connection when the bus opens.",
@@ -164,12 +178,14 @@ class MqttSettings(BaseModel):
     subscribe_timeout_s: float = Field(
         5.0,
         gt=0.0,
+        le=MAX_TIMEOUT_S,
         title="Subscribe timeout (s)",
         description="Bound on the wait for the broker to acknowledge a subscription.",
     )
     reconnect_initial_s: float = Field(
         0.1,
         gt=0.0,
+        le=MAX_TIMEOUT_S,
         title="First reconnect delay (s)",
         description="Delay before the first reconnection attempt after losing the broker; "
         "doubles on each failed attempt, with random jitter.",
@@ -177,6 +193,7 @@ class MqttSettings(BaseModel):
     reconnect_max_s: float = Field(
         5.0,
         gt=0.0,
+        le=MAX_TIMEOUT_S,
         title="Longest reconnect delay (s)",
         description="Cap of the reconnect delay; must be >= reconnect_initial_s.",
     )
@@ -194,14 +211,19 @@ class MqttSettings(BaseModel):
 class LinkSettings(BaseModel):
     """A simulated bad network for the in-process bus (see ``LinkModel``)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _STRICT
 
     latency_s: float = Field(
-        0.0, ge=0.0, title="Latency (s)", description="Fixed delay of every delivery."
+        0.0,
+        ge=0.0,
+        le=MAX_LINK_DELAY_S,
+        title="Latency (s)",
+        description="Fixed delay of every delivery.",
     )
     jitter_s: float = Field(
         0.0,
         ge=0.0,
+        le=MAX_LINK_DELAY_S,
         title="Jitter (s)",
         description="Extra delay of each delivery, uniform in [0, jitter_s].",
     )
@@ -212,7 +234,9 @@ class LinkSettings(BaseModel):
         title="Loss probability",
         description="Probability that a delivery to one subscriber is dropped.",
     )
-    seed: int = Field(0, title="Random seed", description="Seed of the loss and jitter draws.")
+    seed: int = Field(
+        0, ge=0, title="Random seed", description="Seed of the loss and jitter draws."
+    )
     reorder: bool = Field(
         False,
         title="Allow reordering",
@@ -234,9 +258,9 @@ class AuthSettings(BaseModel):
     """How messages are authenticated (see :mod:`mission_runner.bus.auth`). The key itself is
     never in a scenario: a file named here or on the command line, or an environment variable."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _STRICT
 
-    key_file: Path | None = Field(
+    key_file: FilePath | None = Field(
         None,
         title="Bus key file",
         description="File holding the mission's HMAC key (at least 32 characters, e.g. "
@@ -291,7 +315,7 @@ class BusAccess:
 class BusSettings(BaseModel):
     """Which bus the vehicles talk over, and its settings."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _STRICT
 
     kind: Literal["inprocess", "mqtt"] = Field(
         "inprocess",

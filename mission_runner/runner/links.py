@@ -82,18 +82,30 @@ def route_mavsdk_logs() -> None:
 
 @contextlib.asynccontextmanager
 async def connected_vehicles(
-    urls: list[str], system_ids: list[int], *, timeout_s: float = 20.0
+    urls: list[str],
+    system_ids: list[int],
+    *,
+    timeout_s: float = 20.0,
+    url_setting: str = "the connection URL",
 ) -> AsyncIterator[dict[int, Any]]:
     """One Mavsdk with a connection per URL, until every system id in ``system_ids`` is found.
 
     Yields ``{system_id: mavsdk System}``. URLs are MAVSDK's: ``udpin://0.0.0.0:14540``,
-    ``serial:///dev/ttyACM0:57600``.
+    ``serial:///dev/ttyACM0:57600``. Raises :class:`VehicleConnectionError` if a URL cannot be
+    opened (its message names ``url_setting``, what moves it) or a vehicle is not found.
     """
     route_mavsdk_logs()
     config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
     async with Mavsdk(config) as mavsdk:
         for url in urls:
-            await mavsdk.add_any_connection(url)
+            try:
+                await mavsdk.add_any_connection(url)
+            except MavsdkError as error:
+                raise VehicleConnectionError(
+                    f"MAVSDK cannot open {url} ({error}): for udpin:// its UDP port may be "
+                    f"taken by another program (a ground station, PX4 SITL, another run); "
+                    f"choose another with {url_setting}"
+                ) from None
         wanted = set(system_ids)
         found: dict[int, Any] = {}
         try:

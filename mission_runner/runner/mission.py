@@ -214,7 +214,11 @@ async def fly(
         )
         sysids = [endpoint.sysid for endpoint in emulator.endpoints]
         systems = await stack.enter_async_context(
-            connected_vehicles([e.mavsdk_url for e in emulator.endpoints], sysids)
+            connected_vehicles(
+                [e.mavsdk_url for e in emulator.endpoints],
+                sysids,
+                url_setting="flight.emulator.ports.api_remote_base",
+            )
         )
         vehicles = [
             await stack.enter_async_context(MavsdkVehicle(systems[sysid], sysid))

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol, cast
 
 from ..bus import BusError, ControlCommand, MissionControl, Topics
-from ..bus.messages import Message
+from ..bus.messages import MAX_REASON_CHARS, Message
 from ..tasks import first_completed
 from .errors import RunnerError
 from .handshake import next_command
@@ -111,6 +111,11 @@ def operator_command(
     if vehicle_id is not None and vehicle_id not in vehicle_ids:
         ids = ", ".join(map(str, sorted(vehicle_ids)))
         raise OperatorInputError(f"vehicle {vehicle_id} is not in the mission (ids {ids})")
+    if reason is not None and len(reason) > MAX_REASON_CHARS:
+        raise OperatorInputError(
+            f"the reason has {len(reason)} characters; a command carries at most "
+            f"{MAX_REASON_CHARS} (the vehicles would drop a larger one unread)"
+        )
     return OperatorCommand(parsed, vehicle_id, reason)
 
 

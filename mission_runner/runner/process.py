@@ -77,6 +77,7 @@ from .operator import (
 from .timesync import ClockMapping, MissionTime
 
 if TYPE_CHECKING:
+    from ..bus.auth import AuthCounters
     from ..config import Scenario
     from ..outputs import PathName
     from ..sim.simulator import SimulationResult
@@ -182,7 +183,11 @@ async def run_vehicle(
     mission_time = MissionTime()
     run = run or VehicleRun(vehicle_id)
     async with contextlib.AsyncExitStack() as stack:
-        systems = await stack.enter_async_context(connected_vehicles([url], [vehicle_id]))
+        systems = await stack.enter_async_context(
+            connected_vehicles(
+                [url], [vehicle_id], url_setting=f"--url or vehicles[{ids.index(vehicle_id)}].url"
+            )
+        )
         vehicle = await stack.enter_async_context(MavsdkVehicle(systems[vehicle_id], vehicle_id))
         mapping = await vehicle.follow_clock(mission_time)
         bus = await stack.enter_async_context(
@@ -658,9 +663,23 @@ async def send_control(
         try:
             prepare = await next_command(control, {ControlCommand.PREPARE}, timeout_s=timeout_s)
         except RunnerTimeoutError:
-            raise RunnerError(
-                f"no mission of {scenario.name} is running (no ground station's prepare on "
-                f"{topics.control()} within {timeout_s:g} s)"
-            ) from None
+            raise RunnerError(_no_prepare(scenario, topics, bus.auth_counters, timeout_s)) from None
         await publish_operator(bus, topics, operator, prepare.mission_id, timeout_s=timeout_s)
     return prepare.mission_id or ""
+
+
+def _no_prepare(
+    scenario: Scenario, topics: Topics, counters: AuthCounters, timeout_s: float
+) -> str:
+    """Why no ground station's prepare came: none was there, or one was, signed with another key
+    (the operator's then cannot command the mission either: the vehicles would drop it too)."""
+    if counters.forged:
+        return (
+            f"the bus key does not match the mission's: {counters.forged} message(s) on "
+            f"{topics.control()} were signed with another key and dropped; give control the "
+            "mission's key (--bus-key-file, MISSION_BUS_KEY or bus.auth.key_file)"
+        )
+    return (
+        f"no mission of {scenario.name} is running (no ground station's prepare on "
+        f"{topics.control()} within {timeout_s:g} s)"
+    )

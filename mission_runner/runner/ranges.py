@@ -454,7 +454,7 @@ async def _gps_source(
     when ``stack`` closes)."""
     ids = positions.ids
     tasks: list[asyncio.Task[None]] = []
-    systems = await stack.enter_async_context(connected_vehicles(urls, ids))
+    systems = await stack.enter_async_context(connected_vehicles(urls, ids, url_setting="--url"))
     for vehicle_id in ids:
         vehicle = await stack.enter_async_context(MavsdkVehicle(systems[vehicle_id], vehicle_id))
         await vehicle.request_rate(vehicle.telemetry.set_rate_position(POSITION_RATE_HZ))

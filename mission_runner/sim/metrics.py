@@ -102,7 +102,9 @@ LOWER_IS_WORSE = {"min_separation_m", "final_live_vehicles"}
 
 
 def distribution(values: ArrayLike, name: str) -> dict[str, float | int | None]:
-    """Median, p95 and worst of one metric over runs. Convergence steps of -1 count as never."""
+    """Median, p95 and worst of one metric over runs. Convergence steps of -1 count as never;
+    runs where it is not a finite number (diverged, or not measured) are counted as
+    ``not_finite``, and the statistics they would make meaningless are None."""
     values = np.asarray(values, dtype=float)
     if name in NEVER_IS_NO_VALUE:
         never = int(np.sum(values < 0))
@@ -118,6 +120,13 @@ def distribution(values: ArrayLike, name: str) -> dict[str, float | int | None]:
             "worst": worst,
             "never_converged": never,
         }
+    tail = "p5" if name in LOWER_IS_WORSE else "p95"
+    not_finite = int(np.sum(~np.isfinite(values)))
+    if not_finite:  # diverged (inf, NaN) or not measured in some runs: no number stands for them
+        # Fewer than half: the median is still a number, with NaN counted as the worst.
+        ranked = np.where(np.isnan(values), -np.inf if tail == "p5" else np.inf, values)
+        median = float(np.median(ranked)) if not_finite * 2 < values.size else None
+        return {"median": median, tail: None, "worst": None, "not_finite": not_finite}
     if name in LOWER_IS_WORSE:
         return {
             "median": float(np.median(values)),

@@ -97,7 +97,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def command(arguments: argparse.Namespace) -> int:
     """Run the scenario's emulated world until SIGINT/SIGTERM; exit code 0."""
-    scenario = with_bus_access(load_scenario(arguments.scenario), arguments)
+    scenario = with_bus_access(load_scenario(arguments.scenario, flying=True), arguments)
     source = f"emulator settings ({arguments.config or 'command line'})"
     try:
         options = sitl_cli.load_config(arguments)

@@ -210,6 +210,7 @@ def test_every_topic_kind_has_a_message_type() -> None:
         (lambda: RangeMessage(1, -1, 0.0, 1.0), "peer_id must be >= 0"),
         (lambda: RangeMessage(1, 0, 0.0, -0.1), "range_m must be >= 0"),
         (lambda: MissionControl("takeoff", 0.0), "command must be one of"),
+        (lambda: MissionControl("land", 0.0, reason="x" * 1001), "at most 1000 characters"),
         (lambda: VehicleStatus(1, 0.0, "", 0, True), "state must not be empty"),
         (lambda: VehicleStatus(1, 0.0, "ok", 0, 1), "tracking_ok must be true or false"),
     ],

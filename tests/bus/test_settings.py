@@ -100,6 +100,50 @@ def test_invalid_settings_name_the_offending_path(
     assert raised.value.errors()[0]["loc"] == location
 
 
+@pytest.mark.parametrize(
+    ("section", "location", "rule"),
+    [
+        # Once read as numbers and booleans: true became a loss probability of 1.0.
+        ({"link": {"loss_probability": "0.01"}}, ("link", "loss_probability"), "valid number"),
+        ({"link": {"loss_probability": True}}, ("link", "loss_probability"), "valid number"),
+        ({"link": {"reorder": "yes"}}, ("link", "reorder"), "valid boolean"),
+        ({"link": {"seed": "3"}}, ("link", "seed"), "valid integer"),
+        ({"mqtt": {"port": "1883"}}, ("mqtt", "port"), "valid integer"),
+        ({"mqtt": {"port": 1883.0}}, ("mqtt", "port"), "valid integer"),
+        ({"mqtt": {"tls": {"check_hostname": "no"}}}, ("mqtt", "tls", "check_hostname"), "boolean"),
+        ({"queue_size": "100"}, ("queue_size",), "valid integer"),
+        ({"auth": {"time_window_s": "10"}}, ("auth", "time_window_s"), "valid number"),
+        # Bounded, with the bound in the message.
+        ({"mqtt": {"connect_timeout_s": 1e300}}, ("mqtt", "connect_timeout_s"), "3600"),
+        ({"mqtt": {"reconnect_max_s": 1e300}}, ("mqtt", "reconnect_max_s"), "3600"),
+        ({"link": {"latency_s": 1e300}}, ("link", "latency_s"), "60"),
+        ({"link": {"jitter_s": 1e9}}, ("link", "jitter_s"), "60"),
+        ({"link": {"seed": -1}}, ("link", "seed"), "greater than or equal to 0"),
+        ({"link": {"latency_s": float("nan")}}, ("link", "latency_s"), "finite number"),
+    ],
+)
+def test_bus_settings_are_as_strict_and_bounded_as_the_rest_of_a_scenario(
+    section: dict[str, object], location: tuple[str, ...], rule: str
+) -> None:
+    with pytest.raises(ValidationError) as raised:
+        BusSettings.model_validate(section)
+    [error] = raised.value.errors()
+    assert error["loc"] == location and rule in error["msg"], error
+
+
+def test_file_names_stay_strings_in_the_yaml_while_numbers_must_be_numbers() -> None:
+    section: dict[str, dict[str, object]] = {
+        "auth": {"key_file": "bus.key"},
+        "mqtt": {"tls": {"ca_file": "ca.crt"}},
+    }
+    with pytest.raises(ValidationError, match="valid integer"):
+        BusSettings.model_validate({**section, "mqtt": {"port": "1883"}})
+    settings = BusSettings.model_validate(section)
+    assert settings.auth.key_file == Path("bus.key")
+    assert settings.mqtt.tls is not None and settings.mqtt.tls.ca_file == Path("ca.crt")
+    assert BusSettings.model_validate(settings.model_dump(mode="json")) == settings
+
+
 def test_open_bus_passes_mqtt_settings_through(tmp_path: Path) -> None:
     credentials = tmp_path / "credentials"
     credentials.write_text("ground:g-pass\nvehicle-4:v4-pass\n")
