@@ -97,7 +97,7 @@ EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = _parser()
+    parser = _parser(_command_named(sys.argv[1:] if argv is None else argv))
     arguments = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.WARNING if getattr(arguments, "quiet", False) else logging.INFO,
@@ -273,7 +273,15 @@ def _unwrapped(handler: Handler, arguments: argparse.Namespace) -> int:
         raise
 
 
-def _parser() -> argparse.ArgumentParser:
+def _command_named(argv: Sequence[str]) -> str | None:
+    """The command ``argv`` names (its first word that is not an option), if any."""
+    return next((word for word in argv if not word.startswith("-")), None)
+
+
+def _parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The command line; ``emulate``'s and ``px4-sitl``'s options only when ``command`` is one of
+    them (or None: every command in full), as they import the emulator and the PX4 launcher,
+    half a second of every other command's start on a companion computer's budget."""
     parser = argparse.ArgumentParser(
         prog="mission-runner",
         description="Multi-drone moving-target enclosing: simulate or fly a scenario.",
@@ -551,22 +559,25 @@ def _parser() -> argparse.ArgumentParser:
     )
     broker.set_defaults(handler=_broker_config)
 
-    from . import px4sitl  # noqa: PLC0415 - only its argument definitions
-    from .world import emulated  # noqa: PLC0415
-
     emulate = commands.add_parser(
         "emulate",
         help="emulated PX4 vehicles with the scenario's target and UWB ranging on its bus, for "
         "vehicle processes (what 'sitl --scenario' did)",
     )
-    emulated.add_arguments(emulate)
-    add_bus_arguments(emulate)
+    if command in (None, "emulate"):
+        from .world import emulated  # noqa: PLC0415 - the emulator, for this command only
+
+        emulated.add_arguments(emulate)
+        add_bus_arguments(emulate)
 
     px4 = commands.add_parser(
         "px4-sitl",
         help="start real PX4 SITL (SIH), one instance per vehicle of the scenario, until Ctrl-C",
     )
-    px4sitl.add_arguments(px4)
+    if command in (None, "px4-sitl"):
+        from . import px4sitl  # noqa: PLC0415 - the PX4 launcher, for this command only
+
+        px4sitl.add_arguments(px4)
     return parser
 
 

@@ -798,3 +798,19 @@ def test_control_with_another_key_says_the_key_does_not_match(tmp_path, mosquitt
     error = capsys.readouterr().err
     assert "the bus key does not match the mission's" in error, error
     assert "no mission" not in error
+
+
+def test_a_command_line_loads_the_emulator_only_for_the_commands_that_need_it():
+    """A vehicle process on a companion computer never pays for the emulator's and the PX4
+    launcher's imports; emulate and px4-sitl still get their full options."""
+    script = (
+        "import sys; from mission_runner import cli; "
+        "p = cli._parser('vehicle'); p.parse_args(['vehicle', 'x.yaml', '--id', '1']); "
+        "print('sitl' in sys.modules, 'mission_runner.px4sitl' in sys.modules); "
+        "p = cli._parser('emulate'); a = p.parse_args(['emulate', 'x.yaml', '--no-gcs']); "
+        "print(a.no_gcs, 'sitl' in sys.modules)"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True
+    )
+    assert done.stdout.split() == ["False", "False", "True", "True"], done.stdout
