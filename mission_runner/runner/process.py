@@ -209,6 +209,8 @@ async def run_vehicle(
             if vehicle.control_lost is None:  # a vehicle someone else flies is theirs
                 with contextlib.suppress(RunnerError):
                     await asyncio.shield(vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S))
+            else:  # its setpoint stream ended when it was taken: see that it did
+                await vehicle.stream_ended()
             if run.state not in FINAL_STATES:
                 await report("lost", detail=f"mission ended: {error!r}")
             raise
@@ -272,8 +274,11 @@ async def _fly(  # noqa: PLR0917
         return
     last = controller.records[-1].step if controller.records else 0
     if controller.state == "taken_over":
-        # Someone else flies it now: report it and leave it be (never fight a pilot).
-        await report("taken_over", step=last, detail=vehicle.control_lost or "")
+        # Someone else flies it now: report it and leave it be (never fight a pilot). Its
+        # setpoint stream ended when the link saw it taken (MavsdkVehicle.release).
+        await vehicle.stream_ended()
+        detail = f"{vehicle.control_lost or ''}; {vehicle.ending()}"
+        await report("taken_over", step=last, detail=detail)
         return
     if controller.state == "lost":
         await report("lost", step=last, detail="own odometry stopped: no longer driven")
