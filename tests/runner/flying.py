@@ -1,6 +1,7 @@
 """Helpers for tests that fly scenarios through the full stack (MAVSDK + UDP + emulator)."""
 
 import contextlib
+import math
 import os
 import re
 import signal
@@ -151,3 +152,57 @@ def swarm(
                 process.kill()
         world.send_signal(signal.SIGINT)
         flying.world_output, _ = world.communicate(timeout=30)
+
+
+@dataclass
+class StreamAfterRelease:
+    """What a vehicle's tlog (the emulator's, both directions in order) shows around a forced
+    disarm by someone other than the runner: see :func:`stream_after_disarm`."""
+
+    #: Runner setpoints (SET_POSITION_TARGET_LOCAL_NED from MAVSDK, system 245) that reached
+    #: the vehicle after its first heartbeat showing it disarmed, before the runner's HOLD.
+    setpoints_before_hold: int
+    #: ... and after that HOLD (the runner's ``offboard.stop()``), up to the end of the log.
+    setpoints_after_hold: int
+    #: Whether the runner's mode command (DO_SET_MODE from 245) came after the disarm at all.
+    hold_sent: bool
+    #: Whether a heartbeat showed the vehicle armed again after the disarm (the pilot's re-arm).
+    rearmed: bool
+    #: PX4 custom modes in the heartbeats while armed again.
+    modes_after_rearm: set[int]
+    #: The greatest height above home (GLOBAL_POSITION_INT) after the re-arm [m].
+    highest_after_rearm_m: float
+
+
+def stream_after_disarm(tlog_path, system_id):
+    """Read ``tlog_path`` (vehicle ``system_id``'s) into a :class:`StreamAfterRelease`."""
+    from pymavlink import mavutil
+
+    armed_bit = mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    log = mavutil.mavlink_connection(str(tlog_path), dialect="common")
+    phase = "flying"  # -> "disarmed" -> "held" (the runner's HOLD seen); rearm tracked apart
+    was_armed, rearmed = False, False
+    counts = {"disarmed": 0, "held": 0}
+    modes: set[int] = set()
+    highest_m = -math.inf
+    while (message := log.recv_match()) is not None:
+        kind, source = message.get_type(), message.get_srcSystem()
+        if kind == "HEARTBEAT" and source == system_id and message.get_srcComponent() == 1:
+            armed = bool(message.base_mode & armed_bit)
+            if was_armed and not armed and phase == "flying":
+                phase = "disarmed"
+            elif armed and not was_armed and phase != "flying":
+                rearmed = True
+            if armed and rearmed:
+                modes.add(message.custom_mode)
+            was_armed = armed
+        elif kind == "SET_POSITION_TARGET_LOCAL_NED" and source == 245 and phase != "flying":
+            counts[phase] += 1
+        elif kind == "COMMAND_LONG" and source == 245 and phase == "disarmed":
+            if message.command == mavutil.mavlink.MAV_CMD_DO_SET_MODE:
+                phase = "held"
+        elif kind == "GLOBAL_POSITION_INT" and source == system_id and rearmed:
+            highest_m = max(highest_m, message.relative_alt / 1000.0)
+    return StreamAfterRelease(
+        counts["disarmed"], counts["held"], phase == "held", rearmed, modes, highest_m
+    )

@@ -1,0 +1,73 @@
+"""A vehicle the runner stops driving gets no setpoint from it again, and never re-enters
+OFFBOARD on a stale stream. MAVSDK re-sends the last setpoint every 50 ms until told to stop; PX4
+keeps OFFBOARD through a disarm and, with setpoints still coming, arms straight into it. Here
+another ground station force-disarms vehicle 3 in flight and the pilot re-arms it 4 s later,
+as a pilot does: it must stay on the ground. Seen in the emulator's tlog (what reached it, in
+order) and in how the runner says the vehicle ended."""
+
+import pytest
+import yaml
+
+from mission_runner.config import load_scenario
+from mission_runner.runner.mission import fly
+from mission_runner.sim.metrics import run_metrics
+
+from .flying import CONFIGS, free_ports, stream_after_disarm
+
+pytestmark = [pytest.mark.mavsdk, pytest.mark.slow]
+
+OFFBOARD = 6 << 16  # PX4's custom mode (main mode 6)
+DISARM_STEP = 80
+REARM_AFTER_S = 4.0
+
+
+def disarmed_scenario(tmp_path, *, bus=None, steps=200):
+    """takeover_flight, shortened, with vehicle 3 force-disarmed at DISARM_STEP and re-armed
+    REARM_AFTER_S later (the same event in the one process and for vehicle processes)."""
+    data = yaml.safe_load((CONFIGS / "takeover_flight.yaml").read_text())
+    data["name"] = "disarm_takeover"
+    data["timing"]["steps"] = steps
+    data["events"] = [
+        {
+            "kind": "taken_over",
+            "vehicle": 3,
+            "at_step": DISARM_STEP,
+            "mode": "disarm",
+            "rearm_after_s": REARM_AFTER_S,
+        }
+    ]
+    data["expect"] = {}
+    if bus is not None:
+        data["bus"] = bus
+    path = tmp_path / "disarm_takeover.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def assert_stream_ended_and_stayed_down(seen):
+    assert seen.hold_sent, seen  # the runner ended its stream (and left OFFBOARD) ...
+    assert seen.setpoints_after_hold == 0, seen  # ... for good
+    assert seen.rearmed, seen  # the pilot's arm was accepted ...
+    assert OFFBOARD not in seen.modes_after_rearm, seen  # ... into HOLD, not OFFBOARD ...
+    assert seen.highest_after_rearm_m < 0.5, seen  # ... and it stayed on the ground
+
+
+@pytest.mark.asyncio
+@pytest.mark.timeout(300)
+async def test_a_vehicle_disarmed_by_another_ground_station_stays_down_when_re_armed(tmp_path):
+    scenario = load_scenario(disarmed_scenario(tmp_path))
+    tlogs = tmp_path / "tlogs"
+    outcome = await fly(scenario, emulator_overrides={**free_ports(scenario), "tlog_dir": tlogs})
+
+    seen = stream_after_disarm(tlogs / "vehicle_003.tlog", 3)
+    assert_stream_ended_and_stayed_down(seen)
+    end = outcome.vehicles[3]
+    assert end["state"] == "taken_over"
+    assert "disarmed by someone other than the runner" in end["detail"], end
+    assert "disarmed in the air at" in end["detail"], end
+    assert "Disarmed by external command" in end["detail"], end
+    assert all(outcome.vehicles[i]["state"] == "done" for i in (1, 2, 4)), outcome.vehicles
+    metrics = {key: value[0] for key, value in run_metrics(outcome.result).items()}
+    # It fell: disarmed, but not landed. The other three landed on the runner's command.
+    assert metrics["vehicles_disarmed_at_end"] == 3
+    assert metrics["vehicles_disarmed_in_air"] == 1
