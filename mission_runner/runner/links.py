@@ -359,9 +359,12 @@ class MavsdkVehicle:
             self._seen_in_control = True
         elif self._seen_in_control:
             # Only after OFFBOARD was seen: a heartbeat sent before the switch is not a takeover.
+            disarmed = self.armed is False
+            what = self._disarm_words() if disarmed else f"switched to {self.flight_mode}"
             self._control_lost = (
-                "disarmed" if self.armed is False else f"switched to {self.flight_mode}"
-            ) + " by someone other than the runner (pilot, another ground station or a failsafe)"
+                f"{what} by someone other than the runner (pilot, another ground station or a "
+                "failsafe)"
+            )
             logger.warning("vehicle %s: %s", self.system_id, self._control_lost)
             self.release(self._control_lost)
 
@@ -730,18 +733,22 @@ class MavsdkVehicle:
             except (MavsdkError, RunnerTimeoutError) as error:
                 logger.info("vehicle %s: HOLD after the stream: %s", self.system_id, error)
 
+    def _disarm_words(self, disarm: Disarm | None = None) -> str:
+        """``disarmed in the air at 6.0 m (it said: ...)`` for ``disarm`` (default: the last)."""
+        disarm = disarm or (self.disarms[-1] if self.disarms else None)
+        if disarm is None:
+            return "disarmed"
+        reason = self._disarm_reason(disarm.seen_s)
+        said = f" (it said: {reason})" if reason else ""
+        if disarm.in_air:
+            return f"disarmed in the air at {disarm.height_m:.1f} m{said}"
+        return f"disarmed on the ground{said}"
+
     def ending(self) -> str:
         """What the runner saw of this vehicle last, in words: how it was disarmed (landed, or
         in the air at what height and what the vehicle said about it) and whether it was armed
         again, else its armed state and mode."""
-        parts = []
-        for disarm in self.disarms:
-            reason = self._disarm_reason(disarm.seen_s)
-            said = f" (it said: {reason})" if reason else ""
-            if disarm.in_air:
-                parts.append(f"disarmed in the air at {disarm.height_m:.1f} m{said}")
-            else:
-                parts.append(f"disarmed on the ground{said}")
+        parts = [self._disarm_words(disarm) for disarm in self.disarms]
         text = "; armed again, then ".join(parts)
         if self.armed:
             mode = self.flight_mode or "an unknown mode"

@@ -391,7 +391,7 @@ def _how_it_ended(
         return {"state": "aborted", "detail": f"{detail}; {seen}"}
     if controller.state in ("lost", "taken_over"):
         why = vehicle.control_lost or "own odometry stopped"
-        return {"state": controller.state, "detail": f"{why}; {seen}"}
+        return {"state": controller.state, "detail": f"{why}; seen last: {seen}"}
     return {"state": "done", "detail": seen}
 
 

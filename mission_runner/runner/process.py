@@ -277,8 +277,7 @@ async def _fly(  # noqa: PLR0917
         # Someone else flies it now: report it and leave it be (never fight a pilot). Its
         # setpoint stream ended when the link saw it taken (MavsdkVehicle.release).
         await vehicle.stream_ended()
-        detail = f"{vehicle.control_lost or ''}; {vehicle.ending()}"
-        await report("taken_over", step=last, detail=detail)
+        await report("taken_over", step=last, detail=vehicle.control_lost or "")
         return
     if controller.state == "lost":
         await report("lost", step=last, detail="own odometry stopped: no longer driven")

@@ -99,9 +99,11 @@ def swarm(
     ground_arguments=(),
     ground_stdin=subprocess.DEVNULL,
     gcs=False,
+    world_arguments=(),
 ):
     """``mission-runner emulate`` (emulator and world, on free ports; the vehicles' GCS links
-    too with ``gcs``), then a ``ground`` station (its stdin ``ground_stdin``) and one ``vehicle``
+    too with ``gcs``; more of its options in ``world_arguments``), then a ``ground`` station
+    (its stdin ``ground_stdin``) and one ``vehicle``
     process per drone, all on the scenario's bus. Processes still running at the end are killed,
     the world is stopped and its output kept in ``world_output``."""
     ports = free_port_config(vehicles, gcs=gcs)
@@ -124,6 +126,7 @@ def swarm(
         str(ports.api_remote_base),
         "--api-local-port-base",
         str(ports.api_local_base),
+        *world_arguments,
     )
     flying = Swarm(world, ports=ports)
     try:

@@ -5,6 +5,8 @@ another ground station force-disarms vehicle 3 in flight and the pilot re-arms i
 as a pilot does: it must stay on the ground. Seen in the emulator's tlog (what reached it, in
 order) and in how the runner says the vehicle ended."""
 
+import json
+
 import pytest
 import yaml
 
@@ -12,7 +14,7 @@ from mission_runner.config import load_scenario
 from mission_runner.runner.mission import fly
 from mission_runner.sim.metrics import run_metrics
 
-from .flying import CONFIGS, free_ports, stream_after_disarm
+from .flying import CONFIGS, free_ports, stream_after_disarm, swarm
 
 pytestmark = [pytest.mark.mavsdk, pytest.mark.slow]
 
@@ -63,11 +65,37 @@ async def test_a_vehicle_disarmed_by_another_ground_station_stays_down_when_re_a
     assert_stream_ended_and_stayed_down(seen)
     end = outcome.vehicles[3]
     assert end["state"] == "taken_over"
-    assert "disarmed by someone other than the runner" in end["detail"], end
     assert "disarmed in the air at" in end["detail"], end
+    assert "by someone other than the runner" in end["detail"], end
     assert "Disarmed by external command" in end["detail"], end
     assert all(outcome.vehicles[i]["state"] == "done" for i in (1, 2, 4)), outcome.vehicles
     metrics = {key: value[0] for key, value in run_metrics(outcome.result).items()}
     # It fell: disarmed, but not landed. The other three landed on the runner's command.
     assert metrics["vehicles_disarmed_at_end"] == 3
     assert metrics["vehicles_disarmed_in_air"] == 1
+
+
+@pytest.mark.mqtt
+@pytest.mark.timeout(400)
+def test_a_vehicle_process_ends_its_stream_when_another_ground_station_disarms_it(
+    tmp_path, mosquitto
+):
+    bus = {"kind": "mqtt", "mqtt": {"host": mosquitto.host, "port": mosquitto.port}}
+    path = disarmed_scenario(tmp_path, bus=bus)
+    tlogs, mission_dir = tmp_path / "tlogs", tmp_path / "ground"
+    with swarm(
+        str(path),
+        tmp_path,
+        ground_arguments=["--no-figures", "--out", str(mission_dir)],
+        world_arguments=["--tlog-dir", str(tlogs)],
+    ) as flying:
+        ground_out, _ = flying.ground.communicate(timeout=300)
+        outputs = [vehicle.communicate(timeout=60)[0] for vehicle in flying.vehicles]
+
+    seen = stream_after_disarm(tlogs / "vehicle_003.tlog", 3)
+    assert_stream_ended_and_stayed_down(seen)
+    summary = json.loads((mission_dir / "summary.json").read_text())
+    end = summary["vehicles"]["3"]
+    assert end["state"] == "taken_over", (ground_out, outputs[2])
+    assert "disarmed in the air at" in end["detail"], end
+    assert all(summary["vehicles"][i]["state"] == "done" for i in "124"), summary["vehicles"]
