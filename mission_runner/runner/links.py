@@ -698,12 +698,16 @@ class MavsdkVehicle:
         if self.released is not None:
             return
         self._withhold(why)
-        if self._group is not None:
+        if self._group is None:
+            return  # never entered: MAVSDK never streamed for it
+        try:
             # Not one of the streams cancelled at the end: the group waits for it.
             self._ending = self._group.create_task(
                 self._end_stream(ours=self._control_lost is None),
                 name=f"vehicle-{self.system_id}-end-stream",
             )
+        except RuntimeError:  # the link is closing: closing MAVSDK ends the stream
+            logger.info("vehicle %s: link closing; its stream ends with it", self.system_id)
 
     async def stream_ended(self) -> None:
         """Wait until the stream :meth:`release` ends is over (bounded by the command

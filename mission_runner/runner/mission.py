@@ -155,7 +155,9 @@ class FlightOutcome:
     mission_wall_time_s: float
     emulator_stats: EmulatorStats
     #: How each vehicle ended, as its controller saw it: ``{id: {"state", "detail"}}`` (state
-    #: ``done``, ``lost``, ``taken_over``, or ``aborted`` by the operator's land, return or stop).
+    #: ``done``, ``lost``, ``taken_over``, or ``aborted`` by the operator's land, return or stop;
+    #: the detail says why and what the runner saw of it last: landed and disarmed, or disarmed
+    #: in the air at what height, :meth:`.links.MavsdkVehicle.ending`).
     vehicles: dict[int, dict[str, str]]
     #: What the bus and the controllers dropped (``outputs.bus_security``).
     bus_security: dict[str, Any] = field(default_factory=dict)

@@ -14,9 +14,10 @@ The handshake, as an operator expects it:
    are ready in time, it aborts the mission for everyone (``land``): nobody is left hovering.
 4. Vehicles fly the steps and land (``flight.end_action``). A vehicle someone else takes (a mode
    change or disarm by a pilot, another ground station or a failsafe) reports ``taken_over`` and is
-   left to them. A vehicle whose controller gives up reports ``lost`` - final, never followed by
-   ``done`` - and is put in ``flight.on_lost`` by its process (and by its autopilot's
-   offboard-loss failsafe, set to the same, if the process dies).
+   left to them; its setpoint stream ends at once (:meth:`.links.MavsdkVehicle.release`). A
+   vehicle whose controller gives up reports ``lost`` - final, never followed by ``done`` - and
+   is put in ``flight.on_lost`` by its process (and by its autopilot's offboard-loss failsafe,
+   set to the same, if the process dies).
 
 Statuses and commands carry the mission id, so retained messages of an earlier mission are never
 taken for this one's.
