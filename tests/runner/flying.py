@@ -157,19 +157,24 @@ def swarm(
         flying.world_output, _ = world.communicate(timeout=30)
 
 
+#: PX4's custom mode of OFFBOARD (main mode 6).
+OFFBOARD_MODE = 6 << 16
+
+
 @dataclass
-class StreamAfterRelease:
-    """What a vehicle's tlog (the emulator's, both directions in order) shows around a forced
-    disarm by someone other than the runner: see :func:`stream_after_disarm`."""
+class StreamAfterTakeover:
+    """What a vehicle's tlog (the emulator's, both directions in order) shows after someone
+    other than the runner took it (its first heartbeat no longer armed in OFFBOARD after one
+    that was): see :func:`stream_after_takeover`."""
 
     #: Runner setpoints (SET_POSITION_TARGET_LOCAL_NED from MAVSDK, system 245) that reached
-    #: the vehicle after its first heartbeat showing it disarmed, before the runner's HOLD.
+    #: the vehicle after that heartbeat, before the runner's mode command (if any) ...
     setpoints_before_hold: int
-    #: ... and after that HOLD (the runner's ``offboard.stop()``), up to the end of the log.
+    #: ... and after that command (the HOLD of its ``offboard.stop()``), up to the end.
     setpoints_after_hold: int
-    #: Whether the runner's mode command (DO_SET_MODE from 245) came after the disarm at all.
+    #: Whether the runner sent a mode command (DO_SET_MODE from 245) after the takeover at all.
     hold_sent: bool
-    #: Whether a heartbeat showed the vehicle armed again after the disarm (the pilot's re-arm).
+    #: Whether a heartbeat showed the vehicle armed again after a disarm (the pilot's re-arm).
     rearmed: bool
     #: PX4 custom modes in the heartbeats while armed again.
     modes_after_rearm: set[int]
@@ -177,35 +182,39 @@ class StreamAfterRelease:
     highest_after_rearm_m: float
 
 
-def stream_after_disarm(tlog_path, system_id):
-    """Read ``tlog_path`` (vehicle ``system_id``'s) into a :class:`StreamAfterRelease`."""
+def stream_after_takeover(tlog_path, system_id):
+    """Read ``tlog_path`` (vehicle ``system_id``'s) into a :class:`StreamAfterTakeover`."""
     from pymavlink import mavutil
 
     armed_bit = mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED
     log = mavutil.mavlink_connection(str(tlog_path), dialect="common")
-    phase = "flying"  # -> "disarmed" -> "held" (the runner's HOLD seen); rearm tracked apart
-    was_armed, rearmed = False, False
-    counts = {"disarmed": 0, "held": 0}
+    phase = "flying"  # -> "taken" -> "held" (the runner's mode command seen)
+    driven = was_armed = rearmed = False
+    counts = {"taken": 0, "held": 0}
     modes: set[int] = set()
     highest_m = -math.inf
-    while (message := log.recv_match()) is not None:
+    with contextlib.closing(log):
+        messages = list(iter(log.recv_match, None))
+    for message in messages:
         kind, source = message.get_type(), message.get_srcSystem()
         if kind == "HEARTBEAT" and source == system_id and message.get_srcComponent() == 1:
             armed = bool(message.base_mode & armed_bit)
-            if was_armed and not armed and phase == "flying":
-                phase = "disarmed"
-            elif armed and not was_armed and phase != "flying":
+            in_offboard = armed and message.custom_mode == OFFBOARD_MODE
+            driven = driven or in_offboard
+            if phase == "flying" and driven and not in_offboard:
+                phase = "taken"
+            elif phase != "flying" and armed and not was_armed:
                 rearmed = True
             if armed and rearmed:
                 modes.add(message.custom_mode)
             was_armed = armed
         elif kind == "SET_POSITION_TARGET_LOCAL_NED" and source == 245 and phase != "flying":
             counts[phase] += 1
-        elif kind == "COMMAND_LONG" and source == 245 and phase == "disarmed":
+        elif kind == "COMMAND_LONG" and source == 245 and phase == "taken":
             if message.command == mavutil.mavlink.MAV_CMD_DO_SET_MODE:
                 phase = "held"
         elif kind == "GLOBAL_POSITION_INT" and source == system_id and rearmed:
             highest_m = max(highest_m, message.relative_alt / 1000.0)
-    return StreamAfterRelease(
-        counts["disarmed"], counts["held"], phase == "held", rearmed, modes, highest_m
+    return StreamAfterTakeover(
+        counts["taken"], counts["held"], phase == "held", rearmed, modes, highest_m
     )

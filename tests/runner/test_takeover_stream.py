@@ -14,30 +14,25 @@ from mission_runner.config import load_scenario
 from mission_runner.runner.mission import fly
 from mission_runner.sim.metrics import run_metrics
 
-from .flying import CONFIGS, free_ports, stream_after_disarm, swarm
+from .flying import CONFIGS, OFFBOARD_MODE, free_ports, stream_after_takeover, swarm
 
 pytestmark = [pytest.mark.mavsdk, pytest.mark.slow]
 
-OFFBOARD = 6 << 16  # PX4's custom mode (main mode 6)
 DISARM_STEP = 80
 REARM_AFTER_S = 4.0
 
 
-def disarmed_scenario(tmp_path, *, bus=None, steps=200):
+def disarmed_scenario(tmp_path, *, bus=None, steps=200, mode="disarm"):
     """takeover_flight, shortened, with vehicle 3 force-disarmed at DISARM_STEP and re-armed
-    REARM_AFTER_S later (the same event in the one process and for vehicle processes)."""
+    REARM_AFTER_S later (the same event in the one process and for vehicle processes); with
+    another ``mode``, switched to it by the pilot there instead."""
     data = yaml.safe_load((CONFIGS / "takeover_flight.yaml").read_text())
     data["name"] = "disarm_takeover"
     data["timing"]["steps"] = steps
-    data["events"] = [
-        {
-            "kind": "taken_over",
-            "vehicle": 3,
-            "at_step": DISARM_STEP,
-            "mode": "disarm",
-            "rearm_after_s": REARM_AFTER_S,
-        }
-    ]
+    event = {"kind": "taken_over", "vehicle": 3, "at_step": DISARM_STEP, "mode": mode}
+    if mode == "disarm":
+        event["rearm_after_s"] = REARM_AFTER_S
+    data["events"] = [event]
     data["expect"] = {}
     if bus is not None:
         data["bus"] = bus
@@ -50,7 +45,7 @@ def assert_stream_ended_and_stayed_down(seen):
     assert seen.hold_sent, seen  # the runner ended its stream (and left OFFBOARD) ...
     assert seen.setpoints_after_hold == 0, seen  # ... for good
     assert seen.rearmed, seen  # the pilot's arm was accepted ...
-    assert OFFBOARD not in seen.modes_after_rearm, seen  # ... into HOLD, not OFFBOARD ...
+    assert OFFBOARD_MODE not in seen.modes_after_rearm, seen  # ... into HOLD, not OFFBOARD ...
     assert seen.highest_after_rearm_m < 0.5, seen  # ... and it stayed on the ground
 
 
@@ -61,7 +56,7 @@ async def test_a_vehicle_disarmed_by_another_ground_station_stays_down_when_re_a
     tlogs = tmp_path / "tlogs"
     outcome = await fly(scenario, emulator_overrides={**free_ports(scenario), "tlog_dir": tlogs})
 
-    seen = stream_after_disarm(tlogs / "vehicle_003.tlog", 3)
+    seen = stream_after_takeover(tlogs / "vehicle_003.tlog", 3)
     assert_stream_ended_and_stayed_down(seen)
     end = outcome.vehicles[3]
     assert end["state"] == "taken_over"
@@ -73,6 +68,23 @@ async def test_a_vehicle_disarmed_by_another_ground_station_stays_down_when_re_a
     # It fell: disarmed, but not landed. The other three landed on the runner's command.
     assert metrics["vehicles_disarmed_at_end"] == 3
     assert metrics["vehicles_disarmed_in_air"] == 1
+
+
+@pytest.mark.asyncio
+@pytest.mark.timeout(300)
+async def test_a_vehicle_a_pilot_switches_to_hold_gets_neither_setpoints_nor_commands(tmp_path):
+    """The pilot's mode is the pilot's: MAVSDK stops re-sending at the heartbeat that shows it,
+    and the runner must neither start the stream again (a setpoint of the step under way did,
+    for MAVSDK's 3 s grace and until its next heartbeat) nor command a mode."""
+    scenario = load_scenario(disarmed_scenario(tmp_path, mode="hold"))
+    tlogs = tmp_path / "tlogs"
+    outcome = await fly(scenario, emulator_overrides={**free_ports(scenario), "tlog_dir": tlogs})
+
+    seen = stream_after_takeover(tlogs / "vehicle_003.tlog", 3)
+    assert not seen.hold_sent, seen
+    # One may be on its way as the heartbeat arrives; none is sent after it.
+    assert seen.setpoints_before_hold <= 1, seen
+    assert outcome.vehicles[3]["state"] == "taken_over", outcome.vehicles
 
 
 @pytest.mark.mqtt
@@ -92,7 +104,7 @@ def test_a_vehicle_process_ends_its_stream_when_another_ground_station_disarms_i
         ground_out, _ = flying.ground.communicate(timeout=300)
         outputs = [vehicle.communicate(timeout=60)[0] for vehicle in flying.vehicles]
 
-    seen = stream_after_disarm(tlogs / "vehicle_003.tlog", 3)
+    seen = stream_after_takeover(tlogs / "vehicle_003.tlog", 3)
     assert_stream_ended_and_stayed_down(seen)
     summary = json.loads((mission_dir / "summary.json").read_text())
     end = summary["vehicles"]["3"]
