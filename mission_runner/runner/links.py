@@ -660,6 +660,9 @@ class MavsdkVehicle:
             plugin.set_velocity_ned(setpoint)
             return True
 
+        if self.released is not None:  # and do not wait for the stream's end to say so
+            self.setpoints_withheld += 1
+            return
         async with self._offboard_lock:
             if self.released is not None:
                 self.setpoints_withheld += 1
@@ -722,13 +725,15 @@ class MavsdkVehicle:
                 return
             self._streaming = False
             if not ours and self.armed is True and self.flight_mode != "OFFBOARD":
-                if await self.offboard.is_active():  # it restarted within its 3 s grace
-                    logger.warning(
-                        "vehicle %s: MAVSDK still re-sends a setpoint to a vehicle in %s; it "
-                        "stops at its next heartbeat",
-                        self.system_id,
-                        self.flight_mode,
-                    )
+                # Only a setpoint sent as MAVSDK saw the mode could have started it again.
+                with contextlib.suppress(RunnerTimeoutError):
+                    if await self._within(self.offboard.is_active(), "offboard state"):
+                        logger.warning(
+                            "vehicle %s: MAVSDK still re-sends a setpoint to a vehicle in %s; "
+                            "it stops at its next heartbeat",
+                            self.system_id,
+                            self.flight_mode,
+                        )
                 return
             try:
                 # MAVSDK ends its re-sending before it asks for HOLD: the stream is over even
