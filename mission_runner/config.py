@@ -481,9 +481,10 @@ class EventConfig(Model):
         title="Kind",
         description="vehicle_lost: dies for good; vehicle_joins: absent until then "
         "(simulate only); link_lost: its MAVLink link drops (flying only); sensor_lost: a "
-        "sensor stops (flow: flying only); taken_over: a pilot switches it to `mode` by RC "
-        "(flying on the emulator only); target_hidden: the target is hidden from every tracker "
-        "(or from `vehicle`'s) for `duration_s` (an occlusion).",
+        "sensor stops (flow: flying only); taken_over: a pilot switches it to `mode` by RC, "
+        "or another ground station disarms it (flying on the emulator only); target_hidden: "
+        "the target is hidden from every tracker (or from `vehicle`'s) for `duration_s` (an "
+        "occlusion).",
     )
     vehicle: int | None = Field(
         None, title="Vehicle", description="Vehicle id (target_hidden: default every vehicle)."
@@ -498,8 +499,17 @@ class EventConfig(Model):
     sensor: Literal["uwb", "flow", "tracker"] | None = Field(
         None, title="Sensor", description="sensor_lost: which sensor stops."
     )
-    mode: Literal["hold", "land", "return", "posctl"] = Field(
-        "hold", title="Mode", description="taken_over: the mode the pilot switches to."
+    mode: Literal["hold", "land", "return", "posctl", "disarm"] = Field(
+        "hold",
+        title="Mode",
+        description="taken_over: the mode the pilot switches to, or disarm: another ground "
+        "station force-disarms it (in the air too).",
+    )
+    rearm_after_s: PositiveFloat | None = Field(
+        None,
+        title="Re-arm after",
+        description="taken_over: the pilot arms it again this long after [s], as a pilot does "
+        "after a forced disarm (PX4's arming checks apply).",
     )
 
     def step(self, step_s: float) -> int:
@@ -561,6 +571,7 @@ SimulationMetricName = Literal[
 ]
 FlightMetricName = Literal[
     "vehicles_disarmed_at_end",
+    "vehicles_disarmed_in_air",
     "vehicles_in_formation_at_end",
 ]
 #: Every metric an ``expect:`` bound may name (nested literals flatten into one).
@@ -1184,6 +1195,8 @@ def _rule_problems(scenario: Scenario) -> list[Problem]:
             joined_later.add(event.vehicle)
         if (event.kind == "sensor_lost") != (event.sensor is not None):
             problems.append((f"{where}.sensor", "give sensor for sensor_lost, and only there"))
+        if event.rearm_after_s is not None and event.kind != "taken_over":
+            problems.append((f"{where}.rearm_after_s", "only a taken_over event re-arms"))
     sensing_from_start = [
         vehicle.id
         for vehicle in scenario.vehicles

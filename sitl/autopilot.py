@@ -45,7 +45,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from sitl import imu
 from sitl import physics as ph
 from sitl.calibration import CALIBRATION_COMMANDS, Calibration
-from sitl.commander import Commander
+from sitl.commander import Commander, DisarmInAir
 from sitl.commands import bind
 from sitl.config import FlightLogConfig
 from sitl.failure_injection import FAILURE_COMMANDS, FailureInjector, LinkSwitch
@@ -457,6 +457,28 @@ class Px4Autopilot:
             return
         logger.info("vehicle %d: pilot takes over in %s at %.2f s", self.sysid, mode.name, now_s)
         self._commander.set_mode(mode)
+
+    def ground_station_arm(self, *, arm: bool, force: bool, now_s: float) -> int:
+        """Another ground station (or a pilot's radio) arms or disarms the vehicle as
+        MAV_CMD_COMPONENT_ARM_DISARM would (``force``: param2 21196), through PX4's checks.
+        Returns the MAV_RESULT it would have been answered with."""
+        if not self._state.alive:
+            return mavlink.MAV_RESULT_DENIED
+        result = self._commander.arm_disarm(arm=arm, force=force)
+        logger.info(
+            "vehicle %d: %s%s by another ground station at %.2f s: result %d",
+            self.sysid,
+            "forced " if force else "",
+            "arm" if arm else "disarm",
+            now_s,
+            result,
+        )
+        return result
+
+    @property
+    def disarms_in_air(self) -> list[DisarmInAir]:
+        """Every disarm while not landed (truth, for scoring): time, height, PX4's reason."""
+        return list(self._commander.disarms_in_air)
 
     def set_sensor(self, sensor: str, ok: bool, now_s: float) -> None:
         """Fail (``ok=False``) or restore the ``"flow"`` odometry or the ``"gps"`` receiver."""

@@ -100,6 +100,16 @@ class _ArmRefusal:
     last_at_s: float = -math.inf
 
 
+@dataclass(frozen=True, slots=True)
+class DisarmInAir:
+    """A disarm while the vehicle was not landed: when [s], its height above the ground [m]
+    and PX4's reason (the STATUSTEXT it sent)."""
+
+    time_s: float
+    height_m: float
+    reason: str
+
+
 class Commander:
     """Arming, modes and failsafes of one vehicle.
 
@@ -138,6 +148,8 @@ class Commander:
         self._rc_lost_at_arming = True  # manual control absent when armed: its loss is no news
         self._battery_empty = False
         self._delayed_action: tuple[FlightMode | None, float] | None = None
+        #: Every disarm while not landed (forced, a failsafe's, a termination), in order.
+        self.disarms_in_air: list[DisarmInAir] = []
 
     def ready(self, now_s: float) -> bool:
         """Preflight checks pass: estimator converged, a position source works, alive."""
@@ -215,7 +227,7 @@ class Commander:
             return "Arming denied: high throttle\t"
         return None
 
-    def _arm(self, now_s: float) -> None:
+    def _arm(self, now_s: float, reason: str = "external command") -> None:
         self._state.armed = True
         self._armed_at_s = now_s
         self._flown_since_arm = False
@@ -225,10 +237,14 @@ class Commander:
         self._rc_lost = self._rc_lost_at_arming
         self._battery_empty = self._state.battery_failed
         self._delayed_action = None
-        self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, "Armed by external command")
+        self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, f"Armed by {reason}")
         self.command_physics()
 
     def _disarm(self, now_s: float, reason: str) -> None:
+        if not self._state.landed:
+            # Truth, for scoring a flight: the vehicle falls from here.
+            height_m = self._vehicle.height_above_ground_m()
+            self.disarms_in_air.append(DisarmInAir(now_s, height_m, reason))
         self._state.armed = False
         self._state.landing = False
         self._vehicle.statustext(now_s, mavlink.MAV_SEVERITY_INFO, reason)
@@ -413,12 +429,29 @@ class Commander:
     # ================================================================ commands
     def _cmd_arm_disarm(self, cmd: Command, link: Link) -> int:
         p1, p2 = cmd.params[0], cmd.params[1]
-        force = p2 == _FORCE_ARM_DISARM
+        if p1 not in (_ARM, _DISARM):
+            return mavlink.MAV_RESULT_DENIED
+        return self.arm_disarm(
+            arm=p1 == _ARM,
+            force=p2 == _FORCE_ARM_DISARM,
+            injected_refusal=lambda now_s: self._injected_arm_refusal(cmd, link, now_s),
+        )
+
+    def arm_disarm(
+        self,
+        *,
+        arm: bool,
+        force: bool,
+        injected_refusal: Callable[[float], bool] | None = None,
+        reason: str = "external command",
+    ) -> int:
+        """Arm or disarm as MAV_CMD_COMPONENT_ARM_DISARM asks, with PX4's checks (a MAV_RESULT).
+        ``injected_refusal(now_s)`` says whether an injected health failure refuses this arm."""
         state = self._state
         now = state.now_s
         statustext = self._vehicle.statustext
         critical = mavlink.MAV_SEVERITY_CRITICAL
-        if p1 == _ARM:
+        if arm:
             if state.armed:
                 return mavlink.MAV_RESULT_ACCEPTED
             if state.calibrating:  # PX4 checks this before anything else, forced or not
@@ -426,9 +459,10 @@ class Commander:
                 return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
             if not force:
                 if not self.ready(now):
-                    reason = "estimator not ready" if state.position_ok else "no position"
-                    statustext(now, critical, f"Arming denied: {reason}")
+                    why = "estimator not ready" if state.position_ok else "no position"
+                    statustext(now, critical, f"Arming denied: {why}")
                     return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+                # PX4 arms into OFFBOARD (kept through a disarm) whenever setpoints stream.
                 if state.mode is FlightMode.OFFBOARD and not self._offboard.signal_fresh():
                     statustext(now, critical, "Arming denied: no offboard signal")
                     return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
@@ -436,22 +470,20 @@ class Commander:
                 if denial is not None:
                     statustext(now, critical, denial)
                     return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-            if self._injected_arm_refusal(cmd, link, now):
+            if injected_refusal is not None and injected_refusal(now):
                 # PX4's commander: mavlink_log_critical(... "\t"), then TRANSITION_DENIED,
                 # which the arm command answers with TEMPORARILY_REJECTED.
                 statustext(now, critical, self._arm_refusal.text + "\t")
                 return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-            self._arm(now)
+            self._arm(now, reason)
             return mavlink.MAV_RESULT_ACCEPTED
-        if p1 == _DISARM:
-            if not state.armed:
-                return mavlink.MAV_RESULT_ACCEPTED
-            if not (state.landed or force):
-                statustext(now, critical, "Disarming denied: not landed")
-                return mavlink.MAV_RESULT_DENIED
-            self._disarm(now, "Disarmed by external command")
+        if not state.armed:
             return mavlink.MAV_RESULT_ACCEPTED
-        return mavlink.MAV_RESULT_DENIED
+        if not (state.landed or force):
+            statustext(now, critical, "Disarming denied: not landed")
+            return mavlink.MAV_RESULT_DENIED
+        self._disarm(now, f"Disarmed by {reason}")
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_takeoff(self, cmd: Command, link: Link) -> int:
         state = self._state

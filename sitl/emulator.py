@@ -814,9 +814,19 @@ class Emulator:
 
         self._at(at_s, kill, f"kill vehicle {index}")
 
-    def take_over(self, index: int, mode: str = "hold", at_s: float | None = None) -> None:
+    def take_over(
+        self,
+        index: int,
+        mode: str = "hold",
+        at_s: float | None = None,
+        *,
+        rearm_after_s: float | None = None,
+    ) -> None:
         """A pilot takes vehicle ``index`` over now or at ``at_s``: an RC mode switch to
-        ``mode`` (``hold``, ``land``, ``return`` or ``posctl``), which PX4 obeys at once."""
+        ``mode`` (``hold``, ``land``, ``return`` or ``posctl``), which PX4 obeys at once; or
+        ``disarm``: another ground station force-disarms it (MAV_CMD_COMPONENT_ARM_DISARM,
+        param2 21196), in the air too. ``rearm_after_s``: the pilot arms it again that long
+        after, as a pilot does (an ordinary arm, PX4's checks and all)."""
         ap = self._autopilot(index)
         modes = {
             "hold": FlightMode.HOLD,
@@ -824,14 +834,29 @@ class Emulator:
             "return": FlightMode.RTL,
             "posctl": FlightMode.POSCTL,
         }
-        if mode not in modes:
-            raise ValueError(f"unknown takeover mode {mode!r}; use one of {sorted(modes)}")
+        if mode not in modes and mode != "disarm":
+            raise ValueError(
+                f"unknown takeover mode {mode!r}; use one of {sorted([*modes, 'disarm'])}"
+            )
 
         def take() -> None:
-            ap.pilot_takeover(modes[mode], self.time_s)
-            self.events.append((self.time_s, index, f"taken over by a pilot ({mode})"))
+            if mode == "disarm":
+                result = ap.ground_station_arm(arm=False, force=True, now_s=self.time_s)
+                self.events.append(
+                    (self.time_s, index, f"force-disarmed by another ground station ({result})")
+                )
+            else:
+                ap.pilot_takeover(modes[mode], self.time_s)
+                self.events.append((self.time_s, index, f"taken over by a pilot ({mode})"))
+
+        def rearm() -> None:
+            result = ap.ground_station_arm(arm=True, force=False, now_s=self.time_s)
+            self.events.append((self.time_s, index, f"re-armed by the pilot ({result})"))
 
         self._at(at_s, take, f"take vehicle {index} over")
+        if rearm_after_s is not None:
+            start = self.time_s if at_s is None else at_s
+            self._at(start + rearm_after_s, rearm, f"re-arm vehicle {index}")
 
     def drop_link(
         self,

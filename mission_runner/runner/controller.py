@@ -455,8 +455,9 @@ class VehicleController:
             used, estimates, gated = command.neighbours_used, command.estimates_m, command.gated
             consensus = (float(command.consensus_m_s[0]), float(command.consensus_m_s[1]))
         vertical = self._altitude_hold(odometry)
-        async with self.clock.commanding(t_k + settings.release_s):
-            await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
+        if self.link.control_lost is None:  # taken over during the step: never stream to it
+            async with self.clock.commanding(t_k + settings.release_s):
+                await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
         self.command_in_force = velocity
         sent_s = self.clock.now_s()
         record = StepRecord(

@@ -10,6 +10,12 @@ Failsafe: the controller only ever *streams* setpoints. If it dies, MAVSDK stops
 offboard-loss failsafe (COM_OF_LOSS_T, then COM_OBL_RC_ACT) holds or lands the vehicle; if the link
 drops, PX4's data-link-loss failsafe does. :meth:`MavsdkVehicle.finish` leaves offboard and lands or
 holds on a normal end.
+
+MAVSDK's offboard plugin re-sends the last setpoint every 50 ms from its own thread until
+``offboard.stop()`` (which also commands HOLD), or until a HEARTBEAT shows the vehicle out of
+OFFBOARD (not a disarm: PX4 keeps OFFBOARD through one and, with setpoints still coming, arms
+straight into it). Whatever stops the runner driving a vehicle therefore ends that stream at once
+and for good: :meth:`MavsdkVehicle.release` (see there for who gets which command).
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import dataclasses
 import json
 import logging
 import math
@@ -53,6 +60,12 @@ ARM_RETRY_S = 15.0
 ARM_RETRY_INTERVAL_S = 1.0
 #: How often discovery looks for the vehicles it waits for [s].
 DISCOVERY_POLL_S = 0.1
+#: PX4 sends HEARTBEAT at 1 Hz, so a disarm happened up to a period before the heartbeat that
+#: shows it, and a vehicle disarmed in the air falls meanwhile (5 m in the first second): its
+#: height at the disarm is the highest of this much of its odometry before [autopilot s].
+DISARM_LOOKBACK_S = 1.5
+#: Above this height (odometry, from an origin on the ground) a disarm was in the air [m].
+IN_AIR_ABOVE_M = 0.5
 _mavsdk_logging_routed = False
 _REASON_SEVERITIES = frozenset({"EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING"})
 
@@ -166,6 +179,20 @@ class MappedTrack:
         return self._track.at(boot_s, extrapolate_s=extrapolate_s)
 
 
+@dataclasses.dataclass(frozen=True)
+class Disarm:
+    """A disarm the runner saw (HEARTBEAT): when (``time.monotonic()``) and the vehicle's height
+    then (the highest of its odometry in the :data:`DISARM_LOOKBACK_S` before; None without
+    odometry)."""
+
+    seen_s: float
+    height_m: float | None
+
+    @property
+    def in_air(self) -> bool:
+        return self.height_m is not None and self.height_m > IN_AIR_ABOVE_M
+
+
 #: How long the runner waits for a vehicle in the air to reach a safe state (landed and
 #: disarmed, or in RTL or hold) when its mission ends abnormally [s].
 SAFE_STATE_TIMEOUT_S = 30.0
@@ -209,6 +236,14 @@ class MavsdkVehicle:
         self.armed: bool | None = None
         self._seen_in_control = False
         self._control_lost: str | None = None
+        #: Why the runner stopped driving the vehicle (None: it may still); final.
+        self.released: str | None = None
+        #: Setpoints the controller asked for after that, not sent.
+        self.setpoints_withheld = 0
+        self._streaming = False  # MAVSDK may be re-sending a setpoint of ours
+        self._offboard_lock = asyncio.Lock()  # orders setpoints against the stream's end
+        self._ending: asyncio.Task[None] | None = None
+        self.disarms: list[Disarm] = []
 
     def _boot_s(self, mission_s: float) -> float:
         return self.boot_s_at(mission_s)  # late-bound: follow_clock replaces boot_s_at
@@ -234,6 +269,8 @@ class MavsdkVehicle:
             logger.info("vehicle %s: rate change not taken (%s)", self.system_id, error)
 
     async def __aexit__(self, *exc_info: Any) -> bool | None:
+        # Nothing more of ours; closing the Mavsdk (connected_vehicles) ends MAVSDK's stream.
+        self._withhold("the runner's link to it closed")
         return await self._stack.__aexit__(*exc_info)
 
     def _cancel_streams(self) -> None:
@@ -296,13 +333,27 @@ class MavsdkVehicle:
         stream = self.telemetry.subscribe_armed()
         async with contextlib.aclosing(stream):
             async for armed in stream:
-                self.armed = bool(armed)
+                was, self.armed = self.armed, bool(armed)
+                if was and not self.armed:
+                    self._note_disarm()
                 self._check_control()
+
+    def _note_disarm(self) -> None:
+        sample = self.track.latest
+        highest = (
+            None if sample is None else self.track.highest_since(sample.time_s - DISARM_LOOKBACK_S)
+        )
+        self.disarms.append(Disarm(time.monotonic(), None if highest is None else -highest))
 
     @property
     def in_control(self) -> bool:
         """Seen armed and in OFFBOARD since :meth:`start_offboard` (and not taken over)."""
-        return self._seen_in_control and self._control_lost is None and self._offboard_now()
+        return (
+            self._seen_in_control
+            and self._control_lost is None
+            and self.released is None
+            and self._offboard_now()
+        )
 
     @property
     def control_lost(self) -> str | None:
@@ -320,10 +371,14 @@ class MavsdkVehicle:
             self._seen_in_control = True
         elif self._seen_in_control:
             # Only after OFFBOARD was seen: a heartbeat sent before the switch is not a takeover.
+            disarmed = self.armed is False
+            what = self._disarm_words() if disarmed else f"switched to {self.flight_mode}"
             self._control_lost = (
-                "disarmed" if self.armed is False else f"switched to {self.flight_mode}"
-            ) + " by someone other than the runner (pilot, another ground station or a failsafe)"
+                f"{what} by someone other than the runner (pilot, another ground station or a "
+                "failsafe)"
+            )
             logger.warning("vehicle %s: %s", self.system_id, self._control_lost)
+            self.release(self._control_lost)
 
     async def reason_since(self, since_s: float, *, wait_s: float = 1.0) -> str | None:
         """The autopilot's last warning-or-worse STATUSTEXT since monotonic ``since_s`` (PX4
@@ -545,6 +600,11 @@ class MavsdkVehicle:
 
     async def start_offboard(self) -> None:
         """Enter OFFBOARD with a zero-velocity setpoint (PX4 needs one streaming first)."""
+        if self.released is not None:
+            raise VehicleCommandError(
+                f"vehicle {self.system_id}: no longer driven ({self.released}); the runner "
+                "never takes a vehicle back"
+            )
         await self.set_velocity_ned(0.0, 0.0, 0.0)
         self._seen_in_control, self._control_lost = False, None
         await self._commanded(self.offboard.start(), "offboard start")
@@ -600,14 +660,136 @@ class MavsdkVehicle:
             float(down_m_s) * scale,
             float(yaw_deg),
         )
-        await self._within(self.offboard.set_velocity_ned(setpoint), "velocity setpoint")
+        # The blocking plugin under the asyncio one, so that the check and the send are one
+        # call in one thread: MAVSDK's watchdog (its receive thread) may end the stream between
+        # two calls, and a setpoint after that would start it again.
+        plugin = self.offboard._plugin
+        watched = self._seen_in_control
+
+        def send() -> bool:
+            if watched and not plugin.is_active():
+                return False  # MAVSDK saw the vehicle leave OFFBOARD: someone else flies it
+            plugin.set_velocity_ned(setpoint)
+            return True
+
+        if self.released is not None:  # and do not wait for the stream's end to say so
+            self.setpoints_withheld += 1
+            return
+        async with self._offboard_lock:
+            if self.released is not None:
+                self.setpoints_withheld += 1
+                return
+            loop = asyncio.get_running_loop()
+            sent = await self._within(loop.run_in_executor(None, send), "velocity setpoint")
+            if not sent:  # MAVSDK's watchdog ended the stream: nothing left to end
+                self._streaming = False
+                self.setpoints_withheld += 1
+                self._withhold("MAVSDK saw it leave OFFBOARD")
+                return
+            self._streaming = True
+
+    def _withhold(self, why: str) -> None:
+        """From now on no setpoint of the runner's goes out (for good)."""
+        if self.released is None:
+            self.released = why
+            logger.info("vehicle %s: no longer driven: %s", self.system_id, why)
+
+    def release(self, why: str) -> None:
+        """Stop driving this vehicle, at once and for good: no setpoint of the runner's goes out
+        from here on, and MAVSDK's re-sending of the last one ends (in a task of this link).
+
+        Who gets which command, as MAVSDK can only end its stream with ``offboard.stop()``,
+        which also commands HOLD:
+
+        - a vehicle seen armed in a mode other than OFFBOARD (a pilot's, another ground
+          station's, a failsafe's) gets none: MAVSDK stopped re-sending by itself at the
+          heartbeat that showed the mode, and HOLD would take the vehicle from whoever flies it;
+        - a disarmed one gets ``stop()``, so HOLD: inert while disarmed, and what makes a
+          pilot's re-arm arm into HOLD rather than into OFFBOARD on a stale stream (PX4 keeps
+          OFFBOARD through a disarm and arms into it while setpoints come), whoever disarmed it;
+        - one the runner still flies (lost, or its mission over: :meth:`finish`) gets
+          ``stop()`` too: HOLD is the runner's own choice for its own vehicle.
+        """
+        if self.released is not None:
+            return
+        self._withhold(why)
+        if self._group is None:
+            return  # never entered: MAVSDK never streamed for it
+        try:
+            # Not one of the streams cancelled at the end: the group waits for it.
+            self._ending = self._group.create_task(
+                self._end_stream(ours=self._control_lost is None),
+                name=f"vehicle-{self.system_id}-end-stream",
+            )
+        except RuntimeError:  # the link is closing: closing MAVSDK ends the stream
+            logger.info("vehicle %s: link closing; its stream ends with it", self.system_id)
+
+    async def stream_ended(self) -> None:
+        """Wait until the stream :meth:`release` ends is over (bounded by the command
+        timeout: MAVSDK's re-sending stops before its HOLD is even sent)."""
+        if self._ending is not None:
+            await asyncio.shield(self._ending)
+
+    async def _end_stream(self, *, ours: bool) -> None:
+        """End MAVSDK's re-sending of the runner's setpoint as :meth:`release` says."""
+        async with self._offboard_lock:  # a setpoint on its way is out before the stream ends
+            if not self._streaming:
+                return
+            self._streaming = False
+            if not ours and self.armed is True and self.flight_mode != "OFFBOARD":
+                # Only a setpoint sent as MAVSDK saw the mode could have started it again.
+                with contextlib.suppress(RunnerTimeoutError):
+                    if await self._within(self.offboard.is_active(), "offboard state"):
+                        logger.warning(
+                            "vehicle %s: MAVSDK still re-sends a setpoint to a vehicle in %s; "
+                            "it stops at its next heartbeat",
+                            self.system_id,
+                            self.flight_mode,
+                        )
+                return
+            try:
+                # MAVSDK ends its re-sending before it asks for HOLD: the stream is over even
+                # when the vehicle does not answer.
+                await self._within(self.offboard.stop(), "offboard stop")
+            except (MavsdkError, RunnerTimeoutError) as error:
+                logger.info("vehicle %s: HOLD after the stream: %s", self.system_id, error)
+
+    def _disarm_words(self, disarm: Disarm | None = None) -> str:
+        """``disarmed in the air at 6.0 m (it said: ...)`` for ``disarm`` (default: the last)."""
+        disarm = disarm or (self.disarms[-1] if self.disarms else None)
+        if disarm is None:
+            return "disarmed"
+        reason = self._disarm_reason(disarm.seen_s)
+        said = f" (it said: {reason})" if reason else ""
+        if disarm.in_air:
+            return f"disarmed in the air at {disarm.height_m:.1f} m{said}"
+        return f"disarmed on the ground{said}"
+
+    def ending(self) -> str:
+        """What the runner saw of this vehicle last, in words: how it was disarmed (landed, or
+        in the air at what height and what the vehicle said about it) and whether it was armed
+        again, else its armed state and mode."""
+        parts = [self._disarm_words(disarm) for disarm in self.disarms]
+        text = "; armed again, then ".join(parts)
+        if self.armed:
+            mode = self.flight_mode or "an unknown mode"
+            text += f"; armed again, in {mode} at the end" if parts else f"armed in {mode}"
+        return text or "never seen armed or disarmed"
+
+    def _disarm_reason(self, seen_s: float) -> str | None:
+        """The vehicle's STATUSTEXT about a disarm seen at monotonic ``seen_s`` (sent with the
+        disarm, so up to a heartbeat period before the heartbeat that shows it)."""
+        for at_s, _severity, text in self.status_texts:
+            if seen_s - 2.0 <= at_s <= seen_s + 1.0 and "disarm" in text.lower():
+                return text.strip()
+        return None
 
     async def finish(self, action: str = "land", *, timeout_s: float = 60.0) -> None:
-        """Leave OFFBOARD and land (waiting for the disarm), return (RTL) or hold."""
-        if self.in_offboard:
-            self.in_offboard = False  # from here on a mode change is the runner's own
-            with contextlib.suppress(MavsdkError, RunnerTimeoutError):
-                await self._within(self.offboard.stop(), "offboard stop")
+        """Stop driving the vehicle (:meth:`release`: its setpoint stream ends, for good), then
+        land (waiting for the disarm), return (RTL) or hold."""
+        self._withhold(f"the runner ends its flight ({action})")
+        self.in_offboard = False  # from here on a mode change is the runner's own
+        await self._end_stream(ours=True)
         if action == "land":
             await self._commanded(self.action.land(), "land")
             await self._first(

@@ -155,7 +155,9 @@ class FlightOutcome:
     mission_wall_time_s: float
     emulator_stats: EmulatorStats
     #: How each vehicle ended, as its controller saw it: ``{id: {"state", "detail"}}`` (state
-    #: ``done``, ``lost``, ``taken_over``, or ``aborted`` by the operator's land, return or stop).
+    #: ``done``, ``lost``, ``taken_over``, or ``aborted`` by the operator's land, return or stop;
+    #: the detail says why and what the runner saw of it last: landed and disarmed, or disarmed
+    #: in the air at what height, :meth:`.links.MavsdkVehicle.ending`).
     vehicles: dict[int, dict[str, str]]
     #: What the bus and the controllers dropped (``outputs.bus_security``).
     bus_security: dict[str, Any] = field(default_factory=dict)
@@ -293,7 +295,11 @@ async def fly(
                 if aggregator is not None:
                     aggregator.leave(controller.vehicle_id)
                 if ending is not None:
-                    await _end_by_operator(emulator.clock, vehicle, ending)
+                    await _end_vehicle(emulator.clock, vehicle, ENDING_ACTIONS[ending.command])
+                elif controller.state == "lost":
+                    # Its setpoint stream ends with it (MAVSDK would re-send the last one for
+                    # ever), and it is put where a vehicle process puts a lost one.
+                    await _end_vehicle(emulator.clock, vehicle, flight.on_lost)
                 return ending
 
             async def send(command: OperatorCommand) -> None:
@@ -340,13 +346,16 @@ async def fly(
             await _land_everyone(emulator.clock, vehicles, controllers, error)
             raise
         stats = emulator.stats()
-        disarmed = int(np.sum(~np.asarray(emulator.truth.armed)))
+        # Truth, for the score: a vehicle disarmed in the air fell; it did not land.
+        fell = np.array([bool(emulator.autopilot(i).disarms_in_air) for i in range(len(ids))])
+        landed = int(np.sum(~np.asarray(emulator.truth.armed) & ~fell))
         result = score_flight(
             scenario,
             world.samples,
             records,
-            disarmed,
+            landed,
             final_phases={c.vehicle_id: c.law.phase_rad for c in controllers},
+            disarmed_in_air=int(np.sum(fell)),
         )
     messages: dict[str, int] = {}
     for receiver in receivers:
@@ -380,12 +389,16 @@ async def fly(
 def _how_it_ended(
     controller: VehicleController, vehicle: MavsdkVehicle, ending: MissionControl | None
 ) -> dict[str, str]:
+    """The controller's end, and what the runner saw of the vehicle (:meth:`.ending`)."""
+    seen = vehicle.ending()
     if ending is not None:
         reason = f" ({ending.reason})" if ending.reason else ""
-        return {"state": "aborted", "detail": f"{ending.command.value} by the operator{reason}"}
+        detail = f"{ending.command.value} by the operator{reason}"
+        return {"state": "aborted", "detail": f"{detail}; {seen}"}
     if controller.state in ("lost", "taken_over"):
-        return {"state": controller.state, "detail": vehicle.control_lost or ""}
-    return {"state": "done", "detail": ""}
+        why = vehicle.control_lost or "own odometry stopped"
+        return {"state": controller.state, "detail": f"{why}; seen last: {seen}"}
+    return {"state": "done", "detail": seen}
 
 
 @contextlib.asynccontextmanager
@@ -412,10 +425,10 @@ async def _ground_station(
                 await ground.publish(topics.control(), b"", retain=True, timeout=2.0)
 
 
-async def _end_by_operator(clock: Clock, vehicle: MavsdkVehicle, ending: MissionControl) -> None:
-    """The operator ended this vehicle's mission: command what they asked for. Its controller
-    has left the lockstep clock; while it lands, time is paced for MAVSDK as at take-off."""
-    action = ENDING_ACTIONS[ending.command]
+async def _end_vehicle(clock: Clock, vehicle: MavsdkVehicle, action: str) -> None:
+    """This vehicle's mission ended early (the operator's land, return or stop, or its
+    controller gave it up): command ``action``. Its controller has left the lockstep clock;
+    while it lands, time is paced for MAVSDK as at take-off."""
     async with _paced(clock, name=f"pace-{vehicle.system_id}"):
         try:
             await vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S)

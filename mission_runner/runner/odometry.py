@@ -49,6 +49,13 @@ class OdometryTrack:
         """The newest sample, or None."""
         return self._samples[-1] if self._samples else None
 
+    def highest_since(self, time_s: float) -> float | None:
+        """The least ``down_m`` (the highest point) of the samples from ``time_s`` on, or None
+        if there are none."""
+        index = bisect.bisect_left(self._times, time_s)
+        downs = [self._samples[i].down_m for i in range(index, len(self._samples))]
+        return min(downs, default=None)
+
     def at(self, time_s: float, *, extrapolate_s: float = 0.0) -> tuple[float, float, float] | None:
         """``(north_m, east_m, down_m)`` at ``time_s``, or None if no two samples bracket it.
 
@@ -138,3 +145,7 @@ class FedTrack(OdometryTrack):
     def at(self, time_s: float, *, extrapolate_s: float = 0.0) -> tuple[float, float, float] | None:
         self._file()
         return super().at(time_s, extrapolate_s=extrapolate_s)
+
+    def highest_since(self, time_s: float) -> float | None:
+        self._file()
+        return super().highest_since(time_s)

@@ -14,9 +14,10 @@ The handshake, as an operator expects it:
    are ready in time, it aborts the mission for everyone (``land``): nobody is left hovering.
 4. Vehicles fly the steps and land (``flight.end_action``). A vehicle someone else takes (a mode
    change or disarm by a pilot, another ground station or a failsafe) reports ``taken_over`` and is
-   left to them. A vehicle whose controller gives up reports ``lost`` - final, never followed by
-   ``done`` - and is put in ``flight.on_lost`` by its process (and by its autopilot's
-   offboard-loss failsafe, set to the same, if the process dies).
+   left to them; its setpoint stream ends at once (:meth:`.links.MavsdkVehicle.release`). A
+   vehicle whose controller gives up reports ``lost`` - final, never followed by ``done`` - and
+   is put in ``flight.on_lost`` by its process (and by its autopilot's offboard-loss failsafe,
+   set to the same, if the process dies).
 
 Statuses and commands carry the mission id, so retained messages of an earlier mission are never
 taken for this one's.
@@ -229,6 +230,8 @@ async def run_vehicle(
             if vehicle.control_lost is None:  # a vehicle someone else flies is theirs
                 with contextlib.suppress(RunnerError):
                     await asyncio.shield(vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S))
+            else:  # its setpoint stream ended when it was taken: see that it did
+                await vehicle.stream_ended()
             if run.state not in FINAL_STATES:
                 await report("lost", detail=f"mission ended: {error!r}")
             raise
@@ -292,7 +295,9 @@ async def _fly(  # noqa: PLR0917
         return
     last = controller.records[-1].step if controller.records else 0
     if controller.state == "taken_over":
-        # Someone else flies it now: report it and leave it be (never fight a pilot).
+        # Someone else flies it now: report it and leave it be (never fight a pilot). Its
+        # setpoint stream ended when the link saw it taken (MavsdkVehicle.release).
+        await vehicle.stream_ended()
         await report("taken_over", step=last, detail=vehicle.control_lost or "")
         return
     if controller.state == "lost":

@@ -51,10 +51,12 @@ def score_flight(
     disarmed: int | None,
     *,
     final_phases: Mapping[int, float] | None = None,
+    disarmed_in_air: int | None = None,
 ) -> SimulationResult:
     """Score a flight from truth samples (``step``, ``time_s``, ``target_m (2,)``,
     ``positions_m (n, 2)``, ``alive (n,)``) and the controllers' records ``{id: [StepRecord]}``;
-    ``disarmed``: vehicles disarmed at the end (None: unknown); ``final_phases``: each
+    ``disarmed``: vehicles landed and disarmed at the end (None: unknown; a vehicle disarmed in
+    the air fell, it did not land: ``disarmed_in_air`` counts those); ``final_phases``: each
     controller's phase after its last step, ``{id: rad}``.
 
     A vehicle counts in the formation at step k when it is alive and its controller followed
@@ -122,6 +124,8 @@ def score_flight(
     extra = {"vehicles_in_formation_at_end": np.array([int(live[0, -1].sum())])}
     if disarmed is not None:
         extra["vehicles_disarmed_at_end"] = np.array([disarmed])
+    if disarmed_in_air is not None:
+        extra["vehicles_disarmed_in_air"] = np.array([disarmed_in_air])
     return score(scenario, times, target, out, extra)
 
 

@@ -192,7 +192,9 @@ class World:
                     index, "all", at_s=emulator_at_s, duration_s=event.duration_s
                 )
             elif event.kind == "taken_over":
-                self.emulator.take_over(index, event.mode, at_s=emulator_at_s)
+                self.emulator.take_over(
+                    index, event.mode, at_s=emulator_at_s, rearm_after_s=event.rearm_after_s
+                )
             elif event.kind == "sensor_lost" and event.sensor == "flow":
                 self.emulator.fail_sensor(
                     index, "flow", at_s=emulator_at_s, duration_s=event.duration_s

@@ -1,6 +1,7 @@
 """Helpers for tests that fly scenarios through the full stack (MAVSDK + UDP + emulator)."""
 
 import contextlib
+import math
 import os
 import re
 import signal
@@ -98,9 +99,11 @@ def swarm(
     ground_arguments=(),
     ground_stdin=subprocess.DEVNULL,
     gcs=False,
+    world_arguments=(),
 ):
     """``mission-runner emulate`` (emulator and world, on free ports; the vehicles' GCS links
-    too with ``gcs``), then a ``ground`` station (its stdin ``ground_stdin``) and one ``vehicle``
+    too with ``gcs``; more of its options in ``world_arguments``), then a ``ground`` station
+    (its stdin ``ground_stdin``) and one ``vehicle``
     process per drone, all on the scenario's bus. Processes still running at the end are killed,
     the world is stopped and its output kept in ``world_output``."""
     ports = free_port_config(vehicles, gcs=gcs)
@@ -123,6 +126,7 @@ def swarm(
         str(ports.api_remote_base),
         "--api-local-port-base",
         str(ports.api_local_base),
+        *world_arguments,
     )
     flying = Swarm(world, ports=ports)
     try:
@@ -151,3 +155,66 @@ def swarm(
                 process.kill()
         world.send_signal(signal.SIGINT)
         flying.world_output, _ = world.communicate(timeout=30)
+
+
+#: PX4's custom mode of OFFBOARD (main mode 6).
+OFFBOARD_MODE = 6 << 16
+
+
+@dataclass
+class StreamAfterTakeover:
+    """What a vehicle's tlog (the emulator's, both directions in order) shows after someone
+    other than the runner took it (its first heartbeat no longer armed in OFFBOARD after one
+    that was): see :func:`stream_after_takeover`."""
+
+    #: Runner setpoints (SET_POSITION_TARGET_LOCAL_NED from MAVSDK, system 245) that reached
+    #: the vehicle after that heartbeat, before the runner's mode command (if any) ...
+    setpoints_before_hold: int
+    #: ... and after that command (the HOLD of its ``offboard.stop()``), up to the end.
+    setpoints_after_hold: int
+    #: Whether the runner sent a mode command (DO_SET_MODE from 245) after the takeover at all.
+    hold_sent: bool
+    #: Whether a heartbeat showed the vehicle armed again after a disarm (the pilot's re-arm).
+    rearmed: bool
+    #: PX4 custom modes in the heartbeats while armed again.
+    modes_after_rearm: set[int]
+    #: The greatest height above home (GLOBAL_POSITION_INT) after the re-arm [m].
+    highest_after_rearm_m: float
+
+
+def stream_after_takeover(tlog_path, system_id):
+    """Read ``tlog_path`` (vehicle ``system_id``'s) into a :class:`StreamAfterTakeover`."""
+    from pymavlink import mavutil
+
+    armed_bit = mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    log = mavutil.mavlink_connection(str(tlog_path), dialect="common")
+    phase = "flying"  # -> "taken" -> "held" (the runner's mode command seen)
+    driven = was_armed = rearmed = False
+    counts = {"taken": 0, "held": 0}
+    modes: set[int] = set()
+    highest_m = -math.inf
+    with contextlib.closing(log):
+        messages = list(iter(log.recv_match, None))
+    for message in messages:
+        kind, source = message.get_type(), message.get_srcSystem()
+        if kind == "HEARTBEAT" and source == system_id and message.get_srcComponent() == 1:
+            armed = bool(message.base_mode & armed_bit)
+            in_offboard = armed and message.custom_mode == OFFBOARD_MODE
+            driven = driven or in_offboard
+            if phase == "flying" and driven and not in_offboard:
+                phase = "taken"
+            elif phase != "flying" and armed and not was_armed:
+                rearmed = True
+            if armed and rearmed:
+                modes.add(message.custom_mode)
+            was_armed = armed
+        elif kind == "SET_POSITION_TARGET_LOCAL_NED" and source == 245 and phase != "flying":
+            counts[phase] += 1
+        elif kind == "COMMAND_LONG" and source == 245 and phase == "taken":
+            if message.command == mavutil.mavlink.MAV_CMD_DO_SET_MODE:
+                phase = "held"
+        elif kind == "GLOBAL_POSITION_INT" and source == system_id and rearmed:
+            highest_m = max(highest_m, message.relative_alt / 1000.0)
+    return StreamAfterTakeover(
+        counts["taken"], counts["held"], phase == "held", rearmed, modes, highest_m
+    )

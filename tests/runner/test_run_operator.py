@@ -108,7 +108,9 @@ def test_typed_hold_resume_and_land_one_vehicle_act_on_the_next_step(tmp_path):
     assert run.returncode == 0, output
     assert "typed commands: end of input (the mission goes on)" in output
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["vehicles"]["2"] == {"state": "aborted", "detail": "land by the operator"}
+    ended = summary["vehicles"]["2"]
+    assert ended["state"] == "aborted", ended
+    assert ended["detail"].startswith("land by the operator; disarmed on the ground"), ended
     assert {summary["vehicles"][v]["state"] for v in "134"} == {"done"}
     assert summary["metrics"]["vehicles_disarmed_at_end"] == 4  # vehicle 2 too: landed
     assert "Traceback" not in output
@@ -169,7 +171,9 @@ def test_control_reaches_a_run_on_an_mqtt_bus(tmp_path, mosquitto):
     output = "".join(seen) + rest
     assert run.returncode == 0, output
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["vehicles"]["3"] == {"state": "aborted", "detail": "land by the operator"}
+    ended = summary["vehicles"]["3"]
+    assert ended["state"] == "aborted", ended
+    assert ended["detail"].startswith("land by the operator; disarmed on the ground"), ended
     # The mission's retained prepare is gone with it: no later control finds this mission.
     late = start("mission_runner.cli", "control", config, "hold")
     output, _ = late.communicate(timeout=30)
