@@ -60,6 +60,7 @@ from ..bus import (
     open_bus,
 )
 from ..bus.broker import OPERATOR_USER
+from ..errors import error_reason
 from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
 from .controller import StepRecord, VehicleController, build_controller
@@ -226,14 +227,16 @@ async def run_vehicle(
             # Never leave a vehicle in the air undriven: whatever ended the mission, command the
             # configured safe state (PX4's offboard-loss failsafe covers a dead process).
             action = scenario.flight.on_lost
-            logger.warning("vehicle %s: mission ended (%r): %s", vehicle_id, error, action)
+            logger.warning(
+                "vehicle %s: mission ended (%s): %s", vehicle_id, error_reason(error), action
+            )
             if vehicle.control_lost is None:  # a vehicle someone else flies is theirs
                 with contextlib.suppress(RunnerError):
                     await asyncio.shield(vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S))
             else:  # its setpoint stream ended when it was taken: see that it did
                 await vehicle.stream_ended()
             if run.state not in FINAL_STATES:
-                await report("lost", detail=f"mission ended: {error!r}")
+                await report("lost", detail=f"mission ended: {error_reason(error)}")
             raise
         finally:
             run.records = controller.records
