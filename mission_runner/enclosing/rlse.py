@@ -75,6 +75,16 @@ class EdgeEstimates:
         rows = [[self.gain_nn, self.gain_ne], [self.gain_ne, self.gain_ee]]
         return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
+    @property
+    def direction_spread_rad_m(self) -> NDArray[np.float64]:
+        """``(..., R, S)`` angular std of phat per metre of range noise std [rad/m]: the zeta of
+        a range d carries about sqrt(2) d sigma_r of noise, so phat's covariance is about
+        2 d^2 sigma_r^2 Gamma and its bearing's std sqrt(2 lambda_max(Gamma)) sigma_r. NaN
+        where the edge has no anchor."""
+        nn, ne, ee = self.gain_nn, self.gain_ne, self.gain_ee
+        largest = 0.5 * (nn + ee) + np.sqrt(0.25 * (nn - ee) ** 2 + ne * ne)
+        return np.where(self.anchored, np.sqrt(2.0 * np.maximum(largest, 0.0)), np.nan)
+
     def current(
         self, relative_north_m: NDArray[np.float64], relative_east_m: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

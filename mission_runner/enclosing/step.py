@@ -139,6 +139,10 @@ class StepOutputs:
         estimated (see :attr:`estimate_m` for the ``(..., R, S, 2)`` form).
     consensus_weights: ``(..., R, S)`` abar_ij used this step.
     gated: ``(..., R, S)`` bool, ranges the estimator rejected as outliers this step.
+    direction_spread_rad_m: ``(..., R, S)`` how far phat_ij's bearing may be off per metre of
+        range noise std [rad/m] (:attr:`.rlse.EdgeEstimates.direction_spread_rad_m`; for the
+        filter estimator its regression's, an upper figure once the filter has taken over);
+        NaN where the edge is not estimated.
     """
 
     velocity_m_s: NDArray[np.float64]
@@ -147,6 +151,7 @@ class StepOutputs:
     estimate_east_m: NDArray[np.float64]
     consensus_weights: NDArray[np.float64]
     gated: NDArray[np.bool_]
+    direction_spread_rad_m: NDArray[np.float64]
 
     @property
     def estimate_m(self) -> NDArray[np.float64]:
@@ -236,6 +241,11 @@ def enclosing_step(
         estimate_east_m=estimate_east,
         consensus_weights=weights,
         gated=gated,
+        direction_spread_rad_m=np.where(
+            np.isfinite(estimate_north),
+            (edges.regression if isinstance(edges, FilterEdges) else edges).direction_spread_rad_m,
+            np.nan,
+        ),
     )
     return next_state, outputs
 
