@@ -48,6 +48,10 @@ def algorithm_params(scenario: Scenario, *, flown: bool = False) -> EnclosingPar
         estimator=algorithm.estimator,
         filter=filter_settings(scenario, flown=flown) if algorithm.estimator == "ekf" else None,
         shared_ranges=algorithm.shared_ranges,
+        # The guard's bearings need a bound of the estimates' error; without it none is kept.
+        bound_range_noise_std_m=(
+            None if scenario.safety.min_separation_m is None else scenario.sensors.range_noise_std_m
+        ),
     )
 
 

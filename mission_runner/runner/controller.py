@@ -494,7 +494,7 @@ class VehicleController:
         """The command through the separation guard: directions from this step's estimates,
         distances from the measured (horizontal) ranges, the pair's motion from the setpoints in
         force (the own, and the neighbours' from their step messages; never truth)."""
-        estimates_m, spread = command.estimates_m, command.direction_spread_rad_m
+        estimates_m, bearing_std = command.estimates_m, command.bearing_std_rad
         peers = [peer for peer in estimates_m if peer != 0]
         if not peers:
             return velocity
@@ -518,7 +518,7 @@ class VehicleController:
             braking_m_s2=settings.separation_braking_m_s2,
             latency_s=settings.separation_latency_s,
             range_noise_std_m=settings.separation_range_noise_std_m,
-            direction_spread_rad_m=np.array([spread.get(peer, math.nan) for peer in peers]),
+            bearing_std_rad=np.array([bearing_std.get(peer, math.nan) for peer in peers]),
         )
 
     def _turn_oscillator(self, k: int) -> None:
