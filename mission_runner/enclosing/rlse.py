@@ -112,6 +112,7 @@ def rlse_update(
     forgetting_factor: float,
     *,
     range_noise_std_m: float | None = None,
+    min_displacement_m: float = 0.0,
 ) -> EdgeEstimates:
     """One estimator update for every edge whose range and relative odometry are known now.
 
@@ -120,9 +121,18 @@ def rlse_update(
     Unanchored edges with a measurement get their first anchor (phat and Gamma keep their initial
     values, as at the paper's k = 0); edges without a measurement keep their anchor.
     range_noise_std_m: sigma_r, to keep a bound of each estimate's error covariance (see
-    :func:`_error_update`); None: none is kept.
+    :func:`_error_update`); None: none is kept. min_displacement_m: a range whose relative
+    displacement since the anchor is shorter than this is not used (the anchor stays and the
+    next update spans the longer interval, as for a range not measured): with noisy ranges such
+    an update moves phat by about sigma_r d / |v| across what it knows, and with forgetting the
+    regression starves to garbage while a pair barely moves. 0: every range is used (the paper).
     Returns the new :class:`EdgeEstimates`.
     """
+    if min_displacement_m > 0:
+        moved_n = relative_north_m - estimates.anchor_north_m
+        moved_e = relative_east_m - estimates.anchor_east_m
+        short = moved_n * moved_n + moved_e * moved_e < min_displacement_m * min_displacement_m
+        range_m = np.where(estimates.anchored & short, np.nan, range_m)
     measured = np.isfinite(range_m) & np.isfinite(relative_north_m) & np.isfinite(relative_east_m)
     update = measured & estimates.anchored
 

@@ -33,6 +33,13 @@ from .rlse import EdgeEstimates, rlse_update
 from .shape import desired_offsets
 
 TARGET_SLOT = 0
+#: With a bound kept for the separation guard (``EnclosingParams.bound_range_noise_std_m``), the
+#: RLSE uses a range only over a relative displacement of at least this many range-noise stds
+#: (:func:`.rlse.rlse_update`): a pair the guard has slowed otherwise feeds it updates that turn
+#: a good bearing into garbage. 5 cm noise, 200 random starts of separation_guard.yaml with the
+#: guard: the 90th percentile of the tracking error over the last quarter fell from 41 m (pairs
+#: frozen for good) to 2.1 m.
+MIN_DISPLACEMENT_SIGMAS = 3.0
 
 
 @dataclass(frozen=True)
@@ -46,8 +53,8 @@ class EnclosingParams:
     each edge (i, j) is updated with the mean of d_ij and the d_ji that j measured and shared
     (:func:`pair_ranges`), so that i's and j's estimates of the pair see the same data.
     bound_range_noise_std_m: sigma_r for which the RLSE keeps a bound of each estimate's error
-    (:attr:`StepOutputs.bearing_std_rad`, for the separation guard); None: none is kept (it
-    changes no estimate).
+    (:attr:`StepOutputs.bearing_std_rad`, for the separation guard) and skips ranges over
+    displacements shorter than ``MIN_DISPLACEMENT_SIGMAS`` sigma_r; None: neither (the paper).
     """
 
     step_s: float
@@ -211,6 +218,7 @@ def enclosing_step(
             relative_east,
             params.forgetting_factor,
             range_noise_std_m=params.bound_range_noise_std_m,
+            min_displacement_m=MIN_DISPLACEMENT_SIGMAS * (params.bound_range_noise_std_m or 0.0),
         )
         gated = np.zeros(range_m.shape, dtype=bool)
     estimate_north, estimate_east = edges.current(relative_north, relative_east)

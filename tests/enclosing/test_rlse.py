@@ -80,3 +80,17 @@ def test_the_error_bound_holds_the_estimates_error_and_shrinks_as_it_converges()
     assert bounds[0] == ranges[0]  # the first range: phat = 0 is that far off
     assert bounds[-1] < 0.1 * bounds[0]
     assert plain.bearing_std_rad[0, 0] != plain.bearing_std_rad[0, 0]  # none kept: NaN
+
+
+def test_a_range_over_too_short_a_displacement_is_skipped_and_the_next_spans_the_longer_one():
+    zero = np.zeros((1, 1))
+    first = rlse_update(EdgeEstimates.initial((1, 1)), np.array([[5.0]]), zero, zero, 0.7)
+    near = (zero + 0.05, zero)  # 5 cm since the anchor: below the 0.15 m asked for
+    skipped = rlse_update(first, np.array([[5.04]]), *near, 0.7, min_displacement_m=0.15)
+    assert skipped.anchor_range_m[0, 0] == 5.0 and skipped.anchor_north_m[0, 0] == 0.0
+    assert skipped.gain_nn[0, 0] == first.gain_nn[0, 0]
+    far = (zero + 0.2, zero)
+    spanned = rlse_update(skipped, np.array([[5.15]]), *far, 0.7, min_displacement_m=0.15)
+    assert np.array_equal(
+        spanned.estimate_m, rlse_update(first, np.array([[5.15]]), *far, 0.7).estimate_m
+    )
