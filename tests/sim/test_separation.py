@@ -49,5 +49,5 @@ def test_the_guard_keeps_its_distance_under_the_flights_range_noise():
     assert metrics["min_separation_m"].min() >= 0.9
     # Braking on every bearing it is unsure of, it once froze most formations (pairs held at the
     # distance kept, their estimates starved of motion): the median run must still follow the
-    # target to within decimetres (the law alone: 0.2 m at this noise).
+    # target to within decimetres (the law alone: 0.2 m at this noise, bench/separation_bench.py).
     assert np.median(metrics["tail_tracking_error_rms_m"]) <= 0.5
