@@ -657,11 +657,11 @@ class SafetyConfig(Model):
         "distance above it shrinks by at most gain x step_s (capped at 1) of itself per step; "
         "up to 0.5 per step the guard stays safe even when the pair's step messages are lost.",
     )
-    separation_margin_m: Annotated[float, Field(ge=0, le=MAX_COORDINATE_M)] = Field(
-        0.0,
+    separation_margin_m: Annotated[float, Field(ge=0, le=MAX_COORDINATE_M)] | None = Field(
+        None,
         title="Separation margin",
         description="Distance the guard keeps beyond min_separation_m [m], for range noise and "
-        "estimate error.",
+        "estimate error. None: three times sensors.range_noise_std_m (0 without range noise).",
     )
     separation_braking_m_s2: Annotated[float, Field(gt=0, le=MAX_ACCELERATION_M_S2)] | None = Field(
         None,

@@ -48,6 +48,10 @@ def algorithm_params(scenario: Scenario, *, flown: bool = False) -> EnclosingPar
         estimator=algorithm.estimator,
         filter=filter_settings(scenario, flown=flown) if algorithm.estimator == "ekf" else None,
         shared_ranges=algorithm.shared_ranges,
+        # The guard's bearings need a bound of the estimates' error; without it none is kept.
+        bound_range_noise_std_m=(
+            None if scenario.safety.min_separation_m is None else scenario.sensors.range_noise_std_m
+        ),
     )
 
 
@@ -123,6 +127,7 @@ def controller_settings(scenario: Scenario, vehicle: VehicleConfig) -> Controlle
         separation_margin_m=scenario.safety.separation_margin_m,
         separation_braking_m_s2=scenario.safety.separation_braking_m_s2,
         separation_latency_s=scenario.safety.separation_latency_s,
+        separation_range_noise_std_m=scenario.sensors.range_noise_std_m,
         range_limits=range_limits(scenario),
         fleet_speed_limit_m_s=max(v.speed_limit_m_s for v in scenario.vehicles),
         target_lost_after_s=scenario.algorithm.target_lost_after_s,

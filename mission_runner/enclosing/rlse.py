@@ -34,6 +34,8 @@ class EdgeEstimates:
     gain_nn, gain_ne, gain_ee: Gamma_ij at the anchor ([[nn, ne], [ne, ee]]).
     anchor_range_m: d_ij at the anchor [m]; NaN where the edge has no anchor yet.
     anchor_north_m, anchor_east_m: relative odometry o_i - o_j at the anchor [m].
+    error_nn, error_ne, error_ee: a covariance bound of phat's error at the anchor [m^2], kept
+    only when :func:`rlse_update` is given the range noise (None otherwise; NaN unanchored).
     """
 
     estimate_north_m: NDArray[np.float64]
@@ -44,6 +46,9 @@ class EdgeEstimates:
     anchor_range_m: NDArray[np.float64]
     anchor_north_m: NDArray[np.float64]
     anchor_east_m: NDArray[np.float64]
+    error_nn: NDArray[np.float64] | None = None
+    error_ne: NDArray[np.float64] | None = None
+    error_ee: NDArray[np.float64] | None = None
 
     @classmethod
     def initial(cls, shape: tuple[int, ...], initial_gain: float = 1.0) -> Self:
@@ -75,6 +80,16 @@ class EdgeEstimates:
         rows = [[self.gain_nn, self.gain_ne], [self.gain_ne, self.gain_ee]]
         return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
+    @property
+    def bearing_std_rad(self) -> NDArray[np.float64]:
+        """``(..., R, S)`` how far phat's bearing may be off [rad]: the worst-direction std of
+        its error over the range at the anchor. NaN where no error bound is kept."""
+        if self.error_nn is None or self.error_ne is None or self.error_ee is None:
+            return np.full(self.anchor_range_m.shape, np.nan)
+        nn, ne, ee = self.error_nn, self.error_ne, self.error_ee
+        largest = 0.5 * (nn + ee) + np.sqrt(0.25 * (nn - ee) ** 2 + ne * ne)
+        return np.sqrt(np.maximum(largest, 0.0)) / self.anchor_range_m
+
     def current(
         self, relative_north_m: NDArray[np.float64], relative_east_m: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -95,6 +110,9 @@ def rlse_update(
     relative_north_m: NDArray[np.float64],
     relative_east_m: NDArray[np.float64],
     forgetting_factor: float,
+    *,
+    range_noise_std_m: float | None = None,
+    min_displacement_m: float = 0.0,
 ) -> EdgeEstimates:
     """One estimator update for every edge whose range and relative odometry are known now.
 
@@ -102,8 +120,19 @@ def rlse_update(
     relative_north_m, relative_east_m: ``(..., R, S)`` o_i - o_j now [m], NaN where unknown.
     Unanchored edges with a measurement get their first anchor (phat and Gamma keep their initial
     values, as at the paper's k = 0); edges without a measurement keep their anchor.
+    range_noise_std_m: sigma_r, to keep a bound of each estimate's error covariance (see
+    :func:`_error_update`); None: none is kept. min_displacement_m: a range whose relative
+    displacement since the anchor is shorter than this is not used (the anchor stays and the
+    next update spans the longer interval, as for a range not measured): with noisy ranges such
+    an update moves phat by about sigma_r d / |v| across what it knows, and with forgetting the
+    regression starves to garbage while a pair barely moves. 0: every range is used (the paper).
     Returns the new :class:`EdgeEstimates`.
     """
+    if min_displacement_m > 0:
+        moved_n = relative_north_m - estimates.anchor_north_m
+        moved_e = relative_east_m - estimates.anchor_east_m
+        short = moved_n * moved_n + moved_e * moved_e < min_displacement_m * min_displacement_m
+        range_m = np.where(estimates.anchored & short, np.nan, range_m)
     measured = np.isfinite(range_m) & np.isfinite(relative_north_m) & np.isfinite(relative_east_m)
     update = measured & estimates.anchored
 
@@ -122,6 +151,18 @@ def rlse_update(
     new_nn = np.where(update, (g_nn - gv_n * gv_n * scale) * forget, g_nn)
     new_ne = np.where(update, (g_ne - gv_n * gv_e * scale) * forget, g_ne)
     new_ee = np.where(update, (g_ee - gv_e * gv_e * scale) * forget, g_ee)
+    error = None
+    if range_noise_std_m is not None:
+        k_n, k_e = new_nn * v_n + new_ne * v_e, new_ne * v_n + new_ee * v_e  # phat += v + k eps
+        zeta_variance = range_noise_std_m**2 * (range_m * range_m + anchor_range * anchor_range)
+        error = _error_update(estimates, (k_n, k_e), (v_n, v_e), zeta_variance, update=update)
+        first = measured & ~estimates.anchored  # phat is the paper's 0: off by d, any way
+        start = range_m * range_m
+        error = (
+            np.where(first, start, error[0]),
+            np.where(first, 0.0, error[1]),
+            np.where(first, start, error[2]),
+        )
     return EdgeEstimates(
         estimate_north_m=np.where(update, p_n + v_n + (new_nn * v_n + new_ne * v_e) * eps, p_n),
         estimate_east_m=np.where(update, p_e + v_e + (new_ne * v_n + new_ee * v_e) * eps, p_e),
@@ -131,4 +172,42 @@ def rlse_update(
         anchor_range_m=np.where(measured, range_m, anchor_range),
         anchor_north_m=np.where(measured, relative_north_m, estimates.anchor_north_m),
         anchor_east_m=np.where(measured, relative_east_m, estimates.anchor_east_m),
+        error_nn=None if error is None else error[0],
+        error_ne=None if error is None else error[1],
+        error_ee=None if error is None else error[2],
+    )
+
+
+def _error_update(
+    estimates: EdgeEstimates,
+    gain: tuple[NDArray[np.float64], NDArray[np.float64]],
+    displacement: tuple[NDArray[np.float64], NDArray[np.float64]],
+    zeta_variance: NDArray[np.float64],
+    *,
+    update: NDArray[np.bool_],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The error covariance bound C after an update: the error e = phat - p moves as
+    e(b) = (I - k v^T) e(a) + k n, where n is zeta's noise (variance sigma_r^2 (d_a^2 + d_b^2);
+    the noise shared by consecutive updates is neglected), so C(b) = A C A^T + k k^T var(n).
+    Odometry carries phat and p alike, so C does not grow between updates; nor does it with the
+    forgetting that inflates Gamma (forgetting weights data, it adds no error). At an edge's
+    first anchor phat is the paper's 0, off by the range d in an unknown direction: C = d^2 I.
+    With exact ranges C is then exact: |e| <= sqrt(lambda_max(C))."""
+    k_n, k_e = gain
+    v_n, v_e = displacement
+    shape = update.shape
+    c_nn = estimates.error_nn if estimates.error_nn is not None else np.full(shape, np.nan)
+    c_ne = estimates.error_ne if estimates.error_ne is not None else np.full(shape, np.nan)
+    c_ee = estimates.error_ee if estimates.error_ee is not None else np.full(shape, np.nan)
+    a_nn, a_ne, a_en, a_ee = 1.0 - k_n * v_n, -k_n * v_e, -k_e * v_n, 1.0 - k_e * v_e
+    # A C, then (A C) A^T, each 2 x 2 written out on the planes.
+    ac_nn, ac_ne = a_nn * c_nn + a_ne * c_ne, a_nn * c_ne + a_ne * c_ee
+    ac_en, ac_ee = a_en * c_nn + a_ee * c_ne, a_en * c_ne + a_ee * c_ee
+    new_nn = ac_nn * a_nn + ac_ne * a_ne + k_n * k_n * zeta_variance
+    new_ne = ac_nn * a_en + ac_ne * a_ee + k_n * k_e * zeta_variance
+    new_ee = ac_en * a_en + ac_ee * a_ee + k_e * k_e * zeta_variance
+    return (
+        np.where(update, new_nn, c_nn),
+        np.where(update, new_ne, c_ne),
+        np.where(update, new_ee, c_ee),
     )

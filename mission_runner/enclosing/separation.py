@@ -30,7 +30,15 @@ h_j >= 0.
 
 Directions come from the vehicle's estimates of p_i - p_j (RLSE); one whose length disagrees
 with the measured range (an estimator still converging) is not trusted, and the vehicle then
-keeps its speed below w_j / 2 instead. Symmetric deadlocks (two vehicles head on, each held by
+keeps its speed below w_j / 2 instead. A length that agrees says little about the bearing (an
+early estimate, or with range noise a regression starved of motion, can point well off), so
+where the estimator gives how far its bearing may be off (``bearing_std_rad``, from a bound of
+its error) a direction is trusted only within a cone of ``CONE_SIGMAS`` of those stds, and the
+condition must hold for every direction in it; a cone wider than ``MAX_CONE_RAD`` gives none.
+The distance kept gets ``RANGE_SIGMAS`` sigma_r beyond d_min unless the caller sets the margin,
+so that a range reading long does not eat into d_min.
+
+Symmetric deadlocks (two vehicles head on, each held by
 the other at the minimum separation) are broken by turning right: near the distance kept, the
 part of the law's approach that a condition cuts is partly given back across n_j, to the
 vehicle's right, which closes no distance; both turn right and pass each other.
@@ -64,6 +72,22 @@ TURN_FRACTION = 0.5
 #: the law's saturated consensus must work off, and turning at every close pass measurably kept
 #: formations from converging (paper scenario, 1000 random starts).
 STUCK_FRACTION = 0.25
+#: The distance kept beyond d_min when no margin is given: this many range-noise stds (a range
+#: reading long by more than 3 sigma happens about once in 700 readings, and the barrier's
+#: gamma <= 1/2 leaves half of any such error to the next step).
+RANGE_SIGMAS = 3.0
+#: Half-angle of the cone of trusted directions, in the estimator's bearing stds. With exact
+#: ranges the RLSE's bound is a hard one (one std is the largest error); with noise it is a
+#: first-order figure: with 5 cm range noise (trusted estimates of pairs closer than 2.5 m, 100
+#: random starts of separation_guard.yaml and of paper_tracking.yaml) the bearing error was
+#: within 1.4 stds in 99 % of samples, 3.1 at most, and the margin of three range stds took the
+#: rest (1000 starts of each: no pair below 1.03 m; bench/separation_bench.py). A wider cone
+#: brakes more pairs, and a braked pair's estimates starve of motion: at 1.5 stds the median
+#: run's tracking error over the last quarter was 1.9 m instead of 0.27 m (paper scenario).
+CONE_SIGMAS = 1.0
+#: A cone wider than this gives no direction (the vehicle brakes as for a blind one): the three
+#: half-planes that bound a wider cone leave little of the command anyway.
+MAX_CONE_RAD = np.pi / 3
 
 
 def _norm(vector: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -111,9 +135,11 @@ def separation_guard(
     min_separation_m: float,
     gain_1_s: float,
     step_s: float,
-    margin_m: float = 0.0,
+    margin_m: float | None = None,
     braking_m_s2: float | None = None,
     latency_s: float = 0.0,
+    range_noise_std_m: float = 0.0,
+    bearing_std_rad: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
     """The command closest to ``velocity_m_s`` that keeps the separation conditions.
 
@@ -124,7 +150,11 @@ def separation_guard(
     (set at the last step; the neighbours' from their step messages) [m/s] (NaN or None: not
     known, counted as zero).
     min_separation_m + margin_m: the distance kept [m] (the margin for range noise and estimate
-    error). gain_1_s, step_s: gamma = min(gain T, 1). braking_m_s2, latency_s: see the module.
+    error; None: ``RANGE_SIGMAS`` range_noise_std_m). gain_1_s, step_s: gamma = min(gain T, 1).
+    braking_m_s2, latency_s: see the module. range_noise_std_m: sigma_r of one range [m].
+    bearing_std_rad: ``(..., m)`` how far each estimate's bearing may be off [rad]
+    (:attr:`.step.StepOutputs.bearing_std_rad`; NaN: not known, no direction); None: the
+    directions whose length agrees with the range are taken as exact.
     Returns ``(..., 2)``; unchanged where no condition binds.
     """
     command = np.asarray(velocity_m_s, dtype=float)
@@ -136,6 +166,8 @@ def separation_guard(
     own = np.sum(normal * _known(own_command_m_s, command.shape)[..., None, :], axis=-1)
     theirs = np.sum(normal * _known(neighbour_command_m_s, normal.shape), axis=-1)
     along = own + theirs  # n . (u_i' + u_j')
+    if margin_m is None:
+        margin_m = RANGE_SIGMAS * range_noise_std_m
     clearance = np.where(present, distance, np.inf) - (min_separation_m + margin_m)
     if latency_s > 0:  # what the commands in force still close before the new ones act
         clearance = clearance - latency_s * np.maximum(theirs - own, 0.0)
@@ -148,13 +180,22 @@ def separation_guard(
     # estimator still converging) gives none, and the vehicle keeps below half the pair's
     # allowed closing speed whatever the direction.
     trusted = usable & present & (np.abs(length - distance) <= TRUST_FRACTION * distance)
+    cone = None
+    if bearing_std_rad is not None:
+        cone = CONE_SIGMAS * np.asarray(bearing_std_rad, dtype=float)
+        trusted &= cone <= MAX_CONE_RAD  # NaN (unknown spread) is not
     bound = np.where(trusted, reference - half, -np.inf)
     blind = present & ~trusted
     speed_cap = np.min(np.where(blind, np.maximum(half, 0.0), np.inf), axis=-1)
+    if cone is not None:
+        normal, bound = _cone_conditions(normal, bound, np.where(trusted, cone, 0.0))
 
     cut = np.maximum(bound - np.sum(normal * command[..., None, :], axis=-1), 0.0)
     if not (np.any(cut > 0) or np.any(_norm(command) > speed_cap)):
         return command
+    if cone is not None:  # the turn below works on each neighbour's own line and worst cut
+        m = cut.shape[-1] // 3
+        normal, cut = normal[..., :m, :], np.max(np.reshape(cut, (*cut.shape[:-1], 3, m)), -2)
     # Turn right when stuck: the vehicle heads to j along -n, whose right is (n_east, -n_north);
     # j, doing the same, turns the other way, and they pass left side to left side.
     stuck = np.clip(1.0 - clearance / (STUCK_FRACTION * min_separation_m), 0.0, 1.0)
@@ -162,8 +203,26 @@ def separation_guard(
     turn = TURN_FRACTION * approach * np.where(theirs >= 0.0, stuck, 0.0)
     right = np.stack([normal[..., 1], -normal[..., 0]], axis=-1)
     wanted = command + np.sum(turn[..., None] * right, axis=-2)
+    if cone is not None:
+        normal, bound = _cone_conditions(normal, bound[..., :m], np.where(trusted, cone, 0.0))
     x = _project(wanted, normal, bound, speed_cap)
     return _inside(x, normal, bound, speed_cap)
+
+
+def _cone_conditions(
+    normal: NDArray[np.float64], bound: NDArray[np.float64], cone_rad: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The conditions n' . u >= b for every n' within ``cone_rad`` ``(..., m)`` of n ``(..., m,
+    2)``, as three half-planes per neighbour ``(..., 3m, 2)``, ``(..., 3m)``: the cone's two edges
+    with b, which suffice for b > 0 (every n' inside is a combination of the edges with weights
+    summing to >= 1), and n itself with b cos(cone) for b <= 0: a command closing along a
+    direction inside the cone, at angle phi from n, is then at most |b| cos(cone) / cos(phi) <=
+    |b| fast. Inside the set the condition holds whichever direction of the cone is true."""
+    cos, sin = np.cos(cone_rad)[..., None], np.sin(cone_rad)[..., None]
+    across = np.stack([-normal[..., 1], normal[..., 0]], axis=-1)
+    edges = [normal * cos + across * sin, normal * cos - across * sin]
+    centre = np.where(bound <= 0.0, bound * cos[..., 0], bound)
+    return np.concatenate([normal, *edges], axis=-2), np.concatenate([centre, bound, bound], -1)
 
 
 def _project(

@@ -33,6 +33,13 @@ from .rlse import EdgeEstimates, rlse_update
 from .shape import desired_offsets
 
 TARGET_SLOT = 0
+#: With a bound kept for the separation guard (``EnclosingParams.bound_range_noise_std_m``), the
+#: RLSE uses a range only over a relative displacement of at least this many range-noise stds
+#: (:func:`.rlse.rlse_update`): a pair the guard has slowed otherwise feeds it updates that turn
+#: a good bearing into garbage. 5 cm noise, 200 random starts of separation_guard.yaml with the
+#: guard: the 90th percentile of the tracking error over the last quarter fell from 41 m (pairs
+#: frozen for good) to 2.1 m.
+MIN_DISPLACEMENT_SIGMAS = 3.0
 
 
 @dataclass(frozen=True)
@@ -45,6 +52,9 @@ class EnclosingParams:
     or ``ekf`` (:mod:`.ekf`, which needs ``filter``, its noise model and gate). shared_ranges:
     each edge (i, j) is updated with the mean of d_ij and the d_ji that j measured and shared
     (:func:`pair_ranges`), so that i's and j's estimates of the pair see the same data.
+    bound_range_noise_std_m: sigma_r for which the RLSE keeps a bound of each estimate's error
+    (:attr:`StepOutputs.bearing_std_rad`, for the separation guard) and skips ranges over
+    displacements shorter than ``MIN_DISPLACEMENT_SIGMAS`` sigma_r; None: neither (the paper).
     """
 
     step_s: float
@@ -58,6 +68,7 @@ class EnclosingParams:
     estimator: Literal["rlse", "ekf"] = "rlse"
     filter: FilterSettings | None = None
     shared_ranges: bool = False
+    bound_range_noise_std_m: float | None = None
 
     def __post_init__(self) -> None:
         rules = [
@@ -69,6 +80,10 @@ class EnclosingParams:
             (self.initial_gain > 0, "initial_gain must be > 0"),
             (self.estimator in ("rlse", "ekf"), "estimator must be rlse or ekf"),
             (self.estimator != "ekf" or self.filter is not None, "estimator ekf needs filter"),
+            (
+                self.bound_range_noise_std_m is None or self.bound_range_noise_std_m >= 0,
+                "bound_range_noise_std_m must be >= 0",
+            ),
         ]
         broken = [message for ok, message in rules if not ok]
         if broken:
@@ -139,6 +154,10 @@ class StepOutputs:
         estimated (see :attr:`estimate_m` for the ``(..., R, S, 2)`` form).
     consensus_weights: ``(..., R, S)`` abar_ij used this step.
     gated: ``(..., R, S)`` bool, ranges the estimator rejected as outliers this step.
+    bearing_std_rad: ``(..., R, S)`` how far phat_ij's bearing may be off [rad], one std of a
+        bound of its error (RLSE: :attr:`.rlse.EdgeEstimates.bearing_std_rad`, kept with
+        ``EnclosingParams.bound_range_noise_std_m``; the filter: its covariance, once it has
+        taken over); NaN where not known.
     """
 
     velocity_m_s: NDArray[np.float64]
@@ -147,6 +166,7 @@ class StepOutputs:
     estimate_east_m: NDArray[np.float64]
     consensus_weights: NDArray[np.float64]
     gated: NDArray[np.bool_]
+    bearing_std_rad: NDArray[np.float64]
 
     @property
     def estimate_m(self) -> NDArray[np.float64]:
@@ -192,7 +212,13 @@ def enclosing_step(
         )
     else:
         edges = rlse_update(
-            state.edges, range_m, relative_north, relative_east, params.forgetting_factor
+            state.edges,
+            range_m,
+            relative_north,
+            relative_east,
+            params.forgetting_factor,
+            range_noise_std_m=params.bound_range_noise_std_m,
+            min_displacement_m=MIN_DISPLACEMENT_SIGMAS * (params.bound_range_noise_std_m or 0.0),
         )
         gated = np.zeros(range_m.shape, dtype=bool)
     estimate_north, estimate_east = edges.current(relative_north, relative_east)
@@ -236,6 +262,7 @@ def enclosing_step(
         estimate_east_m=estimate_east,
         consensus_weights=weights,
         gated=gated,
+        bearing_std_rad=np.where(np.isfinite(estimate_north), _bearing_std_rad(edges), np.nan),
     )
     return next_state, outputs
 
@@ -261,3 +288,14 @@ def pair_ranges(
         both, 0.5 * (range_m + reverse_range_m), np.where(own, range_m, reverse_range_m)
     )
     return paired, own.astype(float) + reverse
+
+
+def _bearing_std_rad(edges: EdgeEstimates | FilterEdges) -> NDArray[np.float64]:
+    """How far each edge's estimate in force may be off in bearing [rad] ``(..., R, S)``."""
+    if isinstance(edges, EdgeEstimates):
+        return edges.bearing_std_rad
+    covariance = edges.filter  # the filter keeps its covariance in the gain fields
+    nn, ne, ee = covariance.gain_nn, covariance.gain_ne, covariance.gain_ee
+    largest = 0.5 * (nn + ee) + np.sqrt(0.25 * (nn - ee) ** 2 + ne * ne)
+    filtered = np.sqrt(np.maximum(largest, 0.0)) / covariance.anchor_range_m
+    return np.where(edges.engaged, filtered, edges.regression.bearing_std_rad)

@@ -4,7 +4,7 @@ single row, plus the bookkeeping from vehicle ids to slots.
 """
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -42,6 +42,8 @@ class VehicleCommand:
     consensus_m_s: ``(2,)`` the saturated consensus term. estimates_m: phat_ij(k) per peer id
     (0 = target) for the edges estimated this step. neighbours_used: peer ids in this step's sum.
     gated: peer ids whose range the estimator rejected as an outlier this step.
+    bearing_std_rad: per peer id in ``estimates_m``, how far the estimate's bearing may be off
+    [rad] (see :class:`.step.StepOutputs`; NaN: not known).
     """
 
     velocity_m_s: NDArray[np.float64]
@@ -49,6 +51,7 @@ class VehicleCommand:
     estimates_m: dict[int, NDArray[np.float64]]
     neighbours_used: tuple[int, ...]
     gated: tuple[int, ...] = ()
+    bearing_std_rad: dict[int, float] = field(default_factory=dict)
 
 
 class VehicleEnclosing:
@@ -158,6 +161,7 @@ class VehicleEnclosing:
             estimates_m={peers[s]: estimate[s] for s in estimated},
             neighbours_used=tuple(peers[s] for s in used),
             gated=tuple(peers[s] for s in np.flatnonzero(out.gated[0]).tolist()),
+            bearing_std_rad={peers[s]: float(out.bearing_std_rad[0, s]) for s in estimated},
         )
 
     def _slot(self, peer: int) -> int:

@@ -55,6 +55,7 @@ from ..enclosing import (
     TargetEstimate,
     TargetReport,
     TargetTrack,
+    VehicleCommand,
     VehicleEnclosing,
     track_target,
 )
@@ -111,9 +112,10 @@ class ControllerSettings:
     tracking_max_correction_m_s: float = 2.0
     min_separation_m: float | None = None
     separation_gain_1_s: float = 4.0
-    separation_margin_m: float = 0.0
+    separation_margin_m: float | None = None
     separation_braking_m_s2: float | None = None
     separation_latency_s: float = 0.0
+    separation_range_noise_std_m: float = 0.0
     range_limits: RangeLimits | None = None
     #: The fastest any vehicle of the mission may fly [m/s]: a neighbour's step message saying
     #: it flies faster loses its command (None: every command is taken as it comes).
@@ -450,7 +452,7 @@ class VehicleController:
                 command.velocity_m_s, odometry
             )
             if settings.min_separation_m is not None:
-                wanted = self._separated(wanted, command.estimates_m, data, ranges)
+                wanted = self._separated(wanted, command, data, ranges)
             velocity = self._clamp(wanted)
             used, estimates, gated = command.neighbours_used, command.estimates_m, command.gated
             consensus = (float(command.consensus_m_s[0]), float(command.consensus_m_s[1]))
@@ -486,13 +488,14 @@ class VehicleController:
     def _separated(
         self,
         velocity: NDArray[np.float64],
-        estimates_m: dict[int, NDArray[np.float64]],
+        command: VehicleCommand,
         data: StepData,
         ranges: dict[int, float],
     ) -> NDArray[np.float64]:
         """The command through the separation guard: directions from this step's estimates,
         distances from the measured (horizontal) ranges, the pair's motion from the setpoints in
         force (the own, and the neighbours' from their step messages; never truth)."""
+        estimates_m, bearing_std = command.estimates_m, command.bearing_std_rad
         peers = [peer for peer in estimates_m if peer != 0]
         if not peers:
             return velocity
@@ -515,6 +518,8 @@ class VehicleController:
             margin_m=settings.separation_margin_m,
             braking_m_s2=settings.separation_braking_m_s2,
             latency_s=settings.separation_latency_s,
+            range_noise_std_m=settings.separation_range_noise_std_m,
+            bearing_std_rad=np.array([bearing_std.get(peer, math.nan) for peer in peers]),
         )
 
     def _turn_oscillator(self, k: int) -> None:

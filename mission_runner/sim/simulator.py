@@ -379,7 +379,8 @@ def _guarded(  # noqa: PLR0917 - the step's pieces, each named
     scenario: Scenario,
 ) -> NDArray[np.float64]:
     """The law's commands ``(B, N, 2)`` through the separation guard: each vehicle's estimates of
-    the live others (RLSE, p_i - p_j) for directions, its measured ranges for distances, and the
+    the live others (RLSE, p_i - p_j) for directions, trusted within how far their bearing may
+    be off, its measured ranges for distances, and the
     commands in force ``(B, N, 2)`` (set at the last step, as the step messages carry them; NaN
     at k = 0 and for vehicles not live)."""
     others = live[:, None, :] & ~np.eye(live.shape[-1], dtype=bool)
@@ -398,6 +399,8 @@ def _guarded(  # noqa: PLR0917 - the step's pieces, each named
         margin_m=safety.separation_margin_m,
         braking_m_s2=safety.separation_braking_m_s2,
         latency_s=safety.separation_latency_s,
+        range_noise_std_m=scenario.sensors.range_noise_std_m,
+        bearing_std_rad=step.bearing_std_rad[..., 1:],
     )
 
 

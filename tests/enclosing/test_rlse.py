@@ -56,3 +56,41 @@ def test_first_measurement_anchors_with_the_papers_initial_values():
     estimates = rlse_update(EdgeEstimates.initial((2, 3)), np.full((2, 3), 2.0), zero, zero, 0.7)
     np.testing.assert_array_equal(estimates.estimate_m, 0.0)
     np.testing.assert_array_equal(estimates.gain, np.broadcast_to(np.eye(2), (2, 3, 2, 2)))
+
+
+def test_the_error_bound_holds_the_estimates_error_and_shrinks_as_it_converges():
+    # Exact ranges: the bound starts at the range (phat = 0, direction unknown) and, the error
+    # moving linearly, bounds it exactly after every update; the estimate is not changed by it.
+    rng = np.random.default_rng(5)
+    truth = np.array([3.0, -2.0])
+    kept = plain = EdgeEstimates.initial((1, 1))
+    bounds, ranges = [], []
+    for _ in range(15):
+        truth = truth + rng.normal(scale=0.3, size=2)
+        moved = (truth[0] - np.zeros((1, 1)), truth[1] - np.zeros((1, 1)))  # o_j still
+        distance = np.array([[np.hypot(*truth)]])
+        kept = rlse_update(kept, distance, *moved, 0.7, range_noise_std_m=0.0)
+        plain = rlse_update(plain, distance, *moved, 0.7)
+        error = np.hypot(*(np.array(kept.current(*moved))[:, 0, 0] - truth))
+        bound = float(kept.bearing_std_rad[0, 0]) * float(kept.anchor_range_m[0, 0])
+        assert error <= bound * (1 + 1e-9) + 1e-12
+        assert np.array_equal(kept.estimate_north_m, plain.estimate_north_m)
+        bounds.append(bound)
+        ranges.append(float(distance[0, 0]))
+    assert bounds[0] == ranges[0]  # the first range: phat = 0 is that far off
+    assert bounds[-1] < 0.1 * bounds[0]
+    assert plain.bearing_std_rad[0, 0] != plain.bearing_std_rad[0, 0]  # none kept: NaN
+
+
+def test_a_range_over_too_short_a_displacement_is_skipped_and_the_next_spans_the_longer_one():
+    zero = np.zeros((1, 1))
+    first = rlse_update(EdgeEstimates.initial((1, 1)), np.array([[5.0]]), zero, zero, 0.7)
+    near = (zero + 0.05, zero)  # 5 cm since the anchor: below the 0.15 m asked for
+    skipped = rlse_update(first, np.array([[5.04]]), *near, 0.7, min_displacement_m=0.15)
+    assert skipped.anchor_range_m[0, 0] == 5.0 and skipped.anchor_north_m[0, 0] == 0.0
+    assert skipped.gain_nn[0, 0] == first.gain_nn[0, 0]
+    far = (zero + 0.2, zero)
+    spanned = rlse_update(skipped, np.array([[5.15]]), *far, 0.7, min_displacement_m=0.15)
+    assert np.array_equal(
+        spanned.estimate_m, rlse_update(first, np.array([[5.15]]), *far, 0.7).estimate_m
+    )

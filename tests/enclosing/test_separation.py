@@ -232,3 +232,33 @@ def test_batched_calls_equal_one_call_per_vehicle():
         for i in range(4):
             single = guard(commands[b, i], relative[b, i], distance[b, i], own[b, i], others[b, i])
             assert batched[b, i] == pytest.approx(single)
+
+
+def test_range_noise_sets_the_default_margin_and_an_explicit_one_is_kept():
+    # 1.5 m measured, both still, heading at the neighbour at 5 m/s. 5 cm noise: 1.15 m kept,
+    # w = 0.5 * 0.35 / 0.125 = 1.4 m/s, 0.7 each; an explicit 0.3 m margin at 2 m: 1.3 m kept,
+    # w = 0.5 * 0.7 / 0.125 = 2.8 m/s, 1.4 each.
+    ahead = {"own": [0.0, 0.0], "other": [[0.0, 0.0]], "range_noise_std_m": 0.05}
+    assert guard([5.0, 0.0], [[-1.5, 0.0]], [1.5], **ahead) == pytest.approx([0.7, 0.0])
+    explicit = guard([5.0, 0.0], [[-2.0, 0.0]], [2.0], margin_m=0.3, **ahead)
+    assert explicit == pytest.approx([1.4, 0.0])
+
+
+def test_a_direction_is_trusted_only_within_how_far_its_bearing_may_be_off():
+    # The estimate puts the neighbour due north, 1.5 m, but its bearing may be 0.6 rad (34
+    # degrees) off either way (CONE_SIGMAS bearing stds). Flying 34 degrees east of north,
+    # straight at where the neighbour may truly be, the guard must slow the approach along that
+    # line to half the pair's allowed closing speed; taking the estimate as exact it lets 5 m/s
+    # through across it.
+    heading = np.array([np.cos(0.6), np.sin(0.6)])
+    settings = {"own": [0.0, 0.0], "other": [[0.0, 0.0]], "range_noise_std_m": 0.05}
+    std = [0.6 / separation.CONE_SIGMAS]
+    out = guard(5.0 * heading, [[-1.5, 0.0]], [1.5], bearing_std_rad=std, **settings)
+    half = 0.5 * allowed_closing_m_s(np.array(1.5 - 1.15), step_s=STEP, gain_1_s=GAIN)
+    for angle in np.linspace(-0.6, 0.6, 13):  # every direction of the cone
+        assert np.array([np.cos(angle), np.sin(angle)]) @ out <= half + 1e-9
+    # A bearing that may be off by more than MAX_CONE_RAD gives no direction: the vehicle brakes
+    # to that speed; one not known at all (NaN) likewise.
+    for unknown in (1.1 * separation.MAX_CONE_RAD / separation.CONE_SIGMAS, np.nan):
+        wide = guard(5.0 * heading, [[-1.5, 0.0]], [1.5], bearing_std_rad=[unknown], **settings)
+        assert np.hypot(*wide) == pytest.approx(float(half))
