@@ -53,6 +53,28 @@ ODOMETRY_RATE_HZ = 50.0
 #: and a broken or hostile SYSTEM_TIME must not multiply the vehicle's speed.
 MAX_VELOCITY_SCALE = 1.25
 SYSTEM_TIME_RATE_HZ = 10.0  # pairs to interpolate a jittery simulated clock between
+#: Streams PX4 sends a companion computer's (onboard) link by default that a vehicle flying the
+#: mission never reads (PX4 v1.16 mavlink_main.cpp, MAVLINK_MODE_ONBOARD), with their default
+#: rates [Hz]: 325 of the about 480 messages a second PX4 SITL sends that link, each packed by
+#: PX4's mavlink thread and parsed by MAVSDK's receive thread. Stopped once the vehicle flies in
+#: OFFBOARD (take-off and health need some of them); the link is the companion computer's own
+#: (a ground station has its own link and rates).
+UNREAD_STREAMS = {
+    mavlink.MAVLINK_MSG_ID_ATTITUDE: 100.0,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 50.0,
+    mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: 50.0,
+    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 50.0,
+    mavlink.MAVLINK_MSG_ID_ODOMETRY: 30.0,
+    mavlink.MAVLINK_MSG_ID_RC_CHANNELS: 20.0,
+    mavlink.MAVLINK_MSG_ID_ALTITUDE: 10.0,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET: 10.0,
+    mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 10.0,
+    mavlink.MAVLINK_MSG_ID_POSITION_TARGET_GLOBAL_INT: 10.0,
+    mavlink.MAVLINK_MSG_ID_NAV_CONTROLLER_OUTPUT: 10.0,
+    mavlink.MAVLINK_MSG_ID_VFR_HUD: 10.0,
+    mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW: 10.0,
+    mavlink.MAVLINK_MSG_ID_WIND_COV: 10.0,
+}
 #: Height above which a vehicle taking off is airborne enough to be handed to OFFBOARD.
 TAKEOFF_CLEAR_M = 2.0
 #: How long a refused arm is asked again, and how often [s].
@@ -464,12 +486,24 @@ class MavsdkVehicle:
             )
         return bounded
 
+    async def quiet_unread_streams(self) -> None:
+        """Stop the :data:`UNREAD_STREAMS` on this link. An autopilot that refuses one keeps
+        sending it (logged; the vehicle flies as before, only dearer)."""
+        for message_id in UNREAD_STREAMS:
+            try:
+                await self.request_interval(message_id, 0.0)
+            except (VehicleCommandError, RunnerTimeoutError) as error:
+                logger.info(
+                    "vehicle %s: stream %d not stopped: %s", self.system_id, message_id, error
+                )
+
     async def request_interval(self, message_id: int, rate_hz: float) -> None:
-        """MAV_CMD_SET_MESSAGE_INTERVAL for ``message_id`` at ``rate_hz`` on this link."""
+        """MAV_CMD_SET_MESSAGE_INTERVAL for ``message_id`` at ``rate_hz`` on this link (0: stop
+        the stream, as MAVLink's interval -1)."""
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkMessage  # noqa: PLC0415
 
         params: dict[str, float] = {f"param{i}": 0 for i in range(1, 8)}
-        params.update(param1=message_id, param2=1e6 / rate_hz)
+        params.update(param1=message_id, param2=1e6 / rate_hz if rate_hz > 0 else -1)
         request = MavlinkMessage(
             message_name="COMMAND_LONG",
             system_id=245,  # MAVSDK's own ids as a ground station

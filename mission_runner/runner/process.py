@@ -271,6 +271,7 @@ async def _fly(  # noqa: PLR0917
         try:
             await vehicle.start_offboard()
             await vehicle.wait_altitude(controller.altitude_m)
+            await vehicle.quiet_unread_streams()
             command = await _until_start(control, report, run, mapping, scenario)
         except BaseException:
             hovering.cancel()

@@ -4,8 +4,14 @@ refuses at first, velocity setpoints on the autopilot's own clock."""
 import asyncio
 
 import pytest
+from pymavlink.dialects.v20 import common as mavlink
 
-from mission_runner.runner.links import MAX_VELOCITY_SCALE, MavsdkVehicle, connected_vehicles
+from mission_runner.runner.links import (
+    MAX_VELOCITY_SCALE,
+    UNREAD_STREAMS,
+    MavsdkVehicle,
+    connected_vehicles,
+)
 from mission_runner.runner.timesync import MissionTime
 from sitl.config import ClockConfig, EmulatorConfig
 from sitl.emulator import Emulator
@@ -100,3 +106,24 @@ async def test_velocity_setpoints_are_scaled_to_the_autopilots_clock(
     warnings = [r.getMessage() for r in caplog.records if "scaled by" in r.getMessage()]
     bounded = expected_scale == 1 / MAX_VELOCITY_SCALE
     assert len(warnings) == bounded  # said once, and only where the scale is bounded
+
+
+@pytest.mark.timeout(60)
+async def test_a_flying_vehicle_stops_the_streams_it_never_reads():
+    """PX4 sends a companion computer's link ~480 messages a second, most of them unread; once
+    the vehicle flies the mission they are stopped on that link (SET_MESSAGE_INTERVAL -1), and
+    the odometry and clock streams the controller reads go on."""
+    ports = free_port_config(1, gcs=False)
+    config = EmulatorConfig(vehicles=1, ports=ports, clock=ClockConfig(speed=1.0))
+    async with Emulator(config) as emulator:
+        url = f"udpin://0.0.0.0:{ports.api_remote_port(0)}"
+        async with (
+            connected_vehicles([url], [1]) as systems,
+            MavsdkVehicle(systems[1], 1) as vehicle,
+        ):
+            (api,) = [link for link in emulator.autopilot(0).links if link.name == "api"]
+            streamed = [m for m in UNREAD_STREAMS if api.streams.period_s(m) is not None]
+            assert mavlink.MAVLINK_MSG_ID_ATTITUDE in streamed  # PX4's 100 Hz, as emulated
+            await vehicle.quiet_unread_streams()
+            assert [m for m in streamed if api.streams.period_s(m) is not None] == []
+            assert api.streams.period_s(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED) == 1 / 50
