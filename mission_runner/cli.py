@@ -1102,6 +1102,7 @@ def _broker_config(arguments: argparse.Namespace) -> int:
         bind_address=arguments.bind,
         tls=tls,
         write_bus_key=not arguments.no_bus_key,
+        max_message_bytes=scenario.bus.auth.max_message_bytes,
     )
     print(f"broker-config: users {', '.join(files.users)}")
     print(f"  start the broker:   mosquitto -c {files.config}")

@@ -14,6 +14,9 @@ credentials each process logs in with.
   (give each machine only its own line);
 - ``bus.key`` (mode 0600): a fresh random message key for ``--bus-key-file`` (every process).
 
+The broker forwards no message longer than the receivers accept (``max_packet_size``,
+``message_size_limit``).
+
 mosquitto enforces the ACL per user, whatever the message says: a vehicle's credentials cannot
 publish a ``start``, even with the bus key. A denied publish is dropped by the broker silently
 (MQTT 3.1.1 has no way to say so at QoS 0).
@@ -31,6 +34,7 @@ from pathlib import Path
 
 from mission_runner.bus.auth import Sender
 from mission_runner.bus.errors import BusAuthError
+from mission_runner.bus.paho_reader import max_packet_bytes
 from mission_runner.bus.topics import Topics
 
 USERNAME_ENV = "MISSION_BUS_USERNAME"
@@ -166,8 +170,11 @@ def write_broker_config(
     bind_address: str | None = None,
     tls: TlsListener | None = None,
     write_bus_key: bool = True,
+    max_message_bytes: int = 16384,
 ) -> BrokerFiles:
-    """Write a mosquitto configuration for the mission (see the module docstring)."""
+    """Write a mosquitto configuration for the mission (see the module docstring).
+    ``max_message_bytes``: the scenario's ``bus.auth.max_message_bytes``; the broker refuses
+    anything longer."""
     out_dir.mkdir(parents=True, exist_ok=True)
     out_dir = out_dir.resolve()
     users = ("ground", "ranges", *(str(Sender.vehicle(i)) for i in vehicle_ids))
@@ -211,6 +218,12 @@ def write_broker_config(
         f"acl_file {files.acl}",
         # Without it Nagle's algorithm holds step messages to subscribers by up to 40 ms.
         "set_tcp_nodelay true",
+        # Nothing longer than the receivers accept (bus.auth.max_message_bytes) is forwarded: a
+        # longer packet's sender is disconnected before its payload is read, and a longer
+        # payload in a shorter packet is dropped. Four 64 MiB payloads on the control topic,
+        # read in full by every vehicle, stalled their odometry until they were declared lost.
+        f"max_packet_size {max_packet_bytes(max_message_bytes)}",
+        f"message_size_limit {max_message_bytes}",
     ]
     if os.geteuid() == 0:
         lines += [

@@ -89,6 +89,8 @@ def test_the_files_written(tmp_path: Path) -> None:
     config = files.config.read_text().splitlines()
     assert "listener 8883" in config and "allow_anonymous false" in config
     assert f"certfile {cert}" in config and f"keyfile {key}" in config
+    # Sized from the largest message the receivers accept (bus.auth.max_message_bytes).
+    assert "max_packet_size 17408" in config and "message_size_limit 16384" in config
     acl = files.acl.read_text()
     assert "user ground\ntopic write enclosing/acl-test/control\n" in acl
     assert "user vehicle-3\ntopic write enclosing/acl-test/vehicle/3/step\n" in acl
@@ -225,8 +227,8 @@ async def test_forged_replayed_oversized_and_malformed_ranges_are_dropped_and_co
             wrong_key.seal(Sender.ranges(), topic, forty),  # signed with a guessed key
             first,
             first,  # replayed
-            b"MR1 " + b"x" * 20000,  # oversized
             b"\x00\xff garbage",  # malformed
+            b"",  # empty: MQTT's "clear the retained value", no message
             genuine.seal(Sender.ranges(), topic, RangeMessage(1, 2, 0.125, 4.1).to_payload()),
         ]:
             await attacker.publish(topic, payload)
@@ -235,10 +237,37 @@ async def test_forged_replayed_oversized_and_malformed_ranges_are_dropped_and_co
     assert [message.range_m for message in got] == [4.0, 4.1]
     assert counters == {
         "accepted": 2,
-        "oversized": 1,
+        "oversized": 0,  # the broker forwards none (see the next test)
         "malformed": 2,
         "forged": 1,
         "unauthorised": 0,
         "stale": 0,
         "replayed": 1,
+        "empty": 1,
     }
+
+
+@pytest.mark.asyncio
+async def test_the_broker_forwards_nothing_longer_than_a_message(
+    broker: tuple[MosquittoBroker, BrokerFiles], attacker: aiomqtt.Client
+) -> None:
+    """A payload longer than any message the mission accepts never reaches a vehicle: the
+    broker disconnects whoever sends it before reading it (64 MiB, the issue's attack), and
+    drops one just over the limit in a shorter packet."""
+    server, files = broker
+    topic = TOPICS.range(1, 2)
+    async with (
+        client(server, files, "vehicle-1") as vehicle_1,
+        vehicle_1.subscribe(TOPICS.all_ranges(1)) as ranges,
+        client(server, files, "ranges") as range_aid,
+    ):
+        await attacker.publish(topic, b"x" * (16384 + 512), qos=1, timeout=10)
+        # Disconnected unread: the acknowledgement never comes.
+        with pytest.raises(aiomqtt.MqttError):
+            await attacker.publish(topic, b"x" * (64 * 1024 * 1024), qos=1, timeout=5)
+        await range_aid.publish_message(topic, RangeMessage(1, 2, 0.0, 4.0), timeout=5)
+        _, got = await ranges.receive_message(RangeMessage, timeout=5.0)
+        counters = vehicle_1.auth_counters.as_dict()
+    assert got.range_m == 4.0
+    assert counters["oversized"] == 0 and counters["malformed"] == 0
+    assert counters["accepted"] == 1
