@@ -69,6 +69,7 @@ DEFAULT_KEY_ENV = "MISSION_BUS_KEY"
 INSECURE_KEY_TEXT = "mission-runner insecure bus: anyone can forge these messages"
 
 _MAC_CHARS = 43  # base64url of 32 bytes, unpadded
+_MAGIC_PREFIX = MAGIC + b" "
 _FLAGS = {b"-": (False, False), b"r": (True, False), b"w": (True, True)}
 
 
@@ -404,11 +405,8 @@ class MessageAuth:
         broker's retained store), or None when it is dropped (counted and logged). An empty
         payload is never a message: dropped and counted, not logged (a flood of them must cost
         no more than counting)."""
-        if not data:
-            self.counters.empty += 1
+        if not self.admits(topic, data):
             return None
-        if len(data) > self.policy.max_message_bytes:
-            return self._reject(Rejection.OVERSIZED, topic, f"{len(data)} bytes")
         header, newline, body = data.partition(b"\n")
         parts = header.split(b" ")
         if not newline or len(parts) != 6 or parts[0] != MAGIC or len(parts[1]) != _MAC_CHARS:
@@ -447,6 +445,22 @@ class MessageAuth:
         self._accepted[key] = (sequence, mac)
         self.counters.accepted += 1
         return body
+
+    def admits(self, topic: str, data: bytes) -> bool:
+        """Whether ``data`` received on ``topic`` may be a sealed message, judged on its length
+        and first bytes only: an empty payload, one over ``max_message_bytes`` and one without
+        the header's magic are dropped and counted here, as :meth:`open` would, before anything
+        else is spent on them (the MQTT bus asks before its client builds a message)."""
+        if not data:
+            self.counters.empty += 1
+            return False
+        if len(data) > self.policy.max_message_bytes:
+            self._reject(Rejection.OVERSIZED, topic, f"{len(data)} bytes")
+            return False
+        if not data.startswith(_MAGIC_PREFIX):
+            self._reject(Rejection.MALFORMED, topic, "no bus message header")
+            return False
+        return True
 
     def skipped_oversized(self, packet_bytes: int) -> None:
         """Count an MQTT packet of ``packet_bytes`` skipped unread for its size (its topic was

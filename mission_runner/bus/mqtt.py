@@ -413,6 +413,7 @@ class MqttBus(Bus):
             client._client,  # aiomqtt's paho client: see paho_reader.py
             max_packet_bytes(self.auth.policy.max_message_bytes),
             self.auth.skipped_oversized,
+            admits=self.auth.admits,
         )
         return client
 

@@ -48,7 +48,7 @@ def max_packet_bytes(max_message_bytes: int) -> int:
 
 
 #: What paho's reader holds between packets (``paho.mqtt.client.Client._packet_read``).
-_PAHO_READER = ("_packet_read", "_sock_recv", "_in_packet", "_sock")
+_PAHO_READER = ("_packet_read", "_sock_recv", "_in_packet", "_sock", "on_message")
 
 
 def _fresh_packet() -> dict[str, Any]:
@@ -69,11 +69,14 @@ def guard_reader(
     max_packet_bytes: int,
     on_skipped: Callable[[int], None],
     *,
+    admits: Callable[[str, bytes], bool] | None = None,
     packets_per_turn: int = PACKETS_PER_TURN,
 ) -> None:
     """Make ``paho_client`` skip every incoming packet whose remaining length exceeds
     ``max_packet_bytes`` without reading it into memory, calling ``on_skipped(length)`` once
     each has been skipped, and read up to ``packets_per_turn`` waiting packets per call.
+    ``admits(topic, payload)``: whether a message goes on to the client's ``on_message`` at all
+    (a payload that cannot be a message is dropped before aiomqtt wraps and queues it).
     Raises BusConnectionError if this paho's reader is not the one this was written for."""
     if not all(hasattr(paho_client, name) for name in _PAHO_READER):
         raise BusConnectionError(
@@ -138,3 +141,11 @@ def guard_reader(
 
     paho_client._sock_recv = guarded_receive
     paho_client._packet_read = guarded_read
+    if admits is not None:
+        deliver = paho_client.on_message
+
+        def on_message(client: Any, userdata: Any, message: Any) -> None:
+            if admits(message.topic, message.payload):
+                deliver(client, userdata, message)
+
+        paho_client.on_message = on_message
