@@ -179,6 +179,7 @@ async def run_vehicle(
             )
         )
         control = await stack.enter_async_context(bus.subscribe(topics.control()))
+        controller_bus = await stack.enter_async_context(flight_bus(scenario, vehicle_id, bus))
         report = _Reporter(bus, topics, run)
         await report("waiting", detail="waiting for the ground station's prepare")
         prepare = await next_command(control, {ControlCommand.PREPARE}, timeout_s=ready_timeout_s)
@@ -195,7 +196,7 @@ async def run_vehicle(
             scenario,
             config,
             link=vehicle,
-            bus=bus,
+            bus=controller_bus,
             clock=WallClock(mission_time),
             on_step=on_step,
         )
@@ -223,6 +224,24 @@ async def run_vehicle(
             run.autopilot_clock_rate = mapping.fit.boot_rate
             run.clock_residual_s = mapping.fit.residual_s
     return run
+
+
+def flight_bus(scenario: Scenario, vehicle_id: int, control_bus: Bus) -> Bus:
+    """The controller's own connection to the broker, for its neighbours' step messages, its
+    ranges and its target and its own step messages; the control topic (and statuses, and the
+    last will) stay on ``control_bus``. A broker sends each connection its messages in order, and
+    a client reads one connection in order: on one connection, a flood on the control topic
+    (40,000 garbage payloads) held genuine step messages back by seconds, and they were dropped
+    as late. On two, the event loop reads both sockets in every turn. Both sign with one
+    :class:`MessageAuth` (``auth``): one sequence per topic and one set of counters for the
+    process."""
+    bus = open_bus(
+        scenario.bus,
+        sender=Sender.vehicle(vehicle_id),
+        client_id=f"{scenario.name}-vehicle-{vehicle_id}-flight",
+    )
+    bus.auth = control_bus.auth
+    return bus
 
 
 async def _fly(  # noqa: PLR0917
