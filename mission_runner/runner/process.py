@@ -30,13 +30,14 @@ import logging
 import math
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..bus import (
+    STALE_STATES,
     Bus,
     BusError,
     ControlCommand,
@@ -113,11 +114,18 @@ class VehicleRun:
     commands_rejected: int = 0
 
 
+def stale_steps(records: Iterable[StepRecord]) -> int:
+    """Steps held or skipped for want of fresh data (:data:`STALE_STATES`)."""
+    return sum(record.state in STALE_STATES for record in records)
+
+
 class _Reporter:
     """Publishes this vehicle's status (retained) under the current mission id."""
 
     def __init__(self, bus: Bus, topics: Topics, run: VehicleRun) -> None:
         self.bus, self.topics, self.run = bus, topics, run
+        #: Once flying: its steps held or skipped go with every report (the ground's verdict).
+        self.controller: VehicleController | None = None
 
     async def __call__(
         self, state: str, *, step: int = 0, detail: str = "", clock_rate: float | None = None
@@ -132,6 +140,7 @@ class _Reporter:
             detail,
             mission_id=self.run.mission_id,
             clock_rate=clock_rate,
+            stale_steps=None if self.controller is None else stale_steps(self.controller.records),
         )
         try:
             await self.bus.publish_message(
@@ -200,6 +209,7 @@ async def run_vehicle(
             clock=WallClock(mission_time),
             on_step=on_step,
         )
+        report.controller = controller
         try:
             await _fly(scenario, vehicle, controller, control, report, run, mapping, mission_time)
         except BaseException as error:
@@ -361,6 +371,15 @@ class GroundOutcome:
     @property
     def lost(self) -> list[int]:
         return sorted(i for i, s in self.statuses.items() if s.state != "done")
+
+    @property
+    def stale_steps(self) -> int | None:
+        """Steps the vehicles held or skipped for want of fresh data, as their last reports
+        say; None when a vehicle never said (it failed before flying, or its report was lost)."""
+        counts = [status.stale_steps for status in self.statuses.values()]
+        if not counts or any(count is None for count in counts):
+            return None
+        return sum(count for count in counts if count is not None)
 
 
 async def run_ground(
