@@ -153,6 +153,19 @@ def acl_text(topics: Topics, vehicle_ids: Sequence[int]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def size_limits(max_message_bytes: int) -> list[str]:
+    """mosquitto.conf lines that forward nothing longer than the receivers accept
+    (``bus.auth.max_message_bytes``): a longer packet's sender is disconnected before its
+    payload is read, and a longer payload in a shorter packet is dropped. Without them, four
+    64 MiB payloads on the control topic stalled the vehicles until they were declared lost;
+    even skipped unread by the receivers, forwarding one held other messages back by up to
+    0.4 s (bench/message_sizes.py's neighbour, measured with one subscriber)."""
+    return [
+        f"max_packet_size {max_packet_bytes(max_message_bytes)}",
+        f"message_size_limit {max_message_bytes}",
+    ]
+
+
 def _write_private(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` readable by its owner only (also when it existed)."""
     descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
@@ -218,12 +231,7 @@ def write_broker_config(
         f"acl_file {files.acl}",
         # Without it Nagle's algorithm holds step messages to subscribers by up to 40 ms.
         "set_tcp_nodelay true",
-        # Nothing longer than the receivers accept (bus.auth.max_message_bytes) is forwarded: a
-        # longer packet's sender is disconnected before its payload is read, and a longer
-        # payload in a shorter packet is dropped. Four 64 MiB payloads on the control topic,
-        # read in full by every vehicle, stalled their odometry until they were declared lost.
-        f"max_packet_size {max_packet_bytes(max_message_bytes)}",
-        f"message_size_limit {max_message_bytes}",
+        *size_limits(max_message_bytes),
     ]
     if os.geteuid() == 0:
         lines += [
