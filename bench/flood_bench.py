@@ -22,6 +22,7 @@ import csv
 import json
 import os
 import re
+import secrets
 import sys
 import tempfile
 from pathlib import Path
@@ -99,6 +100,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=240)
     parser.add_argument("--no-limits", action="store_true")
     arguments = parser.parse_args()
+    # Every process of the swarm signs with this bench's own key.
+    os.environ.setdefault("MISSION_BUS_KEY", secrets.token_hex(32))
     for attack in arguments.attacks:
         with tempfile.TemporaryDirectory() as directory:
             fly(attack, arguments.steps, not arguments.no_limits, Path(directory))
