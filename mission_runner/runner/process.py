@@ -30,14 +30,13 @@ import logging
 import math
 import time
 import uuid
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..bus import (
-    STALE_STATES,
     Bus,
     BusError,
     ControlCommand,
@@ -114,11 +113,6 @@ class VehicleRun:
     commands_rejected: int = 0
 
 
-def stale_steps(records: Iterable[StepRecord]) -> int:
-    """Steps held or skipped for want of fresh data (:data:`STALE_STATES`)."""
-    return sum(record.state in STALE_STATES for record in records)
-
-
 class _Reporter:
     """Publishes this vehicle's status (retained) under the current mission id."""
 
@@ -140,7 +134,7 @@ class _Reporter:
             detail,
             mission_id=self.run.mission_id,
             clock_rate=clock_rate,
-            stale_steps=None if self.controller is None else stale_steps(self.controller.records),
+            stale_steps=None if self.controller is None else self.controller.stale_steps,
         )
         try:
             await self.bus.publish_message(
