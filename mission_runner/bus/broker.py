@@ -5,7 +5,8 @@ credentials each process logs in with.
 
 - ``mosquitto.conf``: one listener (optionally TLS, with certificate files the operator gives),
   no anonymous access, the password file and the ACL below;
-- ``passwords``: one user per role (``ground``, ``vehicle-<id>``, ``ranges``) with a random
+- ``passwords``: one user per role (``ground``, ``vehicle-<id>`` and ``vehicle-<id>-flight`` for
+  its controller's connection, ``ranges``) with a random
   password, hashed as mosquitto 2 stores them (``$7$``: PBKDF2-SHA512, 101 iterations, 12-byte
   salt; computed here, so no password appears on a command line);
 - ``acl``: each vehicle publishes only its own topics, only the ground station publishes on
@@ -124,6 +125,13 @@ class BrokerFiles:
     users: tuple[str, ...]
 
 
+def flight_user(vehicle_id: int) -> str:
+    """The login of a vehicle process's second connection, its controller's (``vehicle-<id>-
+    flight``; see ``runner.process.flight_bus``): a broker that binds client ids to logins lets
+    one login hold one connection."""
+    return f"{Sender.vehicle(vehicle_id)}-flight"
+
+
 def acl_text(topics: Topics, vehicle_ids: Sequence[int]) -> str:
     """mosquitto ACL of a mission: who may write which topic (everyone reads the mission)."""
     prefix = topics.prefix
@@ -141,15 +149,17 @@ def acl_text(topics: Topics, vehicle_ids: Sequence[int]) -> str:
         f"topic read {topics.everything()}",
     ]
     for vehicle_id in vehicle_ids:
-        lines += [
-            "",
-            f"user {Sender.vehicle(vehicle_id)}",
-            f"topic write {topics.step(vehicle_id)}",
-            f"topic write {topics.status(vehicle_id)}",
-            f"topic write {prefix}/vehicle/{vehicle_id}/range/+",
-            f"topic write {topics.target(vehicle_id)}",
-            f"topic read {topics.everything()}",
-        ]
+        # The vehicle's two connections (see flight_user): the same rights.
+        for user in (str(Sender.vehicle(vehicle_id)), flight_user(vehicle_id)):
+            lines += [
+                "",
+                f"user {user}",
+                f"topic write {topics.step(vehicle_id)}",
+                f"topic write {topics.status(vehicle_id)}",
+                f"topic write {prefix}/vehicle/{vehicle_id}/range/+",
+                f"topic write {topics.target(vehicle_id)}",
+                f"topic read {topics.everything()}",
+            ]
     return "\n".join(lines) + "\n"
 
 
@@ -190,7 +200,11 @@ def write_broker_config(
     anything longer."""
     out_dir.mkdir(parents=True, exist_ok=True)
     out_dir = out_dir.resolve()
-    users = ("ground", "ranges", *(str(Sender.vehicle(i)) for i in vehicle_ids))
+    users = (
+        "ground",
+        "ranges",
+        *(user for i in vehicle_ids for user in (str(Sender.vehicle(i)), flight_user(i))),
+    )
     passwords = {user: secrets.token_urlsafe(24) for user in users}
     files = BrokerFiles(
         config=out_dir / "mosquitto.conf",

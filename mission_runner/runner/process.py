@@ -48,6 +48,8 @@ from ..bus import (
     lost_vehicle_will,
     open_bus,
 )
+from ..bus.broker import flight_user, read_credentials
+from ..bus.mqtt import MqttBus
 from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
 from .controller import StepRecord, VehicleController, build_controller
@@ -245,7 +247,24 @@ def flight_bus(scenario: Scenario, vehicle_id: int, control_bus: Bus) -> Bus:
         client_id=f"{scenario.name}-vehicle-{vehicle_id}-flight",
     )
     bus.auth = control_bus.auth
+    login = _flight_login(scenario, vehicle_id)
+    if login is not None and isinstance(bus, MqttBus):
+        # Its own login where the credentials have one (broker-config's), as a broker that
+        # binds client ids to logins would let this connection take the control connection's.
+        bus._username, bus._password = login  # set before it connects
     return bus
+
+
+def _flight_login(scenario: Scenario, vehicle_id: int) -> tuple[str, str] | None:
+    """``(user, password)`` of the vehicle's controller connection (``broker.flight_user``) from
+    the scenario's credentials file, or None when it has none (the control connection's login
+    is used: an anonymous broker, or one given a single login)."""
+    path = scenario.bus.access.credentials_file or scenario.bus.mqtt.credentials_file
+    if path is None:
+        return None
+    users = read_credentials(path)
+    user = flight_user(vehicle_id)
+    return (user, users[user]) if user in users else None
 
 
 async def _fly(  # noqa: PLR0917

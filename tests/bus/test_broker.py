@@ -82,8 +82,15 @@ def test_the_files_written(tmp_path: Path) -> None:
     for secret in (files.passwords, files.credentials, files.bus_key):
         assert stat.S_IMODE(secret.stat().st_mode) == 0o600, secret
     users = read_credentials(files.credentials)
-    assert sorted(users) == ["ground", "ranges", "vehicle-1", "vehicle-3"]
-    assert len(set(users.values())) == 4 and all(len(p) >= 24 for p in users.values())
+    assert sorted(users) == [
+        "ground",
+        "ranges",
+        "vehicle-1",
+        "vehicle-1-flight",
+        "vehicle-3",
+        "vehicle-3-flight",
+    ]
+    assert len(set(users.values())) == 6 and all(len(p) >= 24 for p in users.values())
     assert not any(password in files.passwords.read_text() for password in users.values())
     assert len(BusKey.from_file(files.bus_key).secret) == 64
     config = files.config.read_text().splitlines()
@@ -94,6 +101,8 @@ def test_the_files_written(tmp_path: Path) -> None:
     acl = files.acl.read_text()
     assert "user ground\ntopic write enclosing/acl-test/control\n" in acl
     assert "user vehicle-3\ntopic write enclosing/acl-test/vehicle/3/step\n" in acl
+    # The controller's own connection logs in as its own user, with the vehicle's rights.
+    assert "user vehicle-3-flight\ntopic write enclosing/acl-test/vehicle/3/step\n" in acl
     assert acl.count("topic write enclosing/acl-test/control") == 1
 
 
@@ -140,7 +149,8 @@ async def test_every_role_logs_in_and_strangers_do_not(
 ) -> None:
     server, files = broker
     for user in files.users:
-        async with client(server, files, user) as bus:
+        sender = Sender.parse(user.removesuffix("-flight"))  # a vehicle's second login
+        async with client(server, files, user, sender=sender) as bus:
             assert bus.connected
     for password in ("wrong", ""):
         with pytest.raises(BusConnectionError, match="refused the credentials"):

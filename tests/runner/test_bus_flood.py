@@ -15,17 +15,27 @@ import os
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import aiomqtt
 import pytest
 import yaml
 
-from mission_runner.bus import AuthPolicy, MessageAuth, Sender, StepMessage, Topics, open_bus
-from mission_runner.bus.broker import size_limits
+from mission_runner.bus import (
+    AuthPolicy,
+    BusAccess,
+    MessageAuth,
+    Sender,
+    StepMessage,
+    Topics,
+    lost_vehicle_will,
+    open_bus,
+)
+from mission_runner.bus.broker import size_limits, write_broker_config
 from mission_runner.config import load_scenario
 from mission_runner.runner.process import flight_bus
-from tests.mosquitto import MosquittoBroker, bus_test_key
+from tests.mosquitto import MosquittoBroker, bus_test_key, free_loopback_port
 
 from .flying import mqtt_scenario_file, swarm, wait_for
 
@@ -167,3 +177,41 @@ async def test_a_step_message_is_not_held_back_behind_a_flood_on_the_control_top
         garbage_before_step = bus.auth_counters.malformed
     assert got == step
     assert garbage_before_step < FLOOD // 10, garbage_before_step
+
+
+@pytest.mark.mqtt
+@pytest.mark.asyncio
+async def test_the_controllers_connection_logs_in_as_its_own_user(tmp_path):
+    """On ``broker-config``'s broker made to bind client ids to logins (a login holds one
+    connection): the controller's connection has its own login, so opening it does not take
+    the vehicle's control connection (which would publish its last will: "lost")."""
+    port = free_loopback_port()
+    probe = MosquittoBroker(tmp_path / "probe", port=port)  # only for its host and the file
+    scenario_file = mqtt_scenario_file(tmp_path, probe, "own_login", 16)
+    scenario = load_scenario(scenario_file)
+    topics = scenario.bus.topics(scenario.name)
+    files = write_broker_config(
+        tmp_path / "broker-config", topics, [1, 2, 3, 4], port=port, bind_address="127.0.0.1"
+    )
+    with files.config.open("a") as config:
+        config.write("use_username_as_clientid true\n")
+    broker = MosquittoBroker(tmp_path / "broker", port=port, config_file=files.config)
+    scenario = scenario.model_copy(
+        update={"bus": scenario.bus.with_access(BusAccess(credentials_file=files.credentials))}
+    )
+    will = lost_vehicle_will(topics, 1, time_s=time.time())
+    step = StepMessage(1, 0, 1.0, 0.0, 0.0, 0.0)
+    await broker.astart()
+    try:
+        async with (
+            open_bus(scenario.bus, sender=Sender.vehicle(2), client_id="v2") as peer,
+            peer.subscribe(f"{topics.prefix}/vehicle/1/#") as vehicle_1,
+            open_bus(scenario.bus, sender=Sender.vehicle(1), client_id="v1", will=will) as bus,
+            flight_bus(scenario, 1, bus) as flight,
+        ):
+            await flight.publish_message(topics.step(1), step, timeout=5)
+            topic, payload = await vehicle_1.receive(timeout=5)
+    finally:
+        await broker.astop()
+    assert topic == topics.step(1), payload  # not vehicle 1's last will first
+    assert StepMessage.from_payload(payload) == step
