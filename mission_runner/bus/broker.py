@@ -168,8 +168,8 @@ def size_limits(max_message_bytes: int) -> list[str]:
     (``bus.auth.max_message_bytes``): a longer packet's sender is disconnected before its
     payload is read, and a longer payload in a shorter packet is dropped. Without them, four
     64 MiB payloads on the control topic stalled the vehicles until they were declared lost;
-    even skipped unread by the receivers, forwarding one held other messages back by up to
-    0.4 s (bench/message_sizes.py's neighbour, measured with one subscriber)."""
+    even skipped unread by the receivers, each is still forwarded to every subscriber, and the
+    broker forwards nothing else meanwhile (bench/flood_bench.py --no-limits)."""
     return [
         f"max_packet_size {max_packet_bytes(max_message_bytes)}",
         f"message_size_limit {max_message_bytes}",
