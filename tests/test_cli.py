@@ -625,7 +625,7 @@ def test_broker_config_writes_a_mosquitto_config_logins_an_acl_and_a_key(tmp_pat
     config = CONFIGS / "px4_sih_tracking.yaml"
     assert main(["broker-config", str(config), "--out", str(out), "--port", "18883"]) == EXIT_OK
     text = capsys.readouterr().out
-    assert "users ground, ranges, vehicle-1, vehicle-2, vehicle-3, vehicle-4" in text
+    assert "users ground, ranges, vehicle-1, vehicle-1-flight, vehicle-2, vehicle-2-flight" in text
     assert f"mosquitto -c {out.resolve() / 'mosquitto.conf'}" in text
     assert "listener 18883" in (out / "mosquitto.conf").read_text()
     assert {p.name for p in out.iterdir()} == {
