@@ -1007,9 +1007,12 @@ def _ground(arguments: argparse.Namespace) -> int:
         lost = ", ".join(
             f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
         )
+        stale = outcome.stale_steps
         print(
             f"ground: mission {outcome.mission_id} over; {done} vehicle(s) done, lost: "
-            f"{lost or 'none'}; mission clock {outcome.clock_rate:.4f}x",
+            f"{lost or 'none'}; mission clock {outcome.clock_rate:.4f}x; steps held or skipped "
+            f"on stale or missing data: {'unknown' if stale is None else stale} of "
+            f"{scenario.timing.steps * len(scenario.vehicles)}",
             flush=True,
         )
         if outcome.bus_drops:
@@ -1028,7 +1031,7 @@ def _ground(arguments: argparse.Namespace) -> int:
                 f"ground: no truth in {mission_dir}/truth/ (no simulator): tracking and estimate "
                 "errors unavailable; per-vehicle results in the vehicles' folders"
             )
-            return _score_without_truth(scenario, record, outcome.statuses)
+            return _score_without_truth(scenario, record, outcome.statuses, stale)
         document = record.write_results(
             result,
             figures=not arguments.no_figures,
@@ -1051,14 +1054,21 @@ def _ground(arguments: argparse.Namespace) -> int:
 
 
 def _score_without_truth(
-    scenario: Scenario, record: RunSummary, statuses: Mapping[int, VehicleStatus]
+    scenario: Scenario,
+    record: RunSummary,
+    statuses: Mapping[int, VehicleStatus],
+    stale_steps: int | None = None,
 ) -> int:
     """A mission without truth (real vehicles) is scored on what the ground station saw: how
-    many vehicles finished in the formation (reported ``done``). Expectations that need the
-    truth are listed as not checked, and the status says so: ``unchecked``, never ``passed``."""
+    many vehicles finished in the formation (reported ``done``) and how many steps they held or
+    skipped on stale or missing data (``stale_steps``, from their reports; None: unknown).
+    Expectations that need the truth are listed as not checked, and the status says so:
+    ``unchecked``, never ``passed``."""
     from .sim.metrics import check_expectations  # noqa: PLC0415
 
     observed = {"vehicles_in_formation_at_end": sum(s.state == "done" for s in statuses.values())}
+    if stale_steps is not None:
+        observed["steps_on_stale_data"] = stale_steps
     checkable = {name: bound for name, bound in scenario.expect.items() if name in observed}
     failures = check_expectations(checkable, observed)
     unchecked = sorted(set(scenario.expect) - set(observed))
@@ -1146,6 +1156,7 @@ def _broker_config(arguments: argparse.Namespace) -> int:
         bind_address=arguments.bind,
         tls=tls,
         write_bus_key=not arguments.no_bus_key,
+        max_message_bytes=scenario.bus.auth.max_message_bytes,
     )
     print(f"broker-config: users {', '.join(files.users)}")
     print(f"  start the broker:   mosquitto -c {files.config}")

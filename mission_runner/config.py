@@ -573,6 +573,7 @@ FlightMetricName = Literal[
     "vehicles_disarmed_at_end",
     "vehicles_disarmed_in_air",
     "vehicles_in_formation_at_end",
+    "steps_on_stale_data",
 ]
 #: Every metric an ``expect:`` bound may name (nested literals flatten into one).
 MetricName = Literal[SimulationMetricName, FlightMetricName]

@@ -647,7 +647,8 @@ def test_broker_config_writes_a_mosquitto_config_logins_an_acl_and_a_key(tmp_pat
     assert main(["broker-config", str(config), "--out", str(out), "--port", "18883"]) == EXIT_OK
     text = capsys.readouterr().out
     assert (
-        "users ground, operator, viewer, ranges, vehicle-1, vehicle-2, vehicle-3, vehicle-4" in text
+        "users ground, operator, viewer, ranges, vehicle-1, vehicle-1-flight, vehicle-2, "
+        "vehicle-2-flight" in text
     )
     assert f"mosquitto -c {out.resolve() / 'mosquitto.conf'}" in text
     assert "listener 18883" in (out / "mosquitto.conf").read_text()
@@ -814,3 +815,57 @@ def test_a_command_line_loads_the_emulator_only_for_the_commands_that_need_it():
         [sys.executable, "-c", script], capture_output=True, text=True, check=True
     )
     assert done.stdout.split() == ["False", "False", "True", "True"], done.stdout
+
+
+def test_steps_held_on_stale_data_are_in_the_verdict_and_can_be_bounded(tmp_path):
+    # The flood: the formation froze for 140 steps, every vehicle still reported done.
+    from mission_runner.config import Expectation
+    from mission_runner.runner.process import GroundOutcome
+
+    scenario = load_scenario(CONFIGS / "px4_sih_tracking.yaml")
+    bounded = {**scenario.expect, "steps_on_stale_data": Expectation(max=20)}
+    scenario = scenario.model_copy(update={"expect": bounded})
+    held = {1: 0, 2: 140, 3: 0, 4: 3}
+    statuses = {
+        i: VehicleStatus(i, 10.0, "done", 400, False, stale_steps=count)
+        for i, count in held.items()
+    }
+    outcome = GroundOutcome("m1", 0.0, 1.0, statuses)
+    assert outcome.lost == [] and outcome.stale_steps == 143
+    with RunSummary(tmp_path, scenario, config_path=None) as record:
+        code = _score_without_truth(scenario, record, statuses, outcome.stale_steps)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert code == EXIT_EXPECTATION_FAILED
+    assert summary["metrics"]["steps_on_stale_data"] == 143
+    assert summary["expectations"]["failures"] == ["steps_on_stale_data = 143 > max 20"]
+    # A vehicle that never said how many it held: unknown, never counted as none.
+    statuses[2] = VehicleStatus(2, 10.0, "lost", 12, False)
+    assert GroundOutcome("m1", 0.0, 1.0, statuses).stale_steps is None
+
+
+def test_a_flight_counts_the_steps_its_controllers_held_or_skipped():
+    import numpy as np
+
+    from mission_runner.runner.controller import StepRecord
+    from mission_runner.runner.scoring import score_flight
+    from mission_runner.sim.metrics import TruthSample, run_metrics
+
+    scenario = load_scenario(CONFIGS / "paper_tracking_flyable.yaml")
+    scenario = scenario.model_copy(
+        update={"timing": scenario.timing.model_copy(update={"steps": 6})}
+    )
+    n = len(scenario.vehicles)
+    samples = [
+        TruthSample(k, k * 0.125, np.zeros(2), np.arange(2 * n, dtype=float).reshape(n, 2),
+                    np.ones(n, dtype=bool))
+        for k in range(7)
+    ]  # fmt: skip
+    states = ["following", "holding", "skipped", "held", "target_lost", "holding"]
+
+    def record(k, state):
+        return StepRecord(k, k * 0.125, state, (0.0, 0.0, 0.0), (0.0, 0.0), 0.0, (), {})
+
+    records = {v.id: [record(k, s) for k, s in enumerate(states)] for v in scenario.vehicles}
+    metrics = run_metrics(score_flight(scenario, samples, records, None))
+    # Held on stale data or skipped: 3 a vehicle; the operator's hold and a lost target are not.
+    assert metrics["steps_on_stale_data"][0] == 3 * n

@@ -69,6 +69,7 @@ from mission_runner.bus.inprocess import InProcessBus, LinkModel
 from mission_runner.bus.messages import (
     FORMATION_STATES,
     MESSAGE_TYPES,
+    STALE_STATES,
     ControlCommand,
     Message,
     MissionControl,
@@ -103,6 +104,7 @@ __all__ = [
     "DEFAULT_QUEUE_SIZE",
     "FORMATION_STATES",
     "MESSAGE_TYPES",
+    "STALE_STATES",
     "AuthCounters",
     "AuthPolicy",
     "AuthSettings",

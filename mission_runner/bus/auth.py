@@ -28,7 +28,8 @@ A receiver drops and counts (:class:`AuthCounters`, rate-limited warnings):
   message, delivered from the broker's store: up to ``retained_max_age_s`` old);
 - ``replayed``: a sequence number not above the last one accepted from that sender on that
   topic (MQTT keeps a publisher's order per topic, so this never drops a fresh message). A
-  retained message handed again to a new subscription is the same message, not a replay.
+  retained message handed again to a new subscription is the same message, not a replay;
+- ``empty``: an empty payload (MQTT's "clear this retained topic"): no message, never handed on.
 
 A last will is signed when the connection opens and published by the broker whenever the
 sender drops off, so it is exempt from the time window; it is still MAC-checked and accepted
@@ -36,8 +37,8 @@ once per will (its own sequence track).
 
 One shared key: whoever holds it can sign as any role; the role in the header catches
 misdirected messages and is what the broker's ACL (``mission-runner broker-config``) enforces
-per user. Empty payloads (MQTT's "clear this retained topic") carry no message and pass
-unsigned.
+per user. Empty payloads (MQTT's "clear this retained topic") carry no message: they are sent
+unsigned (the broker clears the topic) and dropped on receipt.
 """
 
 from __future__ import annotations
@@ -68,6 +69,7 @@ DEFAULT_KEY_ENV = "MISSION_BUS_KEY"
 INSECURE_KEY_TEXT = "mission-runner insecure bus: anyone can forge these messages"
 
 _MAC_CHARS = 43  # base64url of 32 bytes, unpadded
+_MAGIC_PREFIX = MAGIC + b" "
 _FLAGS = {b"-": (False, False), b"r": (True, False), b"w": (True, True)}
 
 
@@ -273,6 +275,9 @@ class Rejection(enum.StrEnum):
     UNAUTHORISED = "unauthorised"
     STALE = "stale"
     REPLAYED = "replayed"
+    #: An empty payload: MQTT's "clear this retained topic", which carries no message (the
+    #: ground station's own clear of its ``prepare`` at the end counts here too).
+    EMPTY = "empty"
 
 
 @dataclass
@@ -286,6 +291,7 @@ class AuthCounters:
     unauthorised: int = 0
     stale: int = 0
     replayed: int = 0
+    empty: int = 0
 
     @property
     def rejected(self) -> int:
@@ -396,11 +402,11 @@ class MessageAuth:
     # Receiving -------------------------------------------------------------------------------
     def open(self, topic: str, data: bytes, *, retained: bool = False) -> bytes | None:
         """The body of ``data`` received on ``topic`` (``retained``: handed over from the
-        broker's retained store), or None when it is dropped (counted and logged)."""
-        if not data:
-            return b""
-        if len(data) > self.policy.max_message_bytes:
-            return self._reject(Rejection.OVERSIZED, topic, f"{len(data)} bytes")
+        broker's retained store), or None when it is dropped (counted and logged). An empty
+        payload is never a message: dropped and counted, not logged (a flood of them must cost
+        no more than counting)."""
+        if not self.admits(topic, data):
+            return None
         header, newline, body = data.partition(b"\n")
         parts = header.split(b" ")
         if not newline or len(parts) != 6 or parts[0] != MAGIC or len(parts[1]) != _MAC_CHARS:
@@ -439,6 +445,27 @@ class MessageAuth:
         self._accepted[key] = (sequence, mac)
         self.counters.accepted += 1
         return body
+
+    def admits(self, topic: str, data: bytes) -> bool:
+        """Whether ``data`` received on ``topic`` may be a sealed message, judged on its length
+        and first bytes only: an empty payload, one over ``max_message_bytes`` and one without
+        the header's magic are dropped and counted here, as :meth:`open` would, before anything
+        else is spent on them (the MQTT bus asks before its client builds a message)."""
+        if not data:
+            self.counters.empty += 1
+            return False
+        if len(data) > self.policy.max_message_bytes:
+            self._reject(Rejection.OVERSIZED, topic, f"{len(data)} bytes")
+            return False
+        if not data.startswith(_MAGIC_PREFIX):
+            self._reject(Rejection.MALFORMED, topic, "no bus message header")
+            return False
+        return True
+
+    def skipped_oversized(self, packet_bytes: int) -> None:
+        """Count an MQTT packet of ``packet_bytes`` skipped unread for its size (its topic was
+        never read: see :mod:`mission_runner.bus.oversize`)."""
+        self._reject(Rejection.OVERSIZED, "a topic not read", f"a {packet_bytes}-byte packet")
 
     def _reject(self, reason: Rejection, topic: str, detail: str) -> bytes | None:
         setattr(self.counters, reason.value, getattr(self.counters, reason.value) + 1)

@@ -6,16 +6,20 @@ credentials each process logs in with.
 - ``mosquitto.conf``: one listener (optionally TLS, with certificate files the operator gives),
   no anonymous access, the password file and the ACL below, and each connection's client id
   replaced by its login (``use_username_as_clientid``);
-- ``passwords``: one user per client of the mission (``ground``, ``vehicle-<id>``, ``ranges``, and
-  ``operator`` for ``mission-runner control``, ``viewer`` for a live view) with a random password,
-  hashed as mosquitto 2 stores them (``$7$``: PBKDF2-SHA512, 101 iterations, 12-byte salt;
-  computed here, so no password appears on a command line);
-- ``acl``: each vehicle publishes only its own topics, only the ground station and its operator
-  publish on ``control``, the range aid only ranges and target observations, the viewer nothing;
-  everyone reads the mission;
+- ``passwords``: one user per client of the mission (``ground``, ``vehicle-<id>`` and
+  ``vehicle-<id>-flight`` for its controller's connection, ``ranges``, and ``operator`` for
+  ``mission-runner control``, ``viewer`` for a live view) with a random password, hashed as
+  mosquitto 2 stores them (``$7$``: PBKDF2-SHA512, 101 iterations, 12-byte salt; computed here, so
+  no password appears on a command line);
+- ``acl``: each vehicle (both its logins) publishes only its own topics, only the ground station
+  and its operator publish on ``control``, the range aid only ranges and target observations, the
+  viewer nothing; everyone reads the mission;
 - ``credentials`` (mode 0600): the users' ``user:password`` lines, for ``--bus-credentials``
   (give each machine only its own line);
 - ``bus.key`` (mode 0600): a fresh random message key for ``--bus-key-file`` (every process).
+
+The broker forwards no message longer than the receivers accept (``max_packet_size``,
+``message_size_limit``).
 
 mosquitto enforces the ACL per user, whatever the message says: a vehicle's credentials cannot
 publish a ``start``, even with the bus key. A denied publish is dropped by the broker silently
@@ -39,6 +43,7 @@ from pathlib import Path
 
 from mission_runner.bus.auth import Sender
 from mission_runner.bus.errors import BusAuthError
+from mission_runner.bus.paho_reader import max_packet_bytes
 from mission_runner.bus.topics import Topics
 
 USERNAME_ENV = "MISSION_BUS_USERNAME"
@@ -139,6 +144,13 @@ class BrokerFiles:
     users: tuple[str, ...]
 
 
+def flight_user(vehicle_id: int) -> str:
+    """The login of a vehicle process's second connection, its controller's (``vehicle-<id>-
+    flight``; see ``runner.process.flight_bus``): a broker that binds client ids to logins lets
+    one login hold one connection."""
+    return f"{Sender.vehicle(vehicle_id)}-flight"
+
+
 def acl_text(topics: Topics, vehicle_ids: Sequence[int]) -> str:
     """mosquitto ACL of a mission: who may write which topic (everyone reads the mission)."""
     prefix = topics.prefix
@@ -163,16 +175,31 @@ def acl_text(topics: Topics, vehicle_ids: Sequence[int]) -> str:
         f"topic read {topics.everything()}",
     ]
     for vehicle_id in vehicle_ids:
-        lines += [
-            "",
-            f"user {Sender.vehicle(vehicle_id)}",
-            f"topic write {topics.step(vehicle_id)}",
-            f"topic write {topics.status(vehicle_id)}",
-            f"topic write {prefix}/vehicle/{vehicle_id}/range/+",
-            f"topic write {topics.target(vehicle_id)}",
-            f"topic read {topics.everything()}",
-        ]
+        # The vehicle's two connections (see flight_user): the same rights.
+        for user in (str(Sender.vehicle(vehicle_id)), flight_user(vehicle_id)):
+            lines += [
+                "",
+                f"user {user}",
+                f"topic write {topics.step(vehicle_id)}",
+                f"topic write {topics.status(vehicle_id)}",
+                f"topic write {prefix}/vehicle/{vehicle_id}/range/+",
+                f"topic write {topics.target(vehicle_id)}",
+                f"topic read {topics.everything()}",
+            ]
     return "\n".join(lines) + "\n"
+
+
+def size_limits(max_message_bytes: int) -> list[str]:
+    """mosquitto.conf lines that forward nothing longer than the receivers accept
+    (``bus.auth.max_message_bytes``): a longer packet's sender is disconnected before its
+    payload is read, and a longer payload in a shorter packet is dropped. Without them, four
+    64 MiB payloads on the control topic stalled the vehicles until they were declared lost;
+    even skipped unread by the receivers, each is still forwarded to every subscriber, and the
+    broker forwards nothing else meanwhile (bench/flood_bench.py --no-limits)."""
+    return [
+        f"max_packet_size {max_packet_bytes(max_message_bytes)}",
+        f"message_size_limit {max_message_bytes}",
+    ]
 
 
 def _write_private(path: Path, text: str) -> None:
@@ -192,8 +219,11 @@ def write_broker_config(
     bind_address: str | None = None,
     tls: TlsListener | None = None,
     write_bus_key: bool = True,
+    max_message_bytes: int = 16384,
 ) -> BrokerFiles:
-    """Write a mosquitto configuration for the mission (see the module docstring)."""
+    """Write a mosquitto configuration for the mission (see the module docstring).
+    ``max_message_bytes``: the scenario's ``bus.auth.max_message_bytes``; the broker refuses
+    anything longer."""
     out_dir.mkdir(parents=True, exist_ok=True)
     out_dir = out_dir.resolve()
     users = (
@@ -201,7 +231,7 @@ def write_broker_config(
         OPERATOR_USER,
         VIEWER_USER,
         "ranges",
-        *(str(Sender.vehicle(i)) for i in vehicle_ids),
+        *(user for i in vehicle_ids for user in (str(Sender.vehicle(i)), flight_user(i))),
     )
     passwords = {user: secrets.token_urlsafe(24) for user in users}
     files = BrokerFiles(
@@ -246,6 +276,7 @@ def write_broker_config(
         "use_username_as_clientid true",
         # Without it Nagle's algorithm holds step messages to subscribers by up to 40 ms.
         "set_tcp_nodelay true",
+        *size_limits(max_message_bytes),
     ]
     if os.geteuid() == 0:
         lines += [

@@ -165,6 +165,13 @@ class InProcessBus(Bus):
         validate_topic(topic)
         self._check_open(f"publish to {topic!r}")
         sealed = self._seal(topic, bytes(payload), retain=retain, sender=sender)
+        if not sealed:
+            # MQTT's "clear the retained value": no message, so nothing to open or deliver (a
+            # receiver drops an empty payload, see MessageAuth.open).
+            if retain:
+                self._retained.pop(topic, None)
+            self.published += 1
+            return
         # One receiver (this bus) opens each message once, as an MQTT client does on arrival;
         # what is stored and delivered is the checked body.
         opened = self.auth.open(topic, sealed)
@@ -173,10 +180,7 @@ class InProcessBus(Bus):
         payload = opened
         self.published += 1
         if retain:
-            if payload:
-                self._retained[topic] = payload
-            else:
-                self._retained.pop(topic, None)
+            self._retained[topic] = payload
         for subscription in self._subscriptions:
             if topic_matches(subscription.pattern, topic):
                 self._deliver(subscription, topic, payload)

@@ -419,6 +419,10 @@ class MissionControl(Message):
 #: as part of the formation: ``following`` the target (observed, or predicted while hidden), or
 #: ``target_lost`` (no estimate of the target left: it holds or orbits the last estimate).
 FORMATION_STATES = frozenset({"following", "target_lost"})
+#: Controller states of a step not flown by the law for want of fresh data: held (no fresh
+#: neighbour message within the silence timeout, no own odometry, or not in OFFBOARD) or skipped
+#: (its instant had passed before it could run).
+STALE_STATES = frozenset({"holding", "skipped"})
 
 
 @dataclass(frozen=True, slots=True)
@@ -429,7 +433,9 @@ class VehicleStatus(Message):
     ``"holding"``, ``"lost"``); ``tracking_ok`` whether it currently follows the target with
     the algorithm on fresh data (not while the target is lost).
     ``mission_id`` is the mission it reports for (see :class:`MissionControl`);
-    ``clock_rate`` its autopilot's boot-clock seconds per UNIX second, as measured.
+    ``clock_rate`` its autopilot's boot-clock seconds per UNIX second, as measured;
+    ``stale_steps`` (in its final report) how many steps it held or skipped for want of fresh
+    data (:data:`STALE_STATES`).
     """
 
     vehicle_id: int
@@ -440,6 +446,7 @@ class VehicleStatus(Message):
     detail: str = ""
     mission_id: str | None = None
     clock_rate: float | None = None
+    stale_steps: int | None = None
 
     def _check(self) -> None:
         _require(
@@ -449,6 +456,10 @@ class VehicleStatus(Message):
         _require(self.vehicle_id >= 1, f"vehicle_id must be >= 1, got {self.vehicle_id}")
         _require(self.step >= 0, f"step must be >= 0, got {self.step}")
         _require(bool(self.state), "state must not be empty")
+        _require(
+            self.stale_steps is None or self.stale_steps >= 0,
+            f"stale_steps must be >= 0, got {self.stale_steps}",
+        )
 
 
 MESSAGE_TYPES: Mapping[TopicKind, type[Message]] = {

@@ -67,6 +67,7 @@ from mission_runner.bus.auth import AuthPolicy, BusKey, MessageAuth, Sender
 from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
 from mission_runner.bus.errors import BusConnectionError, BusTimeoutError
 from mission_runner.bus.messages import VehicleStatus
+from mission_runner.bus.paho_reader import guard_reader, max_packet_bytes
 from mission_runner.bus.settings import TlsSettings
 from mission_runner.bus.topics import Topics, topic_matches, validate_pattern, validate_topic
 from mission_runner.clock import Clock, MonotonicClock
@@ -427,6 +428,15 @@ class MqttBus(Bus):
         # aiomqtt warns above 10 publishes awaiting their hand-over; a range aid hands a step's
         # dozen over at once, which is no backlog.
         client.pending_calls_threshold = PENDING_PUBLISHES_WARNING
+        # A packet too long to be a message is skipped as it arrives, never read into memory in
+        # the loop the controller runs in (four 64 MiB payloads stalled vehicles for seconds),
+        # and waiting packets are read in batches (see paho_reader.py).
+        guard_reader(
+            client._client,  # aiomqtt's paho client: see paho_reader.py
+            max_packet_bytes(self.auth.policy.max_message_bytes),
+            self.auth.skipped_oversized,
+            admits=self.auth.admits,
+        )
         return client
 
     async def _keep_connected(self) -> None:

@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..bus import (
+    STALE_STATES,
     Message,
     RangeMessage,
     StepMessage,
@@ -235,6 +236,16 @@ class VehicleController:
         )
         self.mission_id: str | None = None  # carried by every status (vehicle processes set it)
         self.records: list[StepRecord] = []
+        self._stale_count = (0, 0)  # (records counted, of them held or skipped)
+
+    @property
+    def stale_steps(self) -> int:
+        """Steps held or skipped so far for want of fresh data (:data:`STALE_STATES`); every
+        status carries it, so the ground's verdict sees what a flood or a dropout cost."""
+        counted, count = self._stale_count
+        count += sum(record.state in STALE_STATES for record in self.records[counted:])
+        self._stale_count = (len(self.records), count)
+        return count
 
     def _step_of(self, time_s: float) -> int | None:
         if self.start_s is None:
@@ -786,6 +797,7 @@ class VehicleController:
             self.state == "following",
             detail,
             mission_id=self.mission_id,
+            stale_steps=self.stale_steps,
         )
         await self._publish(self.topics.status(self.vehicle_id), status)
 

@@ -36,6 +36,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import os
 import time
 import uuid
 from collections.abc import Callable
@@ -59,7 +60,7 @@ from ..bus import (
     lost_vehicle_will,
     open_bus,
 )
-from ..bus.broker import OPERATOR_USER
+from ..bus.broker import OPERATOR_USER, USERNAME_ENV, flight_user, read_credentials
 from ..errors import error_reason
 from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
@@ -136,6 +137,8 @@ class _Reporter:
 
     def __init__(self, bus: Bus, topics: Topics, run: VehicleRun) -> None:
         self.bus, self.topics, self.run = bus, topics, run
+        #: Once flying: its steps held or skipped go with every report (the ground's verdict).
+        self.controller: VehicleController | None = None
 
     async def __call__(
         self, state: str, *, step: int = 0, detail: str = "", clock_rate: float | None = None
@@ -150,6 +153,7 @@ class _Reporter:
             detail,
             mission_id=self.run.mission_id,
             clock_rate=clock_rate,
+            stale_steps=None if self.controller is None else self.controller.stale_steps,
         )
         try:
             await self.bus.publish_message(
@@ -201,6 +205,7 @@ async def run_vehicle(
             )
         )
         control = await stack.enter_async_context(bus.subscribe(topics.control()))
+        controller_bus = await stack.enter_async_context(flight_bus(scenario, vehicle_id, bus))
         report = _Reporter(bus, topics, run)
         await report("waiting", detail="waiting for the ground station's prepare")
         prepare = await next_command(control, {ControlCommand.PREPARE}, timeout_s=ready_timeout_s)
@@ -217,10 +222,11 @@ async def run_vehicle(
             scenario,
             config,
             link=vehicle,
-            bus=bus,
+            bus=controller_bus,
             clock=WallClock(mission_time),
             on_step=on_step,
         )
+        report.controller = controller
         try:
             await _fly(scenario, vehicle, controller, control, report, run, mapping, mission_time)
         except BaseException as error:
@@ -249,6 +255,45 @@ async def run_vehicle(
             run.autopilot_clock_rate = mapping.fit.boot_rate
             run.clock_residual_s = mapping.fit.residual_s
     return run
+
+
+def flight_bus(
+    scenario: Scenario, vehicle_id: int, control_bus: Bus
+) -> contextlib.AbstractAsyncContextManager[Bus]:
+    """The controller's own connection to the broker, for its neighbours' step messages, its
+    ranges and its target and its own step messages; the control topic (and statuses, and the
+    last will) stay on ``control_bus``. A broker sends each connection its messages in order, and
+    a client reads one connection in order: on one connection, a flood on the control topic
+    (40,000 garbage payloads) held genuine step messages back by seconds, and they were dropped
+    as late. On two, the event loop reads both sockets in every turn. Both sign with one
+    :class:`MessageAuth` (``auth``): one sequence per topic and one set of counters for the
+    process.
+
+    The second connection logs in as ``broker.flight_user`` (broker-config writes it: a broker
+    that binds client ids to logins lets a login hold one connection). Without a login of its
+    own (a credentials file with only the vehicle's line, or a login from the environment) the
+    controller shares ``control_bus``, as a second connection on the same login would take the
+    first's (and have its last will published)."""
+    access = scenario.bus.access
+    credentials = access.credentials_file or scenario.bus.mqtt.credentials_file
+    login: str | None = None
+    if credentials is not None:
+        login = flight_user(vehicle_id)
+        if os.environ.get(USERNAME_ENV) or login not in read_credentials(credentials):
+            logger.info(
+                "vehicle %s: no login %s: the controller shares the control connection",
+                vehicle_id,
+                login,
+            )
+            return contextlib.nullcontext(control_bus)
+    bus = open_bus(
+        scenario.bus,
+        sender=Sender.vehicle(vehicle_id),
+        client_id=f"{scenario.name}-vehicle-{vehicle_id}-flight",
+        login=login,
+    )
+    bus.auth = control_bus.auth
+    return bus
 
 
 async def _fly(  # noqa: PLR0917
@@ -419,6 +464,15 @@ class GroundOutcome:
     @property
     def lost(self) -> list[int]:
         return sorted(i for i, s in self.statuses.items() if s.state != "done")
+
+    @property
+    def stale_steps(self) -> int | None:
+        """Steps the vehicles held or skipped for want of fresh data, as their last reports
+        say; None when a vehicle never said (it failed before flying, or its report was lost)."""
+        counts = [status.stale_steps for status in self.statuses.values()]
+        if not counts or any(count is None for count in counts):
+            return None
+        return sum(count for count in counts if count is not None)
 
 
 async def run_ground(

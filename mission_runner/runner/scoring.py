@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..bus import FORMATION_STATES
+from ..bus import FORMATION_STATES, STALE_STATES
 from ..enclosing.target import OBSERVED, STATUS_NAMES
 from ..sim.metrics import TruthSample, closest_pair
 from ..sim.simulator import SimulationResult, score
@@ -121,7 +121,14 @@ def score_flight(
         "target_status": target_status,
     }
     times = np.array([s.time_s for s in samples]) - samples[0].time_s
-    extra = {"vehicles_in_formation_at_end": np.array([int(live[0, -1].sum())])}
+    extra = {
+        "vehicles_in_formation_at_end": np.array([int(live[0, -1].sum())]),
+        # Steps not flown by the law for want of fresh data (held or skipped): a formation that
+        # froze for 30 s under a flood still ended in formation and was reported "done".
+        "steps_on_stale_data": np.array(
+            [sum(r.state in STALE_STATES for rs in records.values() for r in rs[:steps])]
+        ),
+    }
     if disarmed is not None:
         extra["vehicles_disarmed_at_end"] = np.array([disarmed])
     if disarmed_in_air is not None:

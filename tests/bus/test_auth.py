@@ -62,6 +62,7 @@ def test_a_sealed_message_opens_to_its_body() -> None:
         "unauthorised": 0,
         "stale": 0,
         "replayed": 0,
+        "empty": 0,
     }
 
 
@@ -97,12 +98,18 @@ def test_another_key_another_topic_or_another_mission_is_a_forgery() -> None:
     assert receiver.counters.forged == 2
 
 
-def test_an_unsigned_payload_is_malformed_and_an_empty_one_passes() -> None:
+def test_an_unsigned_payload_is_malformed_and_an_empty_one_is_counted_apart() -> None:
     _, receiver = pair(Clock())
     for payload in (BODY, b"MR1 x y", b"MR1 " + b"A" * 43 + b" ground 1 2\n{}", b"\xff" * 10):
         assert receiver.open(TOPICS.step(2), payload) is None
     assert receiver.counters.malformed == 4
-    assert receiver.open(TOPICS.control(), b"") == b""  # MQTT's "clear the retained value"
+    # MQTT's "clear the retained value": no message, so none is handed on, but a flood of them
+    # is seen.
+    for _ in range(3):
+        assert receiver.open(TOPICS.control(), b"") is None
+    assert receiver.counters.empty == 3
+    assert receiver.counters.rejected == 7
+    assert receiver.counters.as_dict()["empty"] == 3
 
 
 def test_oversized_payloads_are_dropped_before_the_mac_is_computed() -> None:

@@ -84,19 +84,32 @@ def test_the_files_written(tmp_path: Path) -> None:
     for secret in (files.passwords, files.credentials, files.bus_key):
         assert stat.S_IMODE(secret.stat().st_mode) == 0o600, secret
     users = read_credentials(files.credentials)
-    assert sorted(users) == ["ground", "operator", "ranges", "vehicle-1", "vehicle-3", "viewer"]
-    assert len(set(users.values())) == 6 and all(len(p) >= 24 for p in users.values())
+    assert sorted(users) == [
+        "ground",
+        "operator",
+        "ranges",
+        "vehicle-1",
+        "vehicle-1-flight",
+        "vehicle-3",
+        "vehicle-3-flight",
+        "viewer",
+    ]
+    assert len(set(users.values())) == 8 and all(len(p) >= 24 for p in users.values())
     assert not any(password in files.passwords.read_text() for password in users.values())
     assert len(BusKey.from_file(files.bus_key).secret) == 64
     config = files.config.read_text().splitlines()
     assert "listener 8883" in config and "allow_anonymous false" in config
     assert "use_username_as_clientid true" in config
     assert f"certfile {cert}" in config and f"keyfile {key}" in config
+    # Sized from the largest message the receivers accept (bus.auth.max_message_bytes).
+    assert "max_packet_size 17408" in config and "message_size_limit 16384" in config
     acl = files.acl.read_text()
     assert "user ground\ntopic write enclosing/acl-test/control\n" in acl
     assert "user vehicle-3\ntopic write enclosing/acl-test/vehicle/3/step\n" in acl
     assert "user operator\ntopic write enclosing/acl-test/control\n" in acl
     assert "user viewer\ntopic read enclosing/acl-test/#\n" in acl
+    # The controller's own connection logs in as its own user, with the vehicle's rights.
+    assert "user vehicle-3-flight\ntopic write enclosing/acl-test/vehicle/3/step\n" in acl
     assert acl.count("topic write enclosing/acl-test/control") == 2
 
 
@@ -145,7 +158,11 @@ async def test_every_role_logs_in_and_strangers_do_not(
 ) -> None:
     server, files = broker
     for user in files.users:
-        async with client(server, files, user) as bus:
+        # A vehicle's second login signs as the vehicle; the operator and viewer as the ground.
+        sender = (
+            None if user in ("operator", "viewer") else Sender.parse(user.removesuffix("-flight"))
+        )
+        async with client(server, files, user, sender=sender) as bus:
             assert bus.connected
     for password in ("wrong", ""):
         with pytest.raises(BusConnectionError, match="refused the credentials"):
@@ -235,8 +252,8 @@ async def test_forged_replayed_oversized_and_malformed_ranges_are_dropped_and_co
             wrong_key.seal(Sender.ranges(), topic, forty),  # signed with a guessed key
             first,
             first,  # replayed
-            b"MR1 " + b"x" * 20000,  # oversized
             b"\x00\xff garbage",  # malformed
+            b"",  # empty: MQTT's "clear the retained value", no message
             genuine.seal(Sender.ranges(), topic, RangeMessage(1, 2, 0.125, 4.1).to_payload()),
         ]:
             await attacker.publish(topic, payload)
@@ -245,12 +262,13 @@ async def test_forged_replayed_oversized_and_malformed_ranges_are_dropped_and_co
     assert [message.range_m for message in got] == [4.0, 4.1]
     assert counters == {
         "accepted": 2,
-        "oversized": 1,
+        "oversized": 0,  # the broker forwards none (see the next test)
         "malformed": 2,
         "forged": 1,
         "unauthorised": 0,
         "stale": 0,
         "replayed": 1,
+        "empty": 1,
     }
 
 
@@ -284,3 +302,31 @@ async def test_a_vehicles_login_cannot_take_another_vehicles_client_id(
         _, heard = await status.receive_message(VehicleStatus, timeout=5.0)
         assert vehicle_2.connect_count == 1
     assert heard == alive
+
+
+@pytest.mark.asyncio
+async def test_the_broker_forwards_nothing_longer_than_a_message(
+    broker: tuple[MosquittoBroker, BrokerFiles], attacker: aiomqtt.Client
+) -> None:
+    """A payload longer than any message the mission accepts never reaches a vehicle: the
+    broker disconnects whoever sends it before reading it (64 MiB, the issue's attack), and
+    drops one just over the limit in a shorter packet."""
+    server, files = broker
+    topic = TOPICS.range(1, 2)
+    async with (
+        client(server, files, "vehicle-1") as vehicle_1,
+        vehicle_1.subscribe(TOPICS.all_ranges(1)) as ranges,
+        # The attacker holds the range aid's login (one connection a login): vehicle 1's
+        # controller connection publishes the genuine range.
+        client(server, files, "vehicle-1-flight", sender=Sender.vehicle(1)) as range_aid,
+    ):
+        await attacker.publish(topic, b"x" * (16384 + 512), qos=1, timeout=10)
+        # Disconnected unread: the acknowledgement never comes.
+        with pytest.raises(aiomqtt.MqttError):
+            await attacker.publish(topic, b"x" * (64 * 1024 * 1024), qos=1, timeout=5)
+        await range_aid.publish_message(topic, RangeMessage(1, 2, 0.0, 4.0), timeout=5)
+        _, got = await ranges.receive_message(RangeMessage, timeout=5.0)
+        counters = vehicle_1.auth_counters.as_dict()
+    assert got.range_m == 4.0
+    assert counters["oversized"] == 0 and counters["malformed"] == 0
+    assert counters["accepted"] == 1

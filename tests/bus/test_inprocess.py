@@ -207,9 +207,9 @@ class TestLinkModel:
         overtakes = 0
         async with InProcessBus(link=link, clock=clock) as bus, bus.subscribe("#") as sub:
             for _ in range(10):
-                await bus.publish("a", b"", timeout=0.1)
+                await bus.publish("a", b"A", timeout=0.1)
                 await clock.advance(0.0)  # the loop now sleeps until A is due
-                await bus.publish("b", b"", timeout=0.1)
+                await bus.publish("b", b"B", timeout=0.1)
                 arrival_s: dict[str, float] = {}
                 while len(arrival_s) < 2:
                     await clock.advance(0.01)

@@ -497,6 +497,9 @@ async def test_lost_own_odometry_holds_then_gives_the_vehicle_up():
     assert statuses[-1].state == "lost"
     assert statuses[-1].step == 5
     assert not statuses[-1].tracking_ok
+    # Every status says how many steps were held so far: the ground's verdict counts them.
+    assert [s.stale_steps for s in statuses] == [0, 0, 0, 1, 2, 3, 3]
+    assert flight.controller.stale_steps == 3
 
 
 # --- who flies the vehicle ------------------------------------------------------------------------
