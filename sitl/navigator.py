@@ -63,6 +63,7 @@ class Navigator:
         )
         self._cruise_override_m_s: float | None = None
         self._takeoff_request_amsl_m = math.nan  # NAV_TAKEOFF's altitude, until the climb starts
+        self._takeoff_requested = False
         self._takeoff_down_m = 0.0  # world NED down the climb ends at
 
         self._rtl_stage = ""
@@ -90,13 +91,19 @@ class Navigator:
         """NAV_TAKEOFF's altitude (AMSL, NaN: MIS_TAKEOFF_ALT above the vehicle), kept until
         the next climb starts, as PX4's navigator keeps its takeoff triplet."""
         self._takeoff_request_amsl_m = altitude_amsl_m
+        self._takeoff_requested = True
 
     def _start_takeoff(self) -> None:
         """PX4's Takeoff::set_takeoff_position, run when TAKEOFF starts armed: the requested
         altitude, else MIS_TAKEOFF_ALT above the vehicle; never down."""
         vehicle = self._vehicle
         pos = vehicle.position_ned()
+        if not (self._takeoff_requested or self._state.landed):
+            # Flying already (motors back after a failure): the climb goes on as it was.
+            self._fly_to([pos[0], pos[1], self._takeoff_down_m], math.nan)
+            return
         requested, self._takeoff_request_amsl_m = self._takeoff_request_amsl_m, math.nan
+        self._takeoff_requested = False
         now = self._state.now_s
         if math.isfinite(requested):
             down = vehicle.down_from_altitude(requested, relative_to_home=False)
