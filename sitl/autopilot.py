@@ -276,6 +276,11 @@ class Px4Autopilot:
         return self._offboard.rejected_setpoints
 
     @property
+    def param_sets_rejected(self) -> int:
+        """PARAM_SETs refused so far (unknown name, value out of range)."""
+        return self._receiver.param_rejections.count
+
+    @property
     def accepted_setpoints(self) -> int:
         """Offboard setpoints taken so far (a client can tell when one has arrived)."""
         return self._offboard.accepted_setpoints

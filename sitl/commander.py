@@ -45,7 +45,6 @@ from sitl.vehicle_state import Link, VehicleContext
 # MAVLink spec, with no constant in pymavlink.
 _FORCE_ARM_DISARM = 21196
 _ARM, _DISARM = 1.0, 0.0
-_MIN_TAKEOFF_ALTITUDE_M = 0.5
 # What PX4 does when setpoints stop in OFFBOARD, per COM_OBL_RC_ACT (a PX4 parameter, no MAVLink
 # enum): 3 Return, 4 Land, 6 and 7 terminate (here: disarm); anything else holds.
 _OFFBOARD_LOSS_ACTIONS: dict[int, FlightMode | None] = {
@@ -271,7 +270,7 @@ class Commander:
             self._vehicle.statustext(now, mavlink.MAV_SEVERITY_CRITICAL, denial)
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         if mode is FlightMode.TAKEOFF:
-            self._navigator.set_takeoff_altitude(self._params["MIS_TAKEOFF_ALT"])
+            self._navigator.request_takeoff(math.nan)
         self._delayed_action = None  # the user takes over from a failsafe's hold
         self.set_mode(mode)
         return mavlink.MAV_RESULT_ACCEPTED
@@ -486,18 +485,9 @@ class Commander:
         return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_takeoff(self, cmd: Command, link: Link) -> int:
-        state = self._state
-        if not state.armed:
-            self._vehicle.statustext(
-                state.now_s, mavlink.MAV_SEVERITY_CRITICAL, "Takeoff denied: vehicle not armed"
-            )
-            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        alt_amsl = cmd.params[6]
-        if math.isfinite(alt_amsl):
-            altitude = alt_amsl - (self._vehicle.ground_amsl_m - state.home_ned_m[2])
-        else:
-            altitude = self._params["MIS_TAKEOFF_ALT"]
-        self._navigator.set_takeoff_altitude(max(altitude, _MIN_TAKEOFF_ALTITUDE_M))
+        """PX4 (1.15 on) switches to TAKEOFF armed or not; the climb, to param 7 (AMSL) or
+        MIS_TAKEOFF_ALT above the vehicle, is worked out when it starts armed."""
+        self._navigator.request_takeoff(cmd.params[6])
         self.set_mode(FlightMode.TAKEOFF)
         return mavlink.MAV_RESULT_ACCEPTED
 

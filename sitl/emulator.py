@@ -551,6 +551,7 @@ class Emulator:
                     rates=rates,
                     deliver=self._deliver_to(ap),
                     stream_phase_s=phase,
+                    step_s=self._dt_s,
                     # 25 Hz of ground truth would swamp the tlogs; PX4 logs none of it either.
                     tlog=tlog if name != "truth" else None,
                     now_us=self._tlog_time_us,

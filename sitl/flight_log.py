@@ -1,7 +1,7 @@
 """The flight logs a vehicle records, as PX4's logger does: one ULog file per flight.
 
-:class:`FlightLogger` starts a log when SDLOG_MODE says so (0, PX4's default: from arming to
-disarming; 1: from boot to the first disarm, then per flight; 2: from boot and 4: from the first
+:class:`FlightLogger` starts a log when SDLOG_MODE says so (1, PX4 SITL's default: from boot to
+the first disarm, then per flight; 0: from arming to disarming; 2: from boot and 4: from the first
 arming until the emulator stops; 3 never, as there is no RC AUX1 switch)
 and samples the vehicle at ``rate_hz`` into a few of PX4's topics under their PX4 names and
 fields (vehicle_status, vehicle_local_position, vehicle_global_position, vehicle_attitude,

@@ -39,6 +39,8 @@ _COURSE_MIN_SPEED_M_S = 1.0  # TARGET_SPEED_DEADZONE_FOR_ORIENTATION_TRACKING
 _ORBIT_MAX_ACCELERATION_M_S2 = 2.0  # ORBIT_TRAJECTORY_MAX_ACCELERATION
 _ALTITUDE_ACCEPTANCE_M = 3.0  # ALT_ACCEPTANCE_THRESHOLD
 _YAW_MIN_DISTANCE_M = 1.0  # MINIMUM_DISTANCE_TO_TARGET_FOR_YAW_CONTROL
+_MINIMUM_SAFETY_ALTITUDE_M = 1.0  # below it above the ground: emergency ascent
+_EMERGENCY_ASCENT_SPEED_M_S = 0.5
 
 
 def _wrap_pi(angle: float) -> float:
@@ -230,7 +232,12 @@ class FollowTarget:
         yaw = math.nan
         if math.hypot(*to_target) > _YAW_MIN_DISTANCE_M:
             yaw = math.atan2(to_target[1], to_target[0])
-        if abs(down - pos[2]) < _ALTITUDE_ACCEPTANCE_M:
+        if vehicle.height_above_ground_m() < _MINIMUM_SAFETY_ALTITUDE_M:
+            # SIH's distance sensor measures the height; PX4 stops and climbs slowly.
+            vehicle.fly_at(
+                [0.0, 0.0, -_EMERGENCY_ASCENT_SPEED_M_S], yaw_rad=yaw, yaw_rate_rad_s=math.nan
+            )
+        elif abs(down - pos[2]) < _ALTITUDE_ACCEPTANCE_M:
             tangential = [-math.sin(angle) * rate * distance, math.cos(angle) * rate * distance]
             feedforward = [tangential[0] + tgt_vel[0], tangential[1] + tgt_vel[1], 0.0]
             vehicle.fly_to([desired[0], desired[1], down], feedforward, yaw_rad=yaw)

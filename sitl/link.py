@@ -41,7 +41,8 @@ class VehicleLink(asyncio.DatagramProtocol):
     """A vehicle's UDP endpoint: ``name`` is ``"api"`` or ``"gcs"``.
 
     ``deliver(msg, link)`` receives every valid decoded message; ``now_us()`` gives the tlog
-    timestamp. ``streams`` holds this link's telemetry schedule. ``signing`` is the vehicle's
+    timestamp. ``streams`` holds this link's telemetry schedule (at most one message of a kind
+    per physics step of ``step_s``). ``signing`` is the vehicle's
     signing state (shared by its links); the link signs with its PX4 link id.
     """
 
@@ -55,6 +56,7 @@ class VehicleLink(asyncio.DatagramProtocol):
         rates: StreamRates,
         deliver: Callable[[mavlink.MAVLink_message, VehicleLink], None],
         stream_phase_s: float = 0.0,
+        step_s: float = 0.0,
         tlog: TlogWriter | None = None,
         now_us: Callable[[], int] = lambda: 0,
         signing: VehicleSigning | None = None,
@@ -64,7 +66,7 @@ class VehicleLink(asyncio.DatagramProtocol):
         self.local_port = local_port
         self.remote_address = remote_address
         self.partner: Address | None = None
-        self.streams = StreamScheduler(rates, stream_phase_s)
+        self.streams = StreamScheduler(rates, stream_phase_s, step_s)
         self._deliver = deliver
         self._tlog = tlog
         self._now_us = now_us

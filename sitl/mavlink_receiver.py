@@ -34,6 +34,32 @@ from sitl.vehicle_state import Link, VehicleContext
 
 logger = logging.getLogger(__name__)
 
+#: Rejected PARAM_SETs are reported (log line, STATUSTEXT) at most this often, simulated s:
+#: a client flooding bad writes must not flood the log and the links too.
+_REJECTION_REPORT_INTERVAL_S = 1.0
+
+
+class _ThrottledReport:
+    """Counts events and lets one report through per ``interval_s``, saying how many were
+    held back since the last one."""
+
+    def __init__(self, interval_s: float) -> None:
+        self._interval_s = interval_s
+        self._next_s = -math.inf
+        self.count = 0
+        self._held = 0
+
+    def due(self, now_s: float) -> int | None:
+        """Count one event; the number held back before it if it is to be reported, else None."""
+        self.count += 1
+        if now_s < self._next_s:
+            self._held += 1
+            return None
+        held, self._held = self._held, 0
+        self._next_s = now_s + self._interval_s
+        return held
+
+
 MessageHandler = Callable[[mavlink.MAVLink_message, Link], None]
 
 _MISSION_MESSAGES = (
@@ -76,6 +102,7 @@ class MavlinkReceiver:
         command_tables: Iterable[Mapping[int, CommandHandler]] = (),
     ) -> None:
         self._vehicle = vehicle
+        self.param_rejections = _ThrottledReport(_REJECTION_REPORT_INTERVAL_S)
         self._files = files if files is not None else FileSystem()
         self._ftp: dict[Link, FtpServer] = {}
         self._ftp_echo_session = ftp_echo_session
@@ -202,17 +229,34 @@ class MavlinkReceiver:
         now = vehicle.state.now_s
         name = _param_name(msg.param_id)
         if name not in params:
-            vehicle.statustext(now, mavlink.MAV_SEVERITY_WARNING, f"Unknown parameter {name[:24]}")
+            # PX4 answers PARAM_ERROR and logs "unknown param"; it sends no STATUSTEXT.
+            error = mavlink.MAV_PARAM_ERROR_DOES_NOT_EXIST
+            link.send(
+                mavlink.MAVLink_param_error_message(
+                    msg.get_srcSystem(), msg.get_srcComponent(), name.encode()[:16], -1, error
+                )
+            )
+            self._param_rejected(now, name, "unknown parameter", text=False)
             return
         if name not in _READ_ONLY_PARAMS:  # for those: echo the value in use
             try:
                 value = params.decode_wire_value(name, msg.param_value, msg.param_type)
                 params.set(name, value)
             except (ValueError, OverflowError) as exc:
-                vehicle.statustext(now, mavlink.MAV_SEVERITY_WARNING, f"Param {name} rejected")
-                logger.info("vehicle %d: PARAM_SET %s rejected: %s", vehicle.sysid, name, exc)
+                self._param_rejected(now, name, str(exc), text=True)
         # PX4 announces the (possibly unchanged) value on every link.
         vehicle.broadcast(self._param_value(name))
+
+    def _param_rejected(self, now_s: float, name: str, why: str, *, text: bool) -> None:
+        """Log (and with ``text`` say in a STATUSTEXT) a refused write, throttled."""
+        held = self.param_rejections.due(now_s)
+        if held is None:
+            return
+        vehicle = self._vehicle
+        more = f" (+{held} more)" if held else ""
+        if text:
+            vehicle.statustext(now_s, mavlink.MAV_SEVERITY_WARNING, f"Param {name} rejected{more}")
+        logger.info("vehicle %d: PARAM_SET %s rejected: %s%s", vehicle.sysid, name, why, more)
 
     def _param_value(self, name: str) -> mavlink.MAVLink_message:
         params = self._vehicle.params

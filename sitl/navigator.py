@@ -62,7 +62,9 @@ class Navigator:
             send_current=self.broadcast_mission_current,
         )
         self._cruise_override_m_s: float | None = None
-        self._takeoff_altitude_m = 0.0  # above home
+        self._takeoff_request_amsl_m = math.nan  # NAV_TAKEOFF's altitude, until the climb starts
+        self._takeoff_requested = False
+        self._takeoff_down_m = 0.0  # world NED down the climb ends at
 
         self._rtl_stage = ""
         self._rtl_altitude_m = 0.0
@@ -85,9 +87,37 @@ class Navigator:
     def has_mission(self) -> bool:
         return bool(self.mission.items)
 
-    def set_takeoff_altitude(self, altitude_above_home_m: float) -> None:
-        """Where the next TAKEOFF climbs to."""
-        self._takeoff_altitude_m = altitude_above_home_m
+    def request_takeoff(self, altitude_amsl_m: float) -> None:
+        """NAV_TAKEOFF's altitude (AMSL, NaN: MIS_TAKEOFF_ALT above the vehicle), kept until
+        the next climb starts, as PX4's navigator keeps its takeoff triplet."""
+        self._takeoff_request_amsl_m = altitude_amsl_m
+        self._takeoff_requested = True
+
+    def _start_takeoff(self) -> None:
+        """PX4's Takeoff::set_takeoff_position, run when TAKEOFF starts armed: the requested
+        altitude, else MIS_TAKEOFF_ALT above the vehicle; never down."""
+        vehicle = self._vehicle
+        pos = vehicle.position_ned()
+        if not (self._takeoff_requested or self._state.landed):
+            # Flying already (motors back after a failure): the climb goes on as it was.
+            self._fly_to([pos[0], pos[1], self._takeoff_down_m], math.nan)
+            return
+        requested, self._takeoff_request_amsl_m = self._takeoff_request_amsl_m, math.nan
+        self._takeoff_requested = False
+        now = self._state.now_s
+        if math.isfinite(requested):
+            down = vehicle.down_from_altitude(requested, relative_to_home=False)
+        else:
+            default_m = self._params["MIS_TAKEOFF_ALT"]
+            down = pos[2] - default_m
+            text = f"Using default takeoff altitude: {default_m:.1f} m\t"
+            vehicle.statustext(now, mavlink.MAV_SEVERITY_INFO, text)
+        if down > pos[2]:
+            down = pos[2]
+            text = "Already higher than takeoff altitude\t"
+            vehicle.statustext(now, mavlink.MAV_SEVERITY_CRITICAL, text)
+        self._takeoff_down_m = down
+        self._fly_to([pos[0], pos[1], down], math.nan)
 
     def mission_status(self) -> tuple[int, int, int, int]:
         """MISSION_CURRENT fields (seq, total, mission_state, mission_mode)."""
@@ -120,9 +150,7 @@ class Navigator:
         """Start flying the current AUTO mode (the vehicle is armed)."""
         mode = self._state.mode
         if mode is FlightMode.TAKEOFF:
-            pos = self._vehicle.position_ned()
-            down = self._state.home_ned_m[2] - self._takeoff_altitude_m
-            self._fly_to([pos[0], pos[1], min(down, pos[2])], math.nan)
+            self._start_takeoff()
         elif mode is FlightMode.LAND:
             self._start_landing()
         elif mode is FlightMode.RTL:
@@ -136,9 +164,9 @@ class Navigator:
         """Advance the current AUTO mode to ``now_s`` (called while armed)."""
         mode = self._state.mode
         if mode is FlightMode.TAKEOFF:
-            target_down = self._state.home_ned_m[2] - self._takeoff_altitude_m
+            target_down = self._takeoff_down_m
             pos = self._vehicle.position_ned()
-            if pos[2] <= target_down + 0.1:
+            if pos[2] <= target_down + 0.1 and not self._state.landed:
                 self._set_mode(FlightMode.HOLD)
                 self._fly_to([pos[0], pos[1], target_down], math.nan)
         elif mode is FlightMode.RTL:

@@ -537,7 +537,7 @@ _REPORTED: list[ParamSpec] = [
     _p("SDLOG_BOOT_BAT", "INT32", 0, 0, 1, "Battery-only Logging"),
     _p("SDLOG_DIRS_MAX", "INT32", 7, 0, 1000, "Maximum number of log directories to keep"),
     _p("SDLOG_MISSION", "INT32", 0, 0, 2, "Mission Log"),
-    _p("SDLOG_MODE", "INT32", 0, 0, 4, "Logging Mode"),
+    _p("SDLOG_MODE", "INT32", 1, 0, 4, "Logging Mode (PX4 SITL: 1, from boot)"),
     _p("SDLOG_PROFILE", "INT32", 131, 0, 4095, "Logged topic profile (bitmask)"),
     _p("SDLOG_UTC_OFFSET", "INT32", 0, -1000, 1000, "UTC offset of log file names, min"),
     _p("SDLOG_UUID", "INT32", 1, 0, 1, "Log UUID"),

@@ -126,22 +126,30 @@ _AIR_TEMPERATURE_DEGC = 15.0
 FLIGHT_SW_VERSION = (1 << 24) | (15 << 16) | (0 << 8) | 255
 
 
+#: A stream is due this much before its time: sums of float periods must not slip a step.
+_DUE_SLACK_S = 1e-9
+
+
 class StreamScheduler:
     """Which streams of one link are due, in simulated time.
 
     ``phase_s`` offsets the first emission so many vehicles do not all send in the same step.
+    Streams are sent after physics steps, so none runs faster than one message per step
+    (``step_s``): a faster SET_MESSAGE_INTERVAL is accepted, as PX4 accepts rates it cannot keep,
+    and flown and reported (MESSAGE_INTERVAL) at one per step.
     """
 
-    def __init__(self, rates: StreamRates, phase_s: float = 0.0) -> None:
+    def __init__(self, rates: StreamRates, phase_s: float = 0.0, step_s: float = 0.0) -> None:
+        self._step_s = step_s
         self._default_period_s: dict[int, float | None] = {}
         for msg_id, field in STREAM_RATE_FIELDS.items():
             hz = float(getattr(rates, field))
-            self._default_period_s[msg_id] = 1.0 / hz if hz > 0 else None
+            self._default_period_s[msg_id] = max(1.0 / hz, step_s) if hz > 0 else None
         self._period_s: dict[int, float | None] = dict(self._default_period_s)
         self._next_due_s: dict[int, float] = {
             msg_id: phase_s for msg_id, period in self._period_s.items() if period is not None
         }
-        self.next_due_s = min(self._next_due_s.values(), default=math.inf)
+        self.next_due_s = min(self._next_due_s.values(), default=math.inf) - _DUE_SLACK_S
 
     def period_s(self, msg_id: int) -> float | None:
         return self._period_s.get(msg_id)
@@ -155,14 +163,13 @@ class StreamScheduler:
         elif interval_us == 0:
             period = self._default_period_s.get(msg_id)
         else:
-            # PX4 caps stream rates; 1 kHz is far above anything useful here.
-            period = max(interval_us * 1e-6, 0.001)
+            period = max(interval_us * 1e-6, self._step_s)
         self._period_s[msg_id] = period
         if period is None:
             self._next_due_s.pop(msg_id, None)
         else:
             self._next_due_s[msg_id] = now_s
-        self.next_due_s = min(self._next_due_s.values(), default=math.inf)
+        self.next_due_s = min(self._next_due_s.values(), default=math.inf) - _DUE_SLACK_S
         return True
 
     def interval_us(self, msg_id: int) -> int:
@@ -177,7 +184,7 @@ class StreamScheduler:
         due = []
         next_due = self._next_due_s
         for msg_id, due_s in next_due.items():
-            if now_s >= due_s:
+            if now_s >= due_s - _DUE_SLACK_S:
                 due.append(msg_id)
                 period = self._period_s[msg_id]
                 assert period is not None
@@ -186,7 +193,7 @@ class StreamScheduler:
                     # Behind by more than a period (e.g. after a pause): do not burst.
                     next_s = now_s + period
                 next_due[msg_id] = next_s
-        self.next_due_s = min(next_due.values(), default=math.inf)
+        self.next_due_s = min(next_due.values(), default=math.inf) - _DUE_SLACK_S
         return due
 
 

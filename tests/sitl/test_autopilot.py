@@ -70,10 +70,12 @@ def test_takeoff_climbs_to_mis_takeoff_alt_then_holds() -> None:
     assert bench.ap.landed_state == 2  # IN_AIR
 
 
-def test_takeoff_needs_arming() -> None:
+def test_takeoff_while_disarmed_only_switches_the_mode() -> None:
     bench = Bench()
-    assert bench.command(TAKEOFF) == TEMPORARILY_REJECTED
-    assert bench.ap.mode is FlightMode.HOLD
+    assert bench.command(TAKEOFF) == ACCEPTED  # PX4 1.15 on: the climb starts on arming
+    assert bench.ap.mode is FlightMode.TAKEOFF
+    bench.run(2)
+    assert not bench.ap.armed and -bench.position()[2] == pytest.approx(0.0, abs=1e-6)
 
 
 def test_land_descends_then_auto_disarms_after_com_disarm_land() -> None:

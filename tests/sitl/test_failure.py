@@ -282,3 +282,16 @@ async def test_mavsdk_failure_plugin_injects_gps_and_motor_failures() -> None:
         with pytest.raises(FailureError) as denied:
             await failure.inject(FailureUnit.SYSTEM_MOTOR, FailureType.OK, 0)
         assert denied.value.result == MavsdkFailureResult.DENIED
+
+
+def test_motors_back_in_a_climb_finish_the_same_takeoff() -> None:
+    bench = Bench(params={"MIS_TAKEOFF_ALT": 5.0})
+    assert bench.command(400, 1) == ACCEPTED
+    assert bench.command(22, -1, 0, 0, *[math.nan] * 4) == ACCEPTED
+    bench.run_until(lambda: bench.position()[2] < -2.0, 10.0, "2 m up")
+    assert inject(bench, U.FAILURE_UNIT_SYSTEM_MOTOR, U.FAILURE_TYPE_OFF, 0) == ACCEPTED
+    bench.run(0.2)
+    assert inject(bench, U.FAILURE_UNIT_SYSTEM_MOTOR, U.FAILURE_TYPE_OK, 0) == ACCEPTED
+    bench.run_until(lambda: bench.ap.mode is FlightMode.HOLD, 15.0, "the climb's end")
+    assert -bench.position()[2] == pytest.approx(5.0, abs=0.1)
+    assert bench.texts().count("Using default takeoff altitude: 5.0 m") == 1

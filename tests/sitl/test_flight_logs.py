@@ -85,7 +85,9 @@ def test_nav_state_is_px4s_for_each_mode() -> None:
 
 # ------------------------------------------------------------------ recording
 def test_a_flight_is_one_log_from_arming_to_disarming() -> None:
-    bench = Bench(flight_logs=FlightLogConfig(rate_hz=10.0), params={"MIS_TAKEOFF_ALT": 2.5})
+    bench = Bench(
+        flight_logs=FlightLogConfig(rate_hz=10.0), params={"MIS_TAKEOFF_ALT": 2.5, "SDLOG_MODE": 0}
+    )
     bench.run(2.0)
     assert bench.ap.flight_logs.logs == []  # SDLOG_MODE 0: nothing before arming
     fly(bench)
@@ -292,3 +294,24 @@ async def test_mavsdk_log_files_and_ftp_get_the_flight_log(tmp_path: Path) -> No
         async for _ in ftp.download(f"/log/{flight.name}", str(tmp_path / "ftp"), True):
             pass
         assert (tmp_path / "ftp" / file_name).read_bytes() == bytes(flight.data)
+
+
+@pytest.mark.mavsdk
+@pytest.mark.asyncio
+async def test_mavsdk_downloads_a_log_from_a_vehicle_that_never_flew(tmp_path: Path) -> None:
+    """PX4 SITL logs from boot (its start script sets SDLOG_MODE 1), so MAVSDK's
+    logfile_download example finds a log on a fresh vehicle; so does the emulator's."""
+    async with emulated_drones(api_config(speed=4.0)) as (emulator, [drone]):
+        assert emulator.autopilot(0).params["SDLOG_MODE"] == 1
+        await emulator.run_for(2.0)
+        log_files = LogFilesAsync(drone.system)
+        (entry,) = await log_files.get_entries()
+        (booted,) = emulator.autopilot(0).flight_logs.logs
+        assert booted.recording and entry.id == 0
+        target = tmp_path / "boot.ulg"
+        async for _ in log_files.download_log_file(entry, str(target)):
+            pass
+        data = target.read_bytes()
+        assert len(data) == entry.size_bytes and data == bytes(booted.data[: len(data)])
+        status = ulog(data).get_dataset("vehicle_status").data
+        assert set(status["arming_state"]) == {1}  # standby: never armed

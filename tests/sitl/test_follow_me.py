@@ -204,3 +204,39 @@ async def test_mavsdk_follow_me_follows_a_moving_target() -> None:
             5,
             "HOLD after follow_me.stop()",
         )
+
+
+@pytest.mark.mavsdk
+@pytest.mark.asyncio
+async def test_mavsdk_follow_me_never_lands_on_a_target_below_the_ground() -> None:
+    """MAVSDK-Python's follow_me example: 3D tracking (FLW_TGT_ALT_M 2), 8 m above a target it
+    reports at 480 m AMSL, 8 m below home. PX4 SITL (SIH) stops and climbs whenever it is less
+    than 1 m above the ground, so it hovers ~1 m up, armed and following (measured 0.8-1.2 m)."""
+    config = api_config(speed=5.0)
+    async with emulated_drones(config) as (emulator, [drone]):
+        follow_me = FollowMeAsync(drone.system)
+        await follow_me.set_config(
+            Config(8.0, 2.0, 0.02, Config.FollowAltitudeMode.TARGET_GPS, 10.0, 0.0)
+        )
+        await take_off(drone)
+        await follow_me.start()
+        while not await follow_me.is_active():  # MAVSDK: active once it sees the mode
+            await asyncio.sleep(0.05)
+        target_amsl_m = config.home.altitude_amsl_m - 8.0
+        lowest_m = [math.inf]
+
+        def watch(_time_s: float, truth: object) -> None:
+            lowest_m[0] = min(lowest_m[0], -float(emulator.truth.position_ned_m[0, 2]))
+
+        def report() -> Awaitable[None]:  # a target walking east at 1 m/s
+            lat, lon = emulator.projection.to_global(10.0, emulator.time_s)
+            return follow_me.set_target_location(TargetLocation(lat, lon, target_amsl_m, 0, 1, 0))
+
+        remove = emulator.add_step_listener(watch)
+        async with periodically(report, 10.0, "follow-me-target"):
+            await emulator.run_for(30.0)
+        remove()
+        status = emulator.vehicle_status(0)
+        assert emulator.truth.armed[0] and emulator.autopilot(0).mode is FlightMode.FOLLOW_TARGET
+        assert lowest_m[0] > 0.7, status
+        assert -emulator.truth.position_ned_m[0, 2] == pytest.approx(1.0, abs=0.1)

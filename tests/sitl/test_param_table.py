@@ -7,6 +7,7 @@ import asyncio
 import json
 import lzma
 import os
+import re
 from pathlib import Path
 
 import pytest
@@ -148,3 +149,16 @@ async def test_mavsdk_gets_every_parameter_with_its_type_and_sets_one() -> None:
         await drone.param.set_param_float("GF_MAX_HOR_DIST", 120.0)
         assert await drone.param.get_param_float("GF_MAX_HOR_DIST") == pytest.approx(120.0)
         assert emulator.autopilot(0).params["GF_MAX_HOR_DIST"] == 120.0
+
+
+@pytest.mark.asyncio
+async def test_the_readme_says_how_many_parameters_a_vehicle_serves() -> None:
+    readme = (Path(__file__).parents[2] / "sitl" / "README.md").read_text()
+    (stated,) = re.findall(r"^\| parameters \| 897 \| (\d+):", readme, re.MULTILINE)
+    config = EmulatorConfig(vehicles=1, ports=free_port_config(1, gcs=False))
+    async with Emulator(config), RawClient(config.ports.api_remote_port(0)) as client:
+        await client.expect(lambda m: m.get_type() == "HEARTBEAT", 3, "a heartbeat")
+        with client.matching(lambda m: m.get_type() == "PARAM_VALUE") as value:
+            client.send(mavlink.MAVLink_param_request_read_message(1, 1, b"", 0))
+            served = (await asyncio.wait_for(value, 3)).param_count
+    assert int(stated) == served

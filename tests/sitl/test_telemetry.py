@@ -5,10 +5,12 @@ from __future__ import annotations
 import math
 
 import pytest
+from pymavlink.dialects.v20 import common as mavlink
 
-from sitl.config import StreamRates
+from sitl import Emulator, EmulatorConfig
+from sitl.config import ClockConfig, PhysicsConfig, StreamRates
 from sitl.telemetry import StreamScheduler, euler_to_quaternion, quaternion_to_euler
-from tests.sitl.helpers import Bench
+from tests.sitl.helpers import Bench, RawClient, free_port_config
 
 
 def test_streams_fire_at_their_rates() -> None:
@@ -66,3 +68,48 @@ def test_quaternion_roundtrip(angles: tuple[float, float, float]) -> None:
     q = euler_to_quaternion(*angles)
     assert math.fsum(v * v for v in q) == pytest.approx(1.0)
     assert quaternion_to_euler(*q) == pytest.approx(angles)
+
+
+async def rate_over_udp(physics_hz: float, interval_us: float) -> tuple[int, int, float]:
+    """A pymavlink client asks one vehicle for HIGHRES_IMU every ``interval_us``: the answer,
+    the interval MESSAGE_INTERVAL then reports, and the messages per simulated second (by
+    their timestamps, over 4 s)."""
+    config = EmulatorConfig(
+        vehicles=1,
+        ports=free_port_config(1, gcs=False),
+        clock=ClockConfig(speed=2.0),
+        physics=PhysicsConfig(rate_hz=physics_hz),
+    )
+    msg_id = mavlink.MAVLINK_MSG_ID_HIGHRES_IMU
+    async with Emulator(config) as emulator, RawClient(config.ports.api_remote_port(0)) as client:
+        await client.expect(lambda m: m.get_type() == "HEARTBEAT", 3, "a heartbeat")
+        result = await client.command(1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, interval_us)
+        with client.matching(lambda m: m.get_type() == "MESSAGE_INTERVAL") as reply:
+            await client.command(1, mavlink.MAV_CMD_GET_MESSAGE_INTERVAL, msg_id)
+            reported = (await reply).interval_us
+        client.keep_messages = True
+        await emulator.run_for(5.0)
+        stamps_s = [m.time_usec / 1e6 for m in client.messages if m.get_type() == "HIGHRES_IMU"]
+        start_s = stamps_s[0] + 0.5  # the new rate has set in
+        in_window = [t for t in stamps_s if start_s <= t < start_s + 4.0 - 1e-6]
+        return result, reported, len(in_window) / 4.0
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize(
+    ("physics_hz", "interval_us", "reported_us", "rate_hz"),
+    [
+        (200.0, 5_000, 5_000, 200.0),  # PX4 SITL: 136/s
+        (1000.0, 2_000, 2_000, 500.0),  # PX4 SITL: 250-265/s
+        (50.0, 5_000, 20_000, 50.0),  # one per physics step at most, and said so
+        (50.0, 1, 20_000, 50.0),  # PX4 SITL: MESSAGE_INTERVAL 1, and nothing at all
+        (50.0, 30_000, 30_000, 33.3),
+    ],
+)
+async def test_set_message_interval_is_kept_or_the_rate_kept_is_reported(
+    physics_hz: float, interval_us: int, reported_us: int, rate_hz: float
+) -> None:
+    result, reported, measured_hz = await rate_over_udp(physics_hz, interval_us)
+    assert result == mavlink.MAV_RESULT_ACCEPTED  # PX4 accepts every rate, kept or not
+    assert reported == reported_us
+    assert measured_hz == pytest.approx(rate_hz, rel=0.02)
