@@ -370,14 +370,69 @@ class SensorConfig(Model):
         ge=0,
         lt=1,
         title="Range outliers",
-        description="Probability a range is an NLOS outlier: read long by a bias drawn "
-        "uniformly from range_outlier_bias_m.",
+        description="Probability a range is an NLOS outlier (the fraction of the time a pair "
+        "is in an NLOS burst, range_nlos_duration_s): read long by a bias drawn uniformly from "
+        "range_outlier_bias_m.",
     )
     range_outlier_bias_m: Pair = Field(
         [0.3, 3.0],
         title="Outlier bias",
         description="[low, high] of the extra length of an outlying range [m] (UWB through an "
         "obstacle reads long, never short).",
+    )
+    range_scheme: Literal["one_exchange_per_pair", "one_exchange_per_direction"] = Field(
+        "one_exchange_per_pair",
+        title="Ranging scheme",
+        description="How the radios range: one_exchange_per_pair, one two-way exchange per pair "
+        "and step whose range both ends read (the same number at the same instant); "
+        "one_exchange_per_direction, each end runs its own exchange (its own timestamp noise, "
+        "dropout and clock error; bias, multipath and NLOS common to the pair).",
+    )
+    range_bias_std_m: NonNegativeFloat = Field(
+        0.0,
+        title="Pair bias",
+        description="Std of a per-pair range bias constant over the mission [m] (what is left "
+        "of both radios' antenna delays after calibration; Decawave APS014: one delay tick is "
+        "4.7 mm, and the range moves 2.15 mm per degree C).",
+    )
+    range_multipath_std_m: NonNegativeFloat = Field(
+        0.0,
+        title="Multipath",
+        description="Stationary std of a pair's slowly varying range error [m] (multipath and "
+        "the received-level bias of Decawave APS011, +11 to -20 cm over the DW1000's range of "
+        "signal levels), a Gauss-Markov process with range_multipath_correlation_s.",
+    )
+    range_multipath_correlation_s: PositiveFloat = Field(
+        2.0,
+        title="Multipath correlation",
+        description="Correlation time of the multipath error [s]: it decays by 1/e over this.",
+    )
+    range_nlos_duration_s: NonNegativeFloat = Field(
+        2.0,
+        title="NLOS burst",
+        description="Mean duration of an NLOS burst [s]: a pair behind an obstacle reads long "
+        "by one bias (range_outlier_bias_m) until the burst ends; range_outlier_probability is "
+        "the fraction of the time a pair spends in bursts. 0: independent outliers per step.",
+    )
+    range_clock_offset_std_ppm: NonNegativeFloat = Field(
+        0.0,
+        title="Clock offset",
+        description="Std of each radio's crystal offset [ppm]; single-sided TWR then reads "
+        "1/2 c range_reply_time_s (e_initiator - e_responder) off (Decawave APS011). "
+        "DW1000/DW3000 crystals are trimmed to about 2 ppm; 0: double-sided TWR (negligible).",
+    )
+    range_reply_time_s: PositiveFloat = Field(
+        3e-4,
+        title="Reply time",
+        description="The responder's reply delay in a single-sided exchange [s].",
+    )
+    range_exchange_s: PositiveFloat | None = Field(
+        None,
+        title="Exchange airtime",
+        description="Channel time one ranging exchange takes [s] (a DS-TWR exchange of three "
+        "frames: about 1-3 ms at 6.8 Mbps with guard times): a step carries "
+        "floor(timing.step_s / this) exchanges, given to the pairs in turn (TDMA), so a large "
+        "swarm ranges a pair every few steps. None: every pair every step.",
     )
     displacement_noise_std_m: NonNegativeFloat = Field(
         0.0, title="Flow noise", description="Std of per-step displacement noise, per axis [m]."
@@ -996,6 +1051,15 @@ def _rule_problems(scenario: Scenario) -> list[Problem]:
             (
                 "algorithm.beta",
                 f"must be < 1/timing.step_s = {1 / step_s:g} (got {scenario.algorithm.beta:g})",
+            )
+        )
+    exchange_s = scenario.sensors.range_exchange_s
+    if exchange_s is not None and exchange_s > step_s * (1 + 1e-9):
+        problems.append(
+            (
+                "sensors.range_exchange_s",
+                f"must be <= timing.step_s = {step_s:g}: a step must carry at least one ranging "
+                f"exchange (got {exchange_s:g})",
             )
         )
     ids = [vehicle.id for vehicle in scenario.vehicles]

@@ -28,7 +28,13 @@ from ..enclosing import (
 from ..enclosing.separation import separation_guard
 from ..errors import ConfigError, SimulationError
 from ..scenario import shape_matrices, target_positions
-from ..sensors import odometry_drift, odometry_error_step, range_readings, target_seen
+from ..sensors import (
+    UwbRanging,
+    odometry_drift,
+    odometry_error_step,
+    range_readings,
+    target_seen,
+)
 from ..wiring import algorithm_params, omega_of
 from .metrics import closest_pair, edge_rms, tracking_error
 
@@ -253,6 +259,7 @@ def simulate(
     swarm = SwarmEnclosing(params, phase, np.broadcast_to(omega, phase.shape))
     noise = _Noise(scenario.seed, runs)
     drift = odometry_drift(sensors, noise, (runs, n))
+    uwb = UwbRanging(sensors, n, step_s, batch=(runs,))
     odometry_error = np.zeros((runs, n, 2))
     # The commands in force, as each vehicle's step message carries them (none before k = 0).
     in_force = np.full((runs, n, 2), np.nan)
@@ -274,7 +281,6 @@ def simulate(
     keep_estimates = estimates_bytes(steps, n) <= ESTIMATES_LIMIT_BYTES
     if keep_estimates:
         out["estimates_m"] = np.empty((steps, n, n + 1, 2))
-    not_self = ~np.eye(n, n + 1, k=1, dtype=bool)
     # One track of the target per run: every vehicle hears every observation at once (the
     # relay of a complete graph without loss), so every vehicle's track is this one.
     track = TargetTrack.initial((runs,))
@@ -292,10 +298,13 @@ def simulate(
             true_ranges[..., 0], sensors, noise, looking=live & senses & ~tracker_down(k)
         )
         # The target's range comes from the tracker, the others' from the UWB radios.
-        measured = not_self & np.concatenate(
-            [seen[..., None], radio[:, :, None] & radio[:, None, :]], axis=-1
+        target_range = range_readings(
+            true_ranges[..., :1], sensors, noise, measured=seen[..., None]
         )
-        ranges = range_readings(true_ranges, sensors, noise, measured=measured)
+        radio_ranges = uwb.read(
+            true_ranges[..., 1:], noise, k=k, measured=radio[:, :, None] & radio[:, None, :]
+        )
+        ranges = np.concatenate([target_range, radio_ranges], axis=-1)
 
         odometry = position - origin + drift * times[k] + odometry_error
         observed = np.asarray(np.isfinite(ranges[..., 0]).any(axis=-1))

@@ -35,8 +35,9 @@ def test_the_filter_is_near_the_noise_floor_where_the_papers_rlse_is_not(clean):
     assert np.median(paper["tail_localization_error_rms_m"]) > 0.3
 
 
-def test_outliers_are_gated_and_barely_cost_anything(clean):
-    hit = short_run("ekf", **NOISY, range_outlier_probability=0.05)
+def test_independent_outliers_are_gated_and_barely_cost_anything(clean):
+    # Outliers drawn independently at every step (range_nlos_duration_s: 0): the gate's case.
+    hit = short_run("ekf", **NOISY, range_outlier_probability=0.05, range_nlos_duration_s=0.0)
     ratio = np.median(hit["tail_localization_error_rms_m"]) / np.median(
         clean["tail_localization_error_rms_m"]
     )

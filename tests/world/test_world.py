@@ -178,6 +178,7 @@ async def test_a_failed_uwb_stops_every_range_from_and_to_it():
 
 
 async def test_trackers_say_not_seen_beyond_range_when_hidden_and_at_a_miss():
+    from mission_runner.sensors import UwbRanging
     from mission_runner.world import step_measurements
 
     topics = Topics("unit")
@@ -197,6 +198,7 @@ async def test_trackers_say_not_seen_beyond_range_when_hidden_and_at_a_miss():
             target_velocity_m_s=[0.8, 0.0],
             sensors=sensors,
             rng=np.random.default_rng(0),
+            uwb=UwbRanging(sensors, 4, 0.5),
         )
         return {m.vehicle_id: m for _, m in measured if isinstance(m, TargetObservation)}
 
