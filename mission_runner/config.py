@@ -209,7 +209,16 @@ class EstimatorSettingsConfig(Model):
     range_noise_std_m: NonNegativeFloat | None = Field(
         None,
         title="Range noise",
-        description="Std of one range [m] the filter assumes (default: sensors.range_noise_std_m).",
+        description="Std of one range [m] the filter assumes (default: from sensors:, the "
+        "timestamp noise, pair bias, multipath and clock error in quadrature).",
+    )
+    range_common_std_m: NonNegativeFloat | None = Field(
+        None,
+        title="Common range error",
+        description="The part of a range's error both ends of a pair read alike [m], which "
+        "algorithm.shared_ranges does not average away (default: all of it with "
+        "sensors.range_scheme one_exchange_per_pair; with one_exchange_per_direction the pair's "
+        "bias and multipath, sensors.range_bias_std_m and range_multipath_std_m in quadrature).",
     )
     displacement_noise_std_m: NonNegativeFloat | None = Field(
         None,
@@ -226,11 +235,14 @@ class EstimatorSettingsConfig(Model):
         "is rejected as an outlier (chi-square, 1 degree of freedom: 10.83 rejects 0.1 % of good "
         "ranges); null: no gate.",
     )
-    gate_patience: Annotated[int, Field(ge=1)] = Field(
-        10,
+    gate_patience: Annotated[int, Field(ge=1)] | None = Field(
+        None,
         title="Gate patience",
         description="Ranges of one edge rejected in a row after which the edge restarts from "
-        "its regression (it has lost track).",
+        "its regression (it has lost track). Default: 10, or with NLOS bursts "
+        "(sensors.range_outlier_probability, range_nlos_duration_s) three mean bursts' steps, "
+        "so that an edge coasts through a burst (95 % of them) instead of restarting on its "
+        "biased ranges.",
     )
     initial_forgetting_factor: float = Field(
         0.7,
@@ -293,7 +305,9 @@ class AlgorithmConfig(Model):
         description="Vehicles share their measured ranges in their step messages and estimate "
         "each pair from the mean of both ends' ranges (one end's where the other's is missing): "
         "the two estimates of a pair are then exactly opposite, so range noise cancels in the "
-        "formation centre, and each sees half the range variance. false: the paper's own ranges.",
+        "formation centre. Only with sensors.range_scheme one_exchange_per_direction does the "
+        "mean have less variance (half of what is not common to the pair); with one exchange "
+        "per pair both ends already read one number. false: the paper's own ranges.",
     )
     shape: ShapeConfig = Field(ShapeConfig(), title="Shape", description="Affine shaping.")
     target_lost_after_s: PositiveFloat = Field(

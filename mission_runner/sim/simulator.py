@@ -72,6 +72,10 @@ class SimulationResult:
     consensus_speed_m_s: NDArray[np.float64]
     separation_m: NDArray[np.float64]
     target_status: NDArray[np.int8]
+    #: Simulated only, ``(B, K)``: ranges between vehicles read in an NLOS burst at step k, and
+    #: ranges the estimators gated that were not (the gate's false rejections).
+    nlos_ranges: NDArray[np.int_] | None = None
+    false_rejections: NDArray[np.int_] | None = None
     #: Flight-only metrics, ``{name: (B,) array}`` (see ``config.FLIGHT_METRICS``).
     extra_metrics: dict[str, NDArray[Any]] = field(default_factory=dict)
     estimates_m: NDArray[np.float64] | None = None
@@ -272,6 +276,8 @@ def simulate(
         "localization_error_m": np.empty((runs, steps)),
         "localization_rms_m": np.empty((runs, steps)),
         "gated_ranges": np.empty((runs, steps), dtype=np.int64),
+        "nlos_ranges": np.empty((runs, steps), dtype=np.int64),
+        "false_rejections": np.empty((runs, steps), dtype=np.int64),
         "consensus_speed_m_s": np.empty((runs, steps)),
         "separation_m": np.empty((runs, steps + 1)),
         "target_status": np.empty((runs, steps), dtype=np.int8),
@@ -350,6 +356,9 @@ def simulate(
         out["localization_error_m"][:, k] = np.where(np.isnan(error), 0.0, error).max(axis=(-1, -2))
         out["localization_rms_m"][:, k] = edge_rms(error)
         out["gated_ranges"][:, k] = step.gated.sum(axis=(-1, -2))
+        out["nlos_ranges"][:, k] = (uwb.nlos & np.isfinite(radio_ranges)).sum(axis=(-1, -2))
+        good = ~uwb.nlos & np.isfinite(radio_ranges)
+        out["false_rejections"][:, k] = (step.gated[..., 1:] & good).sum(axis=(-1, -2))
         speed = np.sqrt(np.sum(step.consensus_m_s**2, axis=-1))
         out["consensus_speed_m_s"][:, k] = np.where(live, speed, 0.0).max(axis=-1)
 
