@@ -240,9 +240,16 @@ class EstimatorSettingsConfig(Model):
         title="Gate patience",
         description="Ranges of one edge rejected in a row after which the edge restarts from "
         "its regression (it has lost track). Default: 10, or with NLOS bursts "
-        "(sensors.range_outlier_probability, range_nlos_duration_s) three mean bursts' steps, "
-        "so that an edge coasts through a burst (95 % of them) instead of restarting on its "
+        "(sensors.range_outlier_probability, range_nlos_duration_s) five mean bursts' steps, "
+        "so that an edge coasts through a burst (99 % of them) instead of restarting on its "
         "biased ranges.",
+    )
+    gate_long_only: bool = Field(
+        True,
+        title="Gate long ranges only",
+        description="Gate only ranges longer than predicted: NLOS reads long, never short, so a "
+        "range far too short means the estimate is too long and the filter takes it. false: "
+        "gate both sides.",
     )
     initial_forgetting_factor: float = Field(
         0.7,
@@ -257,7 +264,7 @@ class EstimatorSettingsConfig(Model):
         description="Start-up RLSE updates before the filter may take an edge over.",
     )
     handover_std_m: PositiveFloat = Field(
-        1.0,
+        2.0,
         title="Hand-over std",
         description="The filter takes an edge over once the start-up RLSE's error bound (1 "
         "sigma, worst direction) is below this [m].",

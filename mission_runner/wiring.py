@@ -73,14 +73,14 @@ GATE_PATIENCE = 10
 
 def gate_patience(scenario: Scenario) -> int:
     """How many rejected ranges in a row mean an edge has lost track: with NLOS bursts of mean
-    duration D, 3 D of steps (a burst lasts longer with probability e^-3 = 5 %), since an
-    edge that restarts on a burst's biased ranges starts from the bias (measured: 0.43 m per
-    edge at 10, 0.055 m at 60 with 2 s bursts in 0.1 s steps, the NLOS-free figure)."""
+    duration D, 5 D of steps (a burst lasts longer with probability e^-5 < 1 %), since an
+    edge that restarts on a burst's biased ranges starts from the bias (README, "Relative
+    localization with noise": 0.43 m per edge at 10 with 2 s bursts in 0.1 s steps)."""
     sensors = scenario.sensors
     if sensors.range_outlier_probability == 0 or sensors.range_nlos_duration_s == 0:
         return GATE_PATIENCE
     burst_steps = sensors.range_nlos_duration_s / scenario.timing.step_s
-    return max(GATE_PATIENCE, math.ceil(3.0 * burst_steps))
+    return max(GATE_PATIENCE, math.ceil(5.0 * burst_steps))
 
 
 def filter_settings(scenario: Scenario, *, flown: bool = False) -> FilterSettings:
@@ -117,6 +117,7 @@ def filter_settings(scenario: Scenario, *, flown: bool = False) -> FilterSetting
         handover_updates=given.handover_updates,
         handover_std_m=given.handover_std_m,
         range_common_std_m=common_std,
+        gate_long_only=given.gate_long_only,
     )
 
 

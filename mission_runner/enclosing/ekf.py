@@ -64,7 +64,9 @@ class FilterSettings:
     handover_std_m: the hand-over waits until the regression's covariance bound is below this
     (1 sigma, along its worst direction) [m]. range_common_std_m: the part of sigma_r that both
     ends of a pair read alike (the pair's bias and multipath; all of it when one exchange serves
-    both ends), which averaging both ends' ranges does not remove [m].
+    both ends), which averaging both ends' ranges does not remove [m]. gate_long_only: only
+    ranges longer than predicted are gated (NLOS reads long, never short: a range far too short
+    says the estimate is too long, and the filter takes it rather than coast on the error).
     """
 
     range_noise_std_m: float
@@ -75,6 +77,7 @@ class FilterSettings:
     handover_updates: int = 10
     handover_std_m: float = 1.0
     range_common_std_m: float = 0.0
+    gate_long_only: bool = False
 
     def __post_init__(self) -> None:
         rules = [
@@ -209,6 +212,8 @@ def filter_update(
     if settings.gate_chi2 is not None:
         with np.errstate(invalid="ignore"):
             outlying = innovation * innovation > settings.gate_chi2 * innovation_variance
+            if settings.gate_long_only:
+                outlying &= innovation > 0
         gated = tested & outlying
     accepted = tested & ~gated
     rejected_in_row = np.where(gated, edges.rejected_in_row + 1, 0.0)
