@@ -178,6 +178,22 @@ def range_schedule(n: int, sensors: SensorConfig, step_s: float, k: int) -> NDAr
     return carried
 
 
+def ranging_plan(n: int, sensors: SensorConfig, step_s: float) -> str:
+    """One line saying which ranges a step of ``n`` vehicles has under ``sensors``' scheme and
+    airtime (:func:`range_schedule`)."""
+    scheme = sensors.range_scheme.replace("_", " ")
+    slots = len(range_slots(n, sensors)[0])
+    capacity = exchanges_per_step(sensors, step_s)
+    if capacity is None or capacity >= slots:
+        return f"ranging: {scheme}, {slots} exchanges a round, every pair every step"
+    every = math.ceil(slots / capacity)
+    return (
+        f"ranging: {scheme}, {slots} exchanges a round, {capacity} a step "
+        f"(sensors.range_exchange_s {sensors.range_exchange_s:g} s): each pair every "
+        f"{slots / capacity:.3g} steps on average, at most {every} ({every * step_s:.3g} s)"
+    )
+
+
 def _pairwise(values: NDArray[Any]) -> NDArray[Any]:
     """``values`` ``(..., n, n)`` made symmetric from its upper triangle (diagonal zero): one
     draw per pair, whoever reads it."""

@@ -10,6 +10,7 @@ from mission_runner.sensors import (
     UwbRanging,
     exchanges_per_step,
     range_schedule,
+    ranging_plan,
 )
 from mission_runner.world import step_measurements
 
@@ -233,3 +234,12 @@ def test_a_step_must_carry_at_least_one_exchange():
     with pytest.raises(ConfigError) as caught:
         validate_scenario(data, source="test.yaml")
     assert [where for where, _ in caught.value.problems] == ["sensors.range_exchange_s"]
+
+
+def test_the_ranging_plan_says_how_often_a_pair_is_ranged():
+    airtime = SensorConfig(range_exchange_s=0.01)
+    assert ranging_plan(8, airtime, STEP_S).endswith(
+        "28 exchanges a round, 10 a step (sensors.range_exchange_s 0.01 s): each pair every "
+        "2.8 steps on average, at most 3 (0.3 s)"
+    )
+    assert ranging_plan(4, SensorConfig(), STEP_S).endswith("every pair every step")
