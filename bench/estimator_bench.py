@@ -128,9 +128,12 @@ def model_table(runs):
 def floor(result: SimulationResult, seed=7):
     """Per-edge tail RMS (median and p95 over runs) of the filter started at the truth (with a
     covariance of 1 m^2) on the flown trajectories of ``result``, with fresh measurements of its
-    sensor model."""
+    sensor model (gated only if the model has NLOS)."""
     scenario_ = result.scenario
-    settings = dataclasses.replace(filter_settings(scenario_), gate_chi2=None)
+    # No gate (it could only reject good ranges), unless the model reads NLOS ranges.
+    nlos = scenario_.sensors.range_outlier_probability > 0
+    settings = filter_settings(scenario_)
+    settings = settings if nlos else dataclasses.replace(settings, gate_chi2=None)
     positions, target = result.positions_m, result.target_m  # (B, K+1, N, 2), (K+1, 2)
     runs, steps = positions.shape[0], positions.shape[1] - 1
     n = positions.shape[2]
