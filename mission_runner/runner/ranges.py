@@ -54,7 +54,7 @@ from ..bus import (
     open_bus,
 )
 from ..scenario import target_positions
-from ..sensors import UwbRanging
+from ..sensors import UwbRanging, ranging_plan
 from ..sim.metrics import TruthSample
 from ..world.world import publish_measurements, step_measurements
 from .errors import RunnerError
@@ -510,6 +510,7 @@ async def run_range_provider(
     topics = scenario.bus.topics(scenario.name)
     rng = np.random.default_rng([seed, 11])
     uwb = UwbRanging(scenario.sensors, len(scenario.vehicles), scenario.timing.step_s)
+    logger.info(ranging_plan(len(scenario.vehicles), scenario.sensors, scenario.timing.step_s))
     mission_time = MissionTime()
     positions = _Positions(scenario)
     stats = RangeStats()
