@@ -235,6 +235,14 @@ class EstimatorSettingsConfig(Model):
         "is rejected as an outlier (chi-square, 1 degree of freedom: 10.83 rejects 0.1 % of good "
         "ranges); null: no gate.",
     )
+    nlos_gate_chi2: PositiveFloat = Field(
+        6.63,
+        title="Outlier gate under NLOS bursts",
+        description="Where sensors: has NLOS bursts (range_outlier_probability and "
+        "range_nlos_duration_s > 0) the gate is the smaller of gate_chi2 and this (6.63: 1 % "
+        "of good ranges, half of it with gate_long_only), which catches more of a burst's small "
+        "biases; a burst's accepted ranges pull an edge for as long as it lasts.",
+    )
     gate_patience: Annotated[int, Field(ge=1)] | None = Field(
         None,
         title="Gate patience",

@@ -83,6 +83,18 @@ def gate_patience(scenario: Scenario) -> int:
     return max(GATE_PATIENCE, math.ceil(5.0 * burst_steps))
 
 
+def gate_chi2(scenario: Scenario) -> float | None:
+    """The gate: ``gate_chi2``, or where the sensors have NLOS bursts the smaller of it and
+    ``nlos_gate_chi2`` (measured on the bench's UWB model with 5 % bursts, 100 runs: per edge
+    p95 0.094 m at 10.83, 0.070 m at 6.63, 0.063 m without NLOS; 36 good ranges gated a run
+    instead of 4). None: no gate."""
+    given, sensors = scenario.algorithm.estimator_settings, scenario.sensors
+    bursts = sensors.range_outlier_probability > 0 and sensors.range_nlos_duration_s > 0
+    if given.gate_chi2 is None or not bursts:
+        return given.gate_chi2
+    return min(given.gate_chi2, given.nlos_gate_chi2)
+
+
 def filter_settings(scenario: Scenario, *, flown: bool = False) -> FilterSettings:
     """The filter estimator's settings: ``algorithm.estimator_settings``, with the noise figures
     it leaves unset taken from the model of the sensors that produce the measurements: ranges
@@ -109,7 +121,7 @@ def filter_settings(scenario: Scenario, *, flown: bool = False) -> FilterSetting
     return FilterSettings(
         range_noise_std_m=range_std,
         displacement_noise_std_m=displacement_std,
-        gate_chi2=given.gate_chi2,
+        gate_chi2=gate_chi2(scenario),
         gate_patience=gate_patience(scenario)
         if given.gate_patience is None
         else given.gate_patience,
