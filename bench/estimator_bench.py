@@ -3,6 +3,12 @@ nothing.
 
     python bench/estimator_bench.py            # 100 runs per setting
     python bench/estimator_bench.py --runs 20  # quicker
+    python bench/estimator_bench.py --models-only  # the range models' table only (3 min)
+
+First the range models (``MODELS``: independent ends as before, one exchange per pair, the UWB
+model with pair bias and multipath per pair and per direction, with NLOS bursts): the filter,
+its floor, shared ranges and the RLSE at beta_f 0.98, with the NLOS ranges read and the good
+ranges gated. Then, on the default model, the tables below.
 
 For each noise level (range std / per-step displacement std): the paper's RLSE (beta_f = 0.7),
 the RLSE at its best forgetting factor (of a grid), the filter (``algorithm.estimator: ekf``) and
@@ -31,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 
 from mission_runner.config import load_scenario, validate_scenario  # noqa: E402
 from mission_runner.enclosing.ekf import FilterEdges, filter_update  # noqa: E402
-from mission_runner.sensors import odometry_error_step, range_readings  # noqa: E402
+from mission_runner.sensors import UwbRanging, odometry_error_step, range_readings  # noqa: E402
 from mission_runner.sim.metrics import edge_rms, run_metrics  # noqa: E402
 from mission_runner.sim.simulator import SimulationResult, simulate  # noqa: E402
 from mission_runner.wiring import filter_settings  # noqa: E402
@@ -70,12 +76,64 @@ def figures(result):
     )
 
 
+#: The range models the table compares, at 0.1 m of timestamp noise and 5 mm of displacement
+#: noise: as the simulator drew ranges before (independent at each end), one exchange per pair
+#: with white noise only, and the UWB reference model (pair bias 5 cm, multipath 5 cm with 2 s
+#: correlation; README "The range model"), without and with 5 % NLOS in 2 s bursts.
+UWB = {"range_bias_std_m": 0.05, "range_multipath_std_m": 0.05}
+NLOS = {"range_outlier_probability": 0.05, "range_nlos_duration_s": 2.0}
+MODELS = [
+    ("independent ends (before)", {"range_scheme": "one_exchange_per_direction"}),
+    ("one exchange per pair", {}),
+    ("UWB: + bias, multipath", UWB),
+    ("UWB, per direction", {**UWB, "range_scheme": "one_exchange_per_direction"}),
+    ("UWB + 5 % NLOS bursts", {**UWB, **NLOS}),
+]
+
+
+def model_row(name, result):
+    """One line of the model table: :func:`figures` plus NLOS ranges injected and the gate's
+    false rejections (good ranges gated), medians over runs."""
+    edge_median, edge_p95, track_median, track_p95, gated = figures(result)
+    injected = np.median(result.nlos_ranges.sum(axis=-1))
+    false = np.median(result.false_rejections.sum(axis=-1))
+    print(
+        f"  {name:<34} per edge {edge_median:.4f} / {edge_p95:.4f} m   "
+        f"tracking {track_median:.4f} / {track_p95:.4f} m   gated {gated:.0f} "
+        f"(NLOS read {injected:.0f}, good gated {false:.0f})"
+    )
+    return edge_median, edge_p95
+
+
+def model_table(runs):
+    """Each range model at 0.1 m / 5 mm: the filter, with shared ranges, its floor and the RLSE
+    at beta_f 0.98."""
+    print(f"\nrange models at 0.1 m / 5 mm, {runs} runs: median / p95 over runs of tail RMS")
+    for model, sensors in MODELS:
+        print(f"{model}")
+        result = simulate(scenario(0.1, 0.005, "ekf", sensors=dict(sensors)), runs)
+        edge_median, edge_p95 = model_row("filter (ekf)", result)
+        floor_median, floor_p95 = floor(result)
+        print(
+            f"  {'floor (filter from truth)':<34} per edge {floor_median:.4f} / {floor_p95:.4f} m"
+            f"   filter / floor {edge_median / floor_median:.2f} (median), "
+            f"{edge_p95 / floor_p95:.2f} (p95)"
+        )
+        shared = scenario(0.1, 0.005, "ekf", shared=True, sensors=dict(sensors))
+        model_row("filter, shared ranges", simulate(shared, runs))
+        rlse = scenario(0.1, 0.005, forgetting=0.98, sensors=dict(sensors))
+        model_row("RLSE beta_f 0.98", simulate(rlse, runs))
+
+
 def floor(result: SimulationResult, seed=7):
     """Per-edge tail RMS (median and p95 over runs) of the filter started at the truth (with a
     covariance of 1 m^2) on the flown trajectories of ``result``, with fresh measurements of its
-    sensor model."""
+    sensor model (gated only if the model has NLOS)."""
     scenario_ = result.scenario
-    settings = dataclasses.replace(filter_settings(scenario_), gate_chi2=None)
+    # No gate (it could only reject good ranges), unless the model reads NLOS ranges.
+    nlos = scenario_.sensors.range_outlier_probability > 0
+    settings = filter_settings(scenario_)
+    settings = settings if nlos else dataclasses.replace(settings, gate_chi2=None)
     positions, target = result.positions_m, result.target_m  # (B, K+1, N, 2), (K+1, 2)
     runs, steps = positions.shape[0], positions.shape[1] - 1
     n = positions.shape[2]
@@ -101,10 +159,16 @@ def floor(result: SimulationResult, seed=7):
     edges = dataclasses.replace(edges, filter=exact, engaged=edge.copy())
     odometry_error = np.zeros((runs, n, 2))
     squares = []
+    uwb = UwbRanging(scenario_.sensors, n, scenario_.timing.step_s, batch=(runs,))
     for k in range(1, steps):
         truth = relative(k)
-        ranges = range_readings(
-            np.linalg.norm(truth, axis=-1), scenario_.sensors, rng, measured=edge
+        true_m = np.linalg.norm(truth, axis=-1)
+        ranges = np.concatenate(
+            [
+                range_readings(true_m[..., :1], scenario_.sensors, rng, measured=edge[..., :1]),
+                uwb.read(true_m[..., 1:], rng, k=k),
+            ],
+            axis=-1,
         )
         odometry = np.concatenate(
             [
@@ -134,8 +198,16 @@ def row(name, values):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--runs", type=int, default=100)
-    runs = parser.parse_args().runs
+    parser.add_argument(
+        "--models-only", action="store_true", help="only the range models' table (first part)"
+    )
+    arguments = parser.parse_args()
+    runs = arguments.runs
     started = time.perf_counter()
+    model_table(runs)
+    if arguments.models_only:
+        print(f"\n{time.perf_counter() - started:.0f} s")
+        return
     print(f"paper tracking scenario, {runs} runs each; median / p95 over runs of tail RMS")
     for range_std, displacement_std in LEVELS:
         print(f"\nrange noise {range_std} m, displacement noise {displacement_std} m per step")

@@ -747,8 +747,16 @@ def _simulate(arguments: argparse.Namespace) -> int:
         )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
+        print(_ranging_text(scenario))
     _maybe_replay(arguments, out_dir)
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
+
+
+def _ranging_text(scenario: Scenario) -> str:
+    """Which ranges a step of the scenario has (its UWB scheme and airtime)."""
+    from .sensors import ranging_plan  # noqa: PLC0415 - fast `--help`
+
+    return ranging_plan(len(scenario.vehicles), scenario.sensors, scenario.timing.step_s)
 
 
 def _maybe_replay(arguments: argparse.Namespace, out_dir: Path) -> None:
@@ -868,6 +876,7 @@ def _run(arguments: argparse.Namespace) -> int:
         )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))
+        print(_ranging_text(scenario))
         mission_s = scenario.timing.steps * scenario.timing.step_s
         print(
             f"flown: {mission_s:g} s of mission in {outcome.mission_wall_time_s:.2f} s wall "

@@ -73,6 +73,10 @@ MAX_DURATION_S = 1e9
 #: What one wait of a flight may last [s] (timeouts, delays): an hour is beyond any of them, and
 #: the event loop's timers overflow long before 1e300.
 MAX_WAIT_S = 3600.0
+#: A radio crystal's offset [ppm]: UWB radios are trimmed to a few; 1000 is a broken one.
+MAX_CLOCK_OFFSET_PPM = 1000.0
+#: A ranging exchange's reply delay or airtime [s]: milliseconds; a second is no UWB radio.
+MAX_REPLY_TIME_S = 1.0
 #: Frequencies of the oscillators [rad/s]: 100 rad/s is 16 turns a second, beyond any formation.
 MAX_RATE_RAD_S = 100.0
 #: Phases [rad]: every angle is within one turn; far larger numbers are typos and lose the
@@ -266,7 +270,16 @@ class EstimatorSettingsConfig(Model):
     range_noise_std_m: NoiseStd | None = Field(
         None,
         title="Range noise",
-        description="Std of one range [m] the filter assumes (default: sensors.range_noise_std_m).",
+        description="Std of one range [m] the filter assumes (default: from sensors:, the "
+        "timestamp noise, pair bias, multipath and clock error in quadrature).",
+    )
+    range_common_std_m: NoiseStd | None = Field(
+        None,
+        title="Common range error",
+        description="The part of a range's error both ends of a pair read alike [m], which "
+        "algorithm.shared_ranges does not average away (default: all of it with "
+        "sensors.range_scheme one_exchange_per_pair; with one_exchange_per_direction the pair's "
+        "bias and multipath, sensors.range_bias_std_m and range_multipath_std_m in quadrature).",
     )
     displacement_noise_std_m: NoiseStd | None = Field(
         None,
@@ -283,11 +296,29 @@ class EstimatorSettingsConfig(Model):
         "is rejected as an outlier (chi-square, 1 degree of freedom: 10.83 rejects 0.1 % of good "
         "ranges); null: no gate.",
     )
-    gate_patience: Annotated[int, Field(ge=1)] = Field(
-        10,
+    nlos_gate_chi2: PositiveFloat = Field(
+        6.63,
+        title="Outlier gate under NLOS bursts",
+        description="Where sensors: has NLOS bursts (range_outlier_probability and "
+        "range_nlos_duration_s > 0) the gate is the smaller of gate_chi2 and this (6.63: 1 % "
+        "of good ranges, half of it with gate_long_only), which catches more of a burst's small "
+        "biases; a burst's accepted ranges pull an edge for as long as it lasts.",
+    )
+    gate_patience: Annotated[int, Field(ge=1)] | None = Field(
+        None,
         title="Gate patience",
         description="Ranges of one edge rejected in a row after which the edge restarts from "
-        "its regression (it has lost track).",
+        "its regression (it has lost track). Default: 10, or with NLOS bursts "
+        "(sensors.range_outlier_probability, range_nlos_duration_s) five mean bursts' steps, "
+        "so that an edge coasts through a burst (99 % of them) instead of restarting on its "
+        "biased ranges.",
+    )
+    gate_long_only: bool = Field(
+        True,
+        title="Gate long ranges only",
+        description="Gate only ranges longer than predicted: NLOS reads long, never short, so a "
+        "range far too short means the estimate is too long and the filter takes it. false: "
+        "gate both sides.",
     )
     initial_forgetting_factor: float = Field(
         0.7,
@@ -302,7 +333,7 @@ class EstimatorSettingsConfig(Model):
         description="Start-up RLSE updates before the filter may take an edge over.",
     )
     handover_std_m: Distance = Field(
-        1.0,
+        2.0,
         title="Hand-over std",
         description="The filter takes an edge over once the start-up RLSE's error bound (1 "
         "sigma, worst direction) is below this [m].",
@@ -348,7 +379,9 @@ class AlgorithmConfig(Model):
         description="Vehicles share their measured ranges in their step messages and estimate "
         "each pair from the mean of both ends' ranges (one end's where the other's is missing): "
         "the two estimates of a pair are then exactly opposite, so range noise cancels in the "
-        "formation centre, and each sees half the range variance. false: the paper's own ranges.",
+        "formation centre. Only with sensors.range_scheme one_exchange_per_direction does the "
+        "mean have less variance (half of what is not common to the pair); with one exchange "
+        "per pair both ends already read one number. false: the paper's own ranges.",
     )
     shape: ShapeConfig = Field(ShapeConfig(), title="Shape", description="Affine shaping.")
     target_lost_after_s: Annotated[float, Field(gt=0, le=MAX_DURATION_S)] = Field(
@@ -425,14 +458,69 @@ class SensorConfig(Model):
         ge=0,
         lt=1,
         title="Range outliers",
-        description="Probability a range is an NLOS outlier: read long by a bias drawn "
-        "uniformly from range_outlier_bias_m.",
+        description="Probability a range is an NLOS outlier (the fraction of the time a pair "
+        "is in an NLOS burst, range_nlos_duration_s): read long by a bias drawn uniformly from "
+        "range_outlier_bias_m.",
     )
     range_outlier_bias_m: Pair = Field(
         [0.3, 3.0],
         title="Outlier bias",
         description="[low, high] of the extra length of an outlying range [m] (UWB through an "
         "obstacle reads long, never short).",
+    )
+    range_scheme: Literal["one_exchange_per_pair", "one_exchange_per_direction"] = Field(
+        "one_exchange_per_pair",
+        title="Ranging scheme",
+        description="How the radios range: one_exchange_per_pair, one two-way exchange per pair "
+        "and step whose range both ends read (the same number at the same instant); "
+        "one_exchange_per_direction, each end runs its own exchange (its own timestamp noise, "
+        "dropout and clock error; bias, multipath and NLOS common to the pair).",
+    )
+    range_bias_std_m: NoiseStd = Field(
+        0.0,
+        title="Pair bias",
+        description="Std of a per-pair range bias constant over the mission [m] (what is left "
+        "of both radios' antenna delays after calibration; Decawave APS014: one delay tick is "
+        "4.7 mm, and the range moves 2.15 mm per degree C).",
+    )
+    range_multipath_std_m: NoiseStd = Field(
+        0.0,
+        title="Multipath",
+        description="Stationary std of a pair's slowly varying range error [m] (multipath and "
+        "the received-level bias of Decawave APS011, +11 to -20 cm over the DW1000's range of "
+        "signal levels), a Gauss-Markov process with range_multipath_correlation_s.",
+    )
+    range_multipath_correlation_s: Annotated[float, Field(gt=0, le=MAX_DURATION_S)] = Field(
+        2.0,
+        title="Multipath correlation",
+        description="Correlation time of the multipath error [s]: it decays by 1/e over this.",
+    )
+    range_nlos_duration_s: Annotated[float, Field(ge=0, le=MAX_DURATION_S)] = Field(
+        2.0,
+        title="NLOS burst",
+        description="Mean duration of an NLOS burst [s]: a pair behind an obstacle reads long "
+        "by one bias (range_outlier_bias_m) until the burst ends; range_outlier_probability is "
+        "the fraction of the time a pair spends in bursts. 0: independent outliers per step.",
+    )
+    range_clock_offset_std_ppm: Annotated[float, Field(ge=0, le=MAX_CLOCK_OFFSET_PPM)] = Field(
+        0.0,
+        title="Clock offset",
+        description="Std of each radio's crystal offset [ppm]; single-sided TWR then reads "
+        "1/2 c range_reply_time_s (e_initiator - e_responder) off (Decawave APS011). "
+        "DW1000/DW3000 crystals are trimmed to about 2 ppm; 0: double-sided TWR (negligible).",
+    )
+    range_reply_time_s: Annotated[float, Field(gt=0, le=MAX_REPLY_TIME_S)] = Field(
+        3e-4,
+        title="Reply time",
+        description="The responder's reply delay in a single-sided exchange [s].",
+    )
+    range_exchange_s: Annotated[float, Field(gt=0, le=MAX_REPLY_TIME_S)] | None = Field(
+        None,
+        title="Exchange airtime",
+        description="Channel time one ranging exchange takes [s] (a DS-TWR exchange of three "
+        "frames: about 1-3 ms at 6.8 Mbps with guard times): a step carries "
+        "floor(timing.step_s / this) exchanges, given to the pairs in turn (TDMA), so a large "
+        "swarm ranges a pair every few steps. None: every pair every step.",
     )
     displacement_noise_std_m: NoiseStd = Field(
         0.0, title="Flow noise", description="Std of per-step displacement noise, per axis [m]."
@@ -1165,6 +1253,15 @@ def _rule_problems(scenario: Scenario) -> list[Problem]:
             (
                 "algorithm.beta",
                 f"must be < 1/timing.step_s = {1 / step_s:g} (got {scenario.algorithm.beta:g})",
+            )
+        )
+    exchange_s = scenario.sensors.range_exchange_s
+    if exchange_s is not None and exchange_s > step_s * (1 + 1e-9):
+        problems.append(
+            (
+                "sensors.range_exchange_s",
+                f"must be <= timing.step_s = {step_s:g}: a step must carry at least one ranging "
+                f"exchange (got {exchange_s:g})",
             )
         )
     ids = [vehicle.id for vehicle in scenario.vehicles]

@@ -6,12 +6,21 @@ One model for every place that synthesises measurements: the numeric simulator
 autopilots (:mod:`.runner.ranges`) all call these functions with the scenario's ``sensors:``
 settings, so a noise, dropout or range limit means the same everywhere.
 
+Ranges between vehicles come from :class:`UwbRanging`, which ranges as UWB radios do: a two-way
+exchange gives one number, which with ``one_exchange_per_pair`` both ends read at the same
+instant; with ``one_exchange_per_direction`` each end has its own timestamp noise, dropout and
+clock error, while what belongs to the pair (the antenna-delay bias, the multipath, an NLOS
+burst) is common to both directions. Those pair errors last from step to step, so the model
+keeps them; a channel of limited airtime ranges the pairs in turn (:func:`range_schedule`).
+The target's range comes from a tracker, not a radio: :func:`range_readings`, independent draws.
+
 ``rng`` is a numpy ``Generator`` or anything with its ``normal(scale=, size=)`` and
 ``uniform(size=)`` (the simulator's batch streams).
 """
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -125,3 +134,197 @@ def odometry_error_step(
     if sensors.displacement_noise_std_m <= 0:
         return error_m
     return error_m + rng.normal(scale=sensors.displacement_noise_std_m, size=error_m.shape)
+
+
+#: The speed of light [m/s]: a clock error in a two-way exchange reaches the range through it.
+SPEED_OF_LIGHT_M_S = 299_792_458.0
+RANGE_SCHEMES = ("one_exchange_per_pair", "one_exchange_per_direction")
+
+
+def exchanges_per_step(sensors: SensorConfig, step_s: float) -> int | None:
+    """How many ranging exchanges the channel carries in one step (None: no airtime limit)."""
+    if sensors.range_exchange_s is None:
+        return None
+    # The tolerance keeps 0.1 / 0.001 at 100, not 99.
+    return math.floor(step_s / sensors.range_exchange_s + 1e-9)
+
+
+def range_slots(n: int, sensors: SensorConfig) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """The exchanges a full round of ranging takes, in the order the channel serves them:
+    ``(initiators, responders)``, the pairs i < j with ``one_exchange_per_pair``, both
+    directions of each pair in turn with ``one_exchange_per_direction``."""
+    rows, cols = np.triu_indices(n, 1)
+    if sensors.range_scheme == "one_exchange_per_pair":
+        return rows, cols
+    return np.stack([rows, cols], -1).ravel(), np.stack([cols, rows], -1).ravel()
+
+
+def range_schedule(n: int, sensors: SensorConfig, step_s: float, k: int) -> NDArray[np.bool_]:
+    """Which ranges (row i reads column j) the channel carries at step ``k``, ``(n, n)`` bool:
+    every pair without ``range_exchange_s``; else a TDMA round: the step's
+    :func:`exchanges_per_step` exchanges go to the next :func:`range_slots` after those of step
+    k - 1, so that with many vehicles a pair is ranged every few steps. The schedule is fixed
+    by the scenario's vehicles (a lost vehicle's slots stay unused, as a static TDMA frame's)."""
+    everyone = ~np.eye(n, dtype=bool)
+    capacity = exchanges_per_step(sensors, step_s)
+    initiators, responders = range_slots(n, sensors)
+    if capacity is None or capacity >= len(initiators):
+        return everyone
+    served = (k * capacity + np.arange(capacity)) % len(initiators)
+    carried = np.zeros((n, n), dtype=bool)
+    carried[initiators[served], responders[served]] = True
+    if sensors.range_scheme == "one_exchange_per_pair":
+        carried |= carried.T
+    return carried
+
+
+def ranging_plan(n: int, sensors: SensorConfig, step_s: float) -> str:
+    """One line saying which ranges a step of ``n`` vehicles has under ``sensors``' scheme and
+    airtime (:func:`range_schedule`)."""
+    scheme = sensors.range_scheme.replace("_", " ")
+    slots = len(range_slots(n, sensors)[0])
+    capacity = exchanges_per_step(sensors, step_s)
+    if capacity is None or capacity >= slots:
+        return f"ranging: {scheme}, {slots} exchanges a round, every pair every step"
+    every = math.ceil(slots / capacity)
+    return (
+        f"ranging: {scheme}, {slots} exchanges a round, {capacity} a step "
+        f"(sensors.range_exchange_s {sensors.range_exchange_s:g} s): each pair every "
+        f"{slots / capacity:.3g} steps on average, at most {every} ({every * step_s:.3g} s)"
+    )
+
+
+def _pairwise(values: NDArray[Any]) -> NDArray[Any]:
+    """``values`` ``(..., n, n)`` made symmetric from its upper triangle (diagonal zero): one
+    draw per pair, whoever reads it."""
+    upper = np.triu(values, 1)
+    return upper + np.swapaxes(upper, -1, -2)
+
+
+class UwbRanging:
+    """The UWB radios of ``n`` vehicles (for every entry of a ``batch`` of runs): the ranges
+    each reads at each step, with the errors that last kept from step to step.
+
+    A range is the true distance plus: the exchange's timestamp noise
+    (``range_noise_std_m``); the pair's bias (``range_bias_std_m``, constant); its multipath
+    (``range_multipath_std_m``, a Gauss-Markov process of correlation time
+    ``range_multipath_correlation_s``); an NLOS burst's bias (``range_outlier_probability`` of
+    the time, bursts of mean ``range_nlos_duration_s``, each reading long by one bias drawn
+    from ``range_outlier_bias_m``); single-sided TWR's clock error
+    (``range_clock_offset_std_ppm``). Dropouts (``range_dropout_probability``) lose an exchange,
+    ``range_max_m`` bounds the reading, ``range_exchange_s`` the exchanges per step.
+
+    Everything is drawn for every pair whether it is ranged or not, and only what is switched
+    on, so that one pair's fate does not move another's draws and a noise-free model draws
+    nothing. Call :meth:`read` with increasing steps; a step skipped still ages the errors.
+    """
+
+    def __init__(
+        self, sensors: SensorConfig, n: int, step_s: float, batch: tuple[int, ...] = ()
+    ) -> None:
+        self.sensors = sensors
+        self.n = n
+        self.step_s = step_s
+        self.shape = (*batch, n, n)
+        self.bias_m = np.zeros(self.shape)
+        self.multipath_m = np.zeros(self.shape)
+        self.nlos = np.zeros(self.shape, dtype=bool)
+        self.nlos_bias_m = np.zeros(self.shape)
+        self.clock_m = np.zeros(self.shape)
+        self._step: int | None = None
+
+    @property
+    def per_pair(self) -> bool:
+        return self.sensors.range_scheme == "one_exchange_per_pair"
+
+    def read(
+        self,
+        true_m: NDArray[np.float64],
+        rng: Rng,
+        *,
+        k: int,
+        measured: NDArray[np.bool_] | None = None,
+    ) -> NDArray[np.float64]:
+        """Step ``k``'s ranges for true distances ``true_m`` ``(*batch, n, n)`` [m] (NaN: no
+        line), NaN where nothing is read: on the diagonal, where ``measured`` (same shape,
+        bool) is False (with ``one_exchange_per_pair`` at either end: the exchange serves
+        both or neither), off the step's :func:`range_schedule`, dropped or out of range."""
+        if self._step is None:
+            self._start(rng)
+        elif k < self._step:
+            raise ValueError(f"UWB ranging went back from step {self._step} to {k}")
+        else:
+            for _ in range(k - self._step):
+                self._age(rng)
+        self._step = k
+        sensors = self.sensors
+        kept = np.isfinite(true_m) & range_schedule(self.n, sensors, self.step_s, k)
+        if measured is not None:
+            kept &= measured & np.swapaxes(measured, -1, -2) if self.per_pair else measured
+        readings = true_m + self.bias_m + self.multipath_m + self.clock_m
+        readings = readings + np.where(self.nlos, self.nlos_bias_m, 0.0)
+        if sensors.range_noise_std_m > 0:
+            readings = readings + self._exchanged(
+                rng.normal(scale=sensors.range_noise_std_m, size=self.shape)
+            )
+        if sensors.range_dropout_probability > 0:
+            lost = rng.uniform(size=self.shape) < sensors.range_dropout_probability
+            kept &= ~self._exchanged(lost)
+        if sensors.range_max_m is not None:
+            kept &= readings <= sensors.range_max_m
+        return np.where(kept, np.abs(readings), np.nan)
+
+    def _exchanged(self, values: NDArray[Any]) -> NDArray[Any]:
+        """What each exchange draws: one per pair, or one per direction."""
+        return _pairwise(values) if self.per_pair else values
+
+    def _start(self, rng: Rng) -> None:
+        """The pair errors at the first step, drawn from their stationary distributions."""
+        sensors, shape = self.sensors, self.shape
+        if sensors.range_bias_std_m > 0:
+            self.bias_m = _pairwise(rng.normal(scale=sensors.range_bias_std_m, size=shape))
+        if sensors.range_multipath_std_m > 0:
+            self.multipath_m = _pairwise(
+                rng.normal(scale=sensors.range_multipath_std_m, size=shape)
+            )
+        if sensors.range_outlier_probability > 0:
+            self.nlos = _pairwise(rng.uniform(size=shape)) < sensors.range_outlier_probability
+            self.nlos &= ~np.eye(self.n, dtype=bool)
+            self.nlos_bias_m = self._nlos_biases(rng)
+        if sensors.range_clock_offset_std_ppm > 0:
+            offset = rng.normal(scale=sensors.range_clock_offset_std_ppm * 1e-6, size=shape[:-1])
+            # Single-sided TWR reads 1/2 c t_reply (e_initiator - e_responder) off (APS011);
+            # in one exchange per pair the lower index initiates.
+            error = 0.5 * SPEED_OF_LIGHT_M_S * sensors.range_reply_time_s
+            error_m = error * (offset[..., :, None] - offset[..., None, :])
+            self.clock_m = _pairwise(error_m) if self.per_pair else error_m
+
+    def _age(self, rng: Rng) -> None:
+        """The pair errors one step later: the multipath decays towards a fresh draw, NLOS
+        bursts start and end (a Markov chain in the stationary fraction of the time)."""
+        sensors, shape = self.sensors, self.shape
+        if sensors.range_multipath_std_m > 0:
+            kept = math.exp(-self.step_s / sensors.range_multipath_correlation_s)
+            fresh = rng.normal(
+                scale=sensors.range_multipath_std_m * math.sqrt(1.0 - kept * kept), size=shape
+            )
+            self.multipath_m = kept * self.multipath_m + _pairwise(fresh)
+        probability = sensors.range_outlier_probability
+        if probability > 0:
+            chance = _pairwise(rng.uniform(size=shape))
+            fresh_bias = self._nlos_biases(rng)
+            not_self = ~np.eye(self.n, dtype=bool)
+            if sensors.range_nlos_duration_s == 0:  # independent outliers, each its own bias
+                self.nlos = (chance < probability) & not_self
+                self.nlos_bias_m = fresh_bias
+                return
+            leave = min(1.0, self.step_s / sensors.range_nlos_duration_s)
+            enter = min(1.0, leave * probability / (1.0 - probability))
+            starting = ~self.nlos & (chance < enter) & not_self
+            ending = self.nlos & (chance < leave)
+            self.nlos = (self.nlos & ~ending) | starting
+            self.nlos_bias_m = np.where(starting, fresh_bias, self.nlos_bias_m)
+
+    def _nlos_biases(self, rng: Rng) -> NDArray[np.float64]:
+        low, high = self.sensors.range_outlier_bias_m
+        return _pairwise(np.asarray(rng.uniform(low=low, high=high, size=self.shape)))

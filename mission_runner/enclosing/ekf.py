@@ -62,7 +62,11 @@ class FilterSettings:
     a row after which the edge restarts from its regression. initial_forgetting_factor: beta_f of
     the regression that starts each edge. handover_updates: regression updates before the hand-over.
     handover_std_m: the hand-over waits until the regression's covariance bound is below this
-    (1 sigma, along its worst direction) [m].
+    (1 sigma, along its worst direction) [m]. range_common_std_m: the part of sigma_r that both
+    ends of a pair read alike (the pair's bias and multipath; all of it when one exchange serves
+    both ends), which averaging both ends' ranges does not remove [m]. gate_long_only: only
+    ranges longer than predicted are gated (NLOS reads long, never short: a range far too short
+    says the estimate is too long, and the filter takes it rather than coast on the error).
     """
 
     range_noise_std_m: float
@@ -72,6 +76,8 @@ class FilterSettings:
     initial_forgetting_factor: float = 0.7
     handover_updates: int = 10
     handover_std_m: float = 1.0
+    range_common_std_m: float = 0.0
+    gate_long_only: bool = False
 
     def __post_init__(self) -> None:
         rules = [
@@ -85,6 +91,7 @@ class FilterSettings:
             ),
             (self.handover_updates >= 1, "handover_updates must be >= 1"),
             (self.handover_std_m > 0, "handover_std_m must be > 0"),
+            (self.range_common_std_m >= 0, "range_common_std_m must be >= 0"),
         ]
         broken = [message for ok, message in rules if not ok]
         if broken:
@@ -169,7 +176,8 @@ def filter_update(
 
     Arguments as :func:`.rlse.rlse_update`; ``initial_gain``: the regression's Gamma(0) scale, as
     given to :meth:`FilterEdges.initial`. readings: ``(..., R, S)`` how many independent ranges
-    each ``range_m`` averages (both ends of a pair: 2, its variance is halved); None: one each.
+    each ``range_m`` averages (both ends of a pair: 2, the variance of what is not common to
+    both ends is halved, ``settings.range_common_std_m`` stays); None: one each.
     Returns the new state and the ``(..., R, S)`` mask of ranges rejected by the gate at this step.
     """
     measured = np.isfinite(range_m) & np.isfinite(relative_north_m) & np.isfinite(relative_east_m)
@@ -195,7 +203,8 @@ def filter_update(
     across = np.maximum(c_nn + c_ee - along, 0.0) / np.maximum(predicted, 1e-12)
     range_variance: float | NDArray[np.float64] = settings.range_variance_m2
     if readings is not None:
-        range_variance = range_variance / np.maximum(readings, 1.0)
+        common = min(settings.range_common_std_m**2, settings.range_variance_m2)
+        range_variance = (range_variance - common) / np.maximum(readings, 1.0) + common
     innovation_variance = along + range_variance + 0.5 * across * across
     innovation = range_m - (predicted + 0.5 * across)
     tested = measured & edges.engaged
@@ -203,6 +212,8 @@ def filter_update(
     if settings.gate_chi2 is not None:
         with np.errstate(invalid="ignore"):
             outlying = innovation * innovation > settings.gate_chi2 * innovation_variance
+            if settings.gate_long_only:
+                outlying &= innovation > 0
         gated = tested & outlying
     accepted = tested & ~gated
     rejected_in_row = np.where(gated, edges.rejected_in_row + 1, 0.0)

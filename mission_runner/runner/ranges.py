@@ -9,7 +9,7 @@ Two sources of positions:
   link (instance i: from 19450+i to 19410+i; the emulator's ``truth_stream`` sends the same).
   PX4 leaves its ``time_usec`` at 0, so each message is stamped on arrival (host clock, a
   millisecond or less on one machine). Ranges are then as good as the chosen UWB model
-  (``scenario.sensors``: noise, dropouts, maximum range).
+  (``scenario.sensors``, :class:`mission_runner.sensors.UwbRanging`).
 - ``gps``: each vehicle's GLOBAL_POSITION_INT through MAVSDK (a GCS link where every vehicle is
   heard), stamped with the autopilot's boot time mapped continuously onto the mission clock
   (:mod:`.timesync`). For field tests without UWB: GPS/EKF positions differ between vehicles by
@@ -54,6 +54,7 @@ from ..bus import (
     open_bus,
 )
 from ..scenario import target_positions
+from ..sensors import UwbRanging, ranging_plan
 from ..sim.metrics import TruthSample
 from ..world.world import publish_measurements, step_measurements
 from .errors import RunnerError
@@ -508,6 +509,8 @@ async def run_range_provider(
     steps = scenario.timing.steps if steps is None else steps
     topics = scenario.bus.topics(scenario.name)
     rng = np.random.default_rng([seed, 11])
+    uwb = UwbRanging(scenario.sensors, len(scenario.vehicles), scenario.timing.step_s)
+    logger.info(ranging_plan(len(scenario.vehicles), scenario.sensors, scenario.timing.step_s))
     mission_time = MissionTime()
     positions = _Positions(scenario)
     stats = RangeStats()
@@ -556,7 +559,7 @@ async def run_range_provider(
             wait_s = min(MAX_WAIT_S, max(0.0, deadline_s - time.time()))
             now = await positions.bracketing(unix_k, wait_s, extrapolate_s=extrapolate_s)
             await _publish_step(
-                bus, topics, scenario, now, k, t_k, start.time_s, rng, stats, publish=publish
+                bus, topics, scenario, now, k, t_k, start.time_s, (rng, uwb), stats, publish=publish
             )
             if publish:
                 stats.lateness_s.append(mission_time.now_s() - t_k)
@@ -576,14 +579,16 @@ async def _publish_step(  # noqa: PLR0917
     k: int,
     t_k: float,
     start_s: float,
-    rng: np.random.Generator,
+    noise: tuple[np.random.Generator, UwbRanging],
     stats: RangeStats,
     *,
     publish: bool = True,
 ) -> None:
     """Publish step ``k``'s ranges and target observations from ``positions_m`` ``(n, 3)``
     (north-east-down [m], NaN rows: no position; ``publish``: False to only record) and
-    record its truth in ``stats``."""
+    record its truth in ``stats``. ``noise``: the aid's generator and its radios (a step not
+    published still ages their errors at the next one)."""
+    rng, uwb = noise
     ids = [v.id for v in scenario.vehicles]
     known = ~np.isnan(positions_m[:, 0])
     stats.steps += 1
@@ -605,6 +610,7 @@ async def _publish_step(  # noqa: PLR0917
         target_velocity_m_s=(target[1] - target[0]) / 1e-3,
         sensors=scenario.sensors,
         rng=rng,
+        uwb=uwb,
     )
 
     # All at once: one after the other, each waited for the loop to write it out, and with four

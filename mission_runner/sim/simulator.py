@@ -28,7 +28,13 @@ from ..enclosing import (
 from ..enclosing.separation import separation_guard
 from ..errors import ConfigError, SimulationError
 from ..scenario import shape_matrices, target_positions
-from ..sensors import odometry_drift, odometry_error_step, range_readings, target_seen
+from ..sensors import (
+    UwbRanging,
+    odometry_drift,
+    odometry_error_step,
+    range_readings,
+    target_seen,
+)
 from ..wiring import algorithm_params, omega_of
 from .metrics import closest_pair, edge_rms, tracking_error
 
@@ -66,6 +72,10 @@ class SimulationResult:
     consensus_speed_m_s: NDArray[np.float64]
     separation_m: NDArray[np.float64]
     target_status: NDArray[np.int8]
+    #: Simulated only, ``(B, K)``: ranges between vehicles read in an NLOS burst at step k, and
+    #: ranges the estimators gated that were not (the gate's false rejections).
+    nlos_ranges: NDArray[np.int_] | None = None
+    false_rejections: NDArray[np.int_] | None = None
     #: Flight-only metrics, ``{name: (B,) array}`` (see ``config.FLIGHT_METRICS``).
     extra_metrics: dict[str, NDArray[Any]] = field(default_factory=dict)
     estimates_m: NDArray[np.float64] | None = None
@@ -253,6 +263,7 @@ def simulate(
     swarm = SwarmEnclosing(params, phase, np.broadcast_to(omega, phase.shape))
     noise = _Noise(scenario.seed, runs)
     drift = odometry_drift(sensors, noise, (runs, n))
+    uwb = UwbRanging(sensors, n, step_s, batch=(runs,))
     odometry_error = np.zeros((runs, n, 2))
     # The commands in force, as each vehicle's step message carries them (none before k = 0).
     in_force = np.full((runs, n, 2), np.nan)
@@ -265,6 +276,8 @@ def simulate(
         "localization_error_m": np.empty((runs, steps)),
         "localization_rms_m": np.empty((runs, steps)),
         "gated_ranges": np.empty((runs, steps), dtype=np.int64),
+        "nlos_ranges": np.empty((runs, steps), dtype=np.int64),
+        "false_rejections": np.empty((runs, steps), dtype=np.int64),
         "consensus_speed_m_s": np.empty((runs, steps)),
         "separation_m": np.empty((runs, steps + 1)),
         "target_status": np.empty((runs, steps), dtype=np.int8),
@@ -274,7 +287,6 @@ def simulate(
     keep_estimates = estimates_bytes(steps, n) <= ESTIMATES_LIMIT_BYTES
     if keep_estimates:
         out["estimates_m"] = np.empty((steps, n, n + 1, 2))
-    not_self = ~np.eye(n, n + 1, k=1, dtype=bool)
     # One track of the target per run: every vehicle hears every observation at once (the
     # relay of a complete graph without loss), so every vehicle's track is this one.
     track = TargetTrack.initial((runs,))
@@ -292,10 +304,13 @@ def simulate(
             true_ranges[..., 0], sensors, noise, looking=live & senses & ~tracker_down(k)
         )
         # The target's range comes from the tracker, the others' from the UWB radios.
-        measured = not_self & np.concatenate(
-            [seen[..., None], radio[:, :, None] & radio[:, None, :]], axis=-1
+        target_range = range_readings(
+            true_ranges[..., :1], sensors, noise, measured=seen[..., None]
         )
-        ranges = range_readings(true_ranges, sensors, noise, measured=measured)
+        radio_ranges = uwb.read(
+            true_ranges[..., 1:], noise, k=k, measured=radio[:, :, None] & radio[:, None, :]
+        )
+        ranges = np.concatenate([target_range, radio_ranges], axis=-1)
 
         odometry = position - origin + drift * times[k] + odometry_error
         observed = np.asarray(np.isfinite(ranges[..., 0]).any(axis=-1))
@@ -341,6 +356,9 @@ def simulate(
         out["localization_error_m"][:, k] = np.where(np.isnan(error), 0.0, error).max(axis=(-1, -2))
         out["localization_rms_m"][:, k] = edge_rms(error)
         out["gated_ranges"][:, k] = step.gated.sum(axis=(-1, -2))
+        out["nlos_ranges"][:, k] = (uwb.nlos & np.isfinite(radio_ranges)).sum(axis=(-1, -2))
+        good = ~uwb.nlos & np.isfinite(radio_ranges)
+        out["false_rejections"][:, k] = (step.gated[..., 1:] & good).sum(axis=(-1, -2))
         speed = np.sqrt(np.sum(step.consensus_m_s**2, axis=-1))
         out["consensus_speed_m_s"][:, k] = np.where(live, speed, 0.0).max(axis=-1)
 

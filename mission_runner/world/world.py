@@ -4,8 +4,9 @@ Published where real drivers on companion computers would publish them - on the 
 (see :mod:`mission_runner.bus.topics`), never through ground truth:
 
 - ``vehicle/<id>/range/<peer>``: :class:`RangeMessage`, the 3-D distance between two live vehicles
-  sampled at every step boundary t_k = start + kT (``step = k``), with Gaussian noise, dropouts and
-  a maximum range from the scenario's ``sensors:``;
+  sampled at every step boundary t_k = start + kT (``step = k``), as the scenario's ``sensors:``
+  describe the radios (:class:`mission_runner.sensors.UwbRanging`: one exchange per pair or per
+  direction, pair biases, multipath, NLOS bursts, dropouts, airtime, a maximum range);
 - ``vehicle/<id>/target``: :class:`TargetObservation` for vehicles that sense the target, its
   horizontal range and velocity (what a radar or vision tracker gives), at the same instants; or,
   when the tracker does not see it (beyond ``sensors.target_sensing_range_m``, a random miss, an
@@ -32,7 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..bus import BusError, RangeMessage, TargetObservation
 from ..errors import MissionRunnerError
 from ..scenario import target_positions
-from ..sensors import measure_ranges, target_seen
+from ..sensors import UwbRanging, measure_ranges, target_seen
 from ..sim.metrics import TruthSample
 
 if TYPE_CHECKING:
@@ -95,6 +96,8 @@ class World:
         self._next_step = 0
         self._steps: int | None = None
         self._rng = np.random.default_rng([seed, 7])
+        # The radios' lasting errors (pair biases, multipath, NLOS bursts) for the mission.
+        self._uwb = UwbRanging(sensors, len(self.vehicle_ids), step_s)
         # (index or None for every vehicle, sensor) -> windows [(from_s, until_s)]
         self._down: dict[tuple[int | None, str], list[tuple[float, float]]] = {}
         # One step's measurements at a time: (k, [(topic, message), ...]).
@@ -273,6 +276,7 @@ class World:
             target_velocity_m_s=self.target_velocity(t_k),
             sensors=self.sensors,
             rng=self._rng,
+            uwb=self._uwb,
         )
         self._queue.put_nowait((k, measured))
 
@@ -332,6 +336,7 @@ def step_measurements(
     target_velocity_m_s: ArrayLike,
     sensors: SensorConfig,
     rng: Rng,
+    uwb: UwbRanging,
     target_hidden: ArrayLike | None = None,
 ) -> Measured:
     """What the UWB radios and target trackers report for step ``k`` (time ``t_k``), as
@@ -345,11 +350,14 @@ def step_measurements(
     radios that work; tracking ``(n,)`` bool: vehicles with a tracker that reports;
     target_hidden ``(n,)`` bool: trackers the target is hidden from (occluded, failed); target_m
     ``(2,)``, target_velocity_m_s ``(2,)`` north/east; sensors: the scenario's ``SensorConfig``
-    (its sensing range and misses apply here, :func:`mission_runner.sensors.target_seen`).
+    (its sensing range and misses apply here, :func:`mission_runner.sensors.target_seen`);
+    uwb: the mission's radios (:class:`mission_runner.sensors.UwbRanging`, stepped to ``k``).
     """
     positions_m = np.asarray(positions_m, dtype=float)
     ranging = np.asarray(ranging, dtype=bool)
-    ranges = measure_ranges(np.where(ranging[:, None], positions_m, np.nan), sensors, rng)
+    gaps = positions_m[:, None, :] - positions_m[None, :, :]
+    distances = np.sqrt(np.sum(gaps * gaps, axis=-1))
+    ranges = uwb.read(distances, rng, k=k, measured=ranging[:, None] & ranging[None, :])
     range_messages: Measured = [
         (
             topics.range(ids[i], ids[j]),

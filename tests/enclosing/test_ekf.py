@@ -128,6 +128,21 @@ def test_an_injected_outlier_is_gated_and_leaves_the_estimate_alone():
     assert np.abs(hit[200:] - clean[200:]).max() < 0.02
 
 
+def test_gating_long_ranges_only_takes_a_short_one_and_still_gates_a_long_one():
+    """NLOS reads long: with ``gate_long_only`` a range 0.5 m too short is taken (it says the
+    estimate is too long), one 0.5 m too long is still gated."""
+    path = circular_relative_path(300)
+    noise = {"range_noise_m": 0.05, "displacement_noise_m": 0.002, "seed": 11}
+    settings = dataclasses.replace(
+        NOISY, range_noise_std_m=0.05, displacement_noise_std_m=0.002, gate_long_only=True
+    )
+    _, short_gated, _ = run_edge(path, settings, **noise, biased={200: -0.5})
+    _, long_gated, _ = run_edge(path, settings, **noise, biased={200: 0.5})
+    assert long_gated[200] and not short_gated[200]
+    both_sides = dataclasses.replace(settings, gate_long_only=False)
+    assert run_edge(path, both_sides, **noise, biased={200: -0.5})[1][200]
+
+
 def test_without_a_gate_the_same_outlier_pulls_the_estimate():
     path = circular_relative_path(300)
     noise = {"range_noise_m": 0.05, "displacement_noise_m": 0.002, "seed": 11}

@@ -28,6 +28,7 @@ from mission_runner.runner.ranges import (
     _publish_step,
     run_range_provider,
 )
+from mission_runner.sensors import UwbRanging
 from sitl.config import ClockConfig, EmulatorConfig
 from sitl.emulator import Emulator
 from tests.mosquitto import bus_test_key
@@ -256,8 +257,8 @@ async def test_a_message_not_handed_over_in_time_is_dropped_and_counted():
 
     stats = RangeStats()
     positions = np.array([[*place, -5.0] for place in PLACES])
-    rng = np.random.default_rng(0)
-    await _publish_step(SlowOnce(), topics, mission, positions, 0, 10.0, 10.0, rng, stats)
+    noise = (np.random.default_rng(0), UwbRanging(mission.sensors, len(positions), 0.1))
+    await _publish_step(SlowOnce(), topics, mission, positions, 0, 10.0, 10.0, noise, stats)
     assert stats.unsent == 1
     assert stats.ranges == 5 and len(sent) == 6  # five ranges and the target observation
     assert topics.range(1, 2) not in sent

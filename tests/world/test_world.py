@@ -88,6 +88,30 @@ async def test_ranges_are_sampled_at_step_boundaries_with_the_configured_noise()
     assert abs(errors.mean()) < 0.01
 
 
+async def test_both_ends_of_a_pair_read_one_exchange_and_its_errors_last():
+    """One exchange per pair on the emulator's clock: vehicle i's range of j at step k is j's of
+    i, bit for bit; a pair's bias stays; NLOS comes in bursts; the airtime ranges two of the
+    three pairs a step."""
+    sensors = SensorConfig(
+        range_noise_std_m=0.05,
+        range_bias_std_m=0.1,
+        range_outlier_probability=0.1,
+        range_nlos_duration_s=2.0,
+        range_exchange_s=STEP_S / 2,
+    )
+    ranges, _, world = await collect(sensors, seconds=30)
+    read = {(m.step, m.vehicle_id, m.peer_id): m.range_m for m in ranges}
+    assert all(read.get((k, j, i)) == value for (k, i, j), value in read.items())
+    steps = len(world.samples)
+    assert len(read) == 4 * steps  # two exchanges a step, each read at both ends
+    error = {key: value - 4.0 * abs(key[1] - key[2]) for key, value in read.items()}
+    long = [key for key, value in error.items() if value > 0.3 + 0.25]  # in a burst
+    assert long
+    # A pair in a burst at step k is, most often, still in it when next ranged (3 steps on).
+    again = [error.get((k + 3, i, j), 0.0) > 0.55 for k, i, j in long if k + 3 < steps]
+    assert np.mean(again) > 0.6
+
+
 async def test_dropouts_and_maximum_range():
     sensors = SensorConfig(range_dropout_probability=0.2, range_max_m=6.0)
     ranges, _, world = await collect(sensors, seconds=30)
@@ -178,6 +202,7 @@ async def test_a_failed_uwb_stops_every_range_from_and_to_it():
 
 
 async def test_trackers_say_not_seen_beyond_range_when_hidden_and_at_a_miss():
+    from mission_runner.sensors import UwbRanging
     from mission_runner.world import step_measurements
 
     topics = Topics("unit")
@@ -197,6 +222,7 @@ async def test_trackers_say_not_seen_beyond_range_when_hidden_and_at_a_miss():
             target_velocity_m_s=[0.8, 0.0],
             sensors=sensors,
             rng=np.random.default_rng(0),
+            uwb=UwbRanging(sensors, 4, 0.5),
         )
         return {m.vehicle_id: m for _, m in measured if isinstance(m, TargetObservation)}
 
