@@ -813,6 +813,7 @@ def _sweep(arguments: argparse.Namespace) -> int:
 
 def _run(arguments: argparse.Namespace) -> int:
     from .config import validate_scenario  # noqa: PLC0415
+    from .figure_process import FigureProcess  # noqa: PLC0415
     from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from .runner.mission import fly  # noqa: PLC0415
     from .sim.simulator import check_memory  # noqa: PLC0415
@@ -830,11 +831,18 @@ def _run(arguments: argparse.Namespace) -> int:
     tlogs.mkdir(exist_ok=True)
     view = None if arguments.quiet else _FlightView(scenario)
     capture = LogCapture()
-    with RunSummary(out_dir, scenario, config_path=arguments.config) as record:
+    with (
+        FigureProcess() as figure_process,
+        RunSummary(out_dir, scenario, config_path=arguments.config) as record,
+    ):
+        last_step = scenario.timing.steps - 1
 
         def on_step(vehicle_id: int, step: StepRecord) -> None:
             record.steps_done = max(record.steps_done, step.step + 1)
             capture.stamp(step.time_s)
+            if step.step == last_step and not arguments.no_figures:
+                # matplotlib's import while the vehicles land (paced: the CPU has time then)
+                figure_process.start()
 
         step_callbacks: list[Callable[[int, StepRecord], None]] = [on_step]
         progress_callbacks: list[Callable[[Progress], None]] = [view] if view is not None else []
@@ -873,6 +881,7 @@ def _run(arguments: argparse.Namespace) -> int:
             start_s=outcome.start_s,
             logs=capture.lines,
             bus_security=outcome.bus_security,
+            figure_process=None if arguments.no_figures else figure_process,
         )
     if not arguments.quiet:
         print(_summary_text(document, out_dir))

@@ -32,6 +32,7 @@ from .sim.metrics import MetricValue, check_expectations, distribution, run_metr
 
 if TYPE_CHECKING:
     from .config import Scenario
+    from .figure_process import FigureProcess
     from .recording import LogLine
     from .runner.controller import StepRecord
     from .runner.process import VehicleRun
@@ -323,10 +324,13 @@ def write_results(
     start_s: float = 0.0,
     logs: Sequence[LogLine] = (),
     bus_security: Mapping[str, Any] | None = None,
+    figure_process: FigureProcess | None = None,
 ) -> dict[str, Any]:
     """Write timeseries.csv, summary.json, recording.mcap and (optionally) the figures into
     ``out_dir``. A flight passes its controllers' ``records`` and ``start_s`` (the mission clock
-    at k = 0) for the recording; ``logs`` are the run's log lines.
+    at k = 0) for the recording; ``logs`` are the run's log lines. With ``figure_process`` the
+    figures are drawn there while this writes the rest; summary.json is written last, once they
+    are all in.
 
     Returns the summary dict.
     """
@@ -341,6 +345,9 @@ def write_results(
         vehicles=vehicles,
         bus_security=bus_security,
     )
+    drawing = figure_process if figures else None
+    if drawing is not None:
+        drawing.submit(result, out_dir)
     write_atomic(out_dir / "timeseries.csv", timeseries_csv(result))
     expectations = document["expectations"]
     verdict = None
@@ -352,7 +359,9 @@ def write_results(
     )
     if result.runs > 1:
         write_atomic(out_dir / "batch.csv", batch_csv(result))
-    if figures:
+    if drawing is not None:
+        document["figures"] = drawing.collect(result, out_dir)
+    elif figures:
         from .figures import write_figures  # noqa: PLC0415 - matplotlib is slow to import
 
         document["figures"] = write_figures(result, out_dir)
@@ -557,6 +566,7 @@ class RunSummary:
         start_s: float = 0.0,
         logs: Sequence[LogLine] = (),
         bus_security: Mapping[str, Any] | None = None,
+        figure_process: FigureProcess | None = None,
     ) -> dict[str, Any]:
         """:func:`write_results` into this run's folder; returns the summary dict."""
         self.document = write_results(
@@ -570,6 +580,7 @@ class RunSummary:
             start_s=start_s,
             logs=logs,
             bus_security=bus_security,
+            figure_process=figure_process,
         )
         return self.document
 

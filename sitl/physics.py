@@ -170,16 +170,22 @@ class MulticopterPhysics:
         """Advance every vehicle by ``dt`` seconds."""
         if dt <= 0:
             raise ValueError(f"dt must be > 0, got {dt!r}")
+        # The modes as a list, to test for a mode without a numpy reduction each: this runs
+        # at the physics rate for every vehicle set, and numpy's per-call overhead is its cost.
         mode = self.control_mode
-        if self.motor_failure.any():
+        if _any(self.motor_failure):
             mode = np.where(self.motor_failure, np.int8(MOTORS_OFF), mode)
+        modes = mode.tolist()
         pos = self.position_ned_m
         vel = self.velocity_ned_m_s
 
         # 1. Velocity command per control mode.
-        v_cmd = np.where((mode == VELOCITY)[:, None], self.velocity_setpoint_ned_m_s, vel)
-        positional = mode == POSITION
-        if positional.any():
+        if modes.count(VELOCITY) == self.n:
+            v_cmd = self.velocity_setpoint_ned_m_s.copy()
+        else:
+            v_cmd = np.where((mode == VELOCITY)[:, None], self.velocity_setpoint_ned_m_s, vel)
+        if POSITION in modes:
+            positional = mode == POSITION
             v_cmd[positional] = self._position_controller(positional)
         v_cmd = self._limit_velocity(v_cmd)
 
@@ -205,13 +211,12 @@ class MulticopterPhysics:
                 accel[:, :2] - self.horizontal_accel_ned_m_s2[:, :2]
             )
             accel[:, :2] = self.horizontal_accel_ned_m_s2[:, :2]
-        accelerating = mode == ACCELERATION
-        if accelerating.any():
+        if ACCELERATION in modes:
+            accelerating = mode == ACCELERATION
             accel[accelerating] = self.acceleration_setpoint_ned_m_s2[accelerating]
         accel = self._limit_acceleration(accel)
-        off = mode == MOTORS_OFF
-        if off.any():
-            accel[off] = (0.0, 0.0, GRAVITY_M_S2)
+        if MOTORS_OFF in modes:
+            accel[mode == MOTORS_OFF] = (0.0, 0.0, GRAVITY_M_S2)
 
         # 3. Wind pushes flying vehicles by the part the controller has not learnt yet.
         wind = self.wind
@@ -226,7 +231,7 @@ class MulticopterPhysics:
 
         # 4. Skids do not slide: a vehicle resting on the ground stays put unless told to climb.
         resting = pos[:, 2] >= 0.0
-        if resting.any():
+        if _any(resting):
             climbing = (mode != MOTORS_OFF) & (v_cmd[:, 2] < -0.05)
             climbing |= (mode == ACCELERATION) & (accel[:, 2] < 0.0)
             held = resting & ~climbing
@@ -237,12 +242,12 @@ class MulticopterPhysics:
         vel += accel * dt
         pos += vel * dt
         grounded = pos[:, 2] >= 0.0
-        if grounded.any():
+        if _any(grounded):
             pos[grounded, 2] = 0.0
             vel[grounded, 2] = np.minimum(vel[grounded, 2], 0.0)
         self.acceleration_ned_m_s2[:] = accel
 
-        self._attitude(accel, dt, mode)
+        self._attitude(accel, dt, mode, modes)
 
     # ---------------------------------------------------------------- internals
     def _position_controller(self, mask: npt.NDArray[np.bool_]) -> FloatArray:
@@ -269,29 +274,33 @@ class MulticopterPhysics:
     def _limit_velocity(self, v: FloatArray) -> FloatArray:
         limit = self.max_horizontal_speed_m_s
         v[:, :2] *= _shrink(np.hypot(v[:, 0], v[:, 1]), limit)[:, None]
-        np.clip(v[:, 2], -self.max_up_speed_m_s, self.max_down_speed_m_s, out=v[:, 2])
+        _clip(v[:, 2], -self.max_up_speed_m_s, self.max_down_speed_m_s)
         return v
 
     def _limit_acceleration(self, a: FloatArray) -> FloatArray:
         limit = self.max_horizontal_accel_m_s2
         a[:, :2] *= _shrink(np.hypot(a[:, 0], a[:, 1]), limit)[:, None]
-        np.clip(a[:, 2], -self.max_up_accel_m_s2, self.max_down_accel_m_s2, out=a[:, 2])
+        _clip(a[:, 2], -self.max_up_accel_m_s2, self.max_down_accel_m_s2)
         return a
 
-    def _attitude(self, accel: FloatArray, dt: float, mode: npt.NDArray[np.int8]) -> None:
+    def _attitude(
+        self, accel: FloatArray, dt: float, mode: npt.NDArray[np.int8], modes: list[int]
+    ) -> None:
         yaw = self.yaw_rad
         rate_cmd = self.yaw_rate_setpoint_rad_s
         has_rate = np.isfinite(rate_cmd)
         yaw_sp = self.yaw_setpoint_rad
         error = _wrap(np.where(np.isfinite(yaw_sp), yaw_sp, yaw) - yaw)
         # Turn towards the yaw setpoint: P-gain 2/s, capped at the yaw rate limit.
-        rate = np.where(has_rate, rate_cmd, 2.0 * error)
+        rate = np.where(has_rate, rate_cmd, 2.0 * error) if _any(has_rate) else 2.0 * error
         max_rate = self.max_yaw_rate_rad_s
-        rate = np.clip(rate, -max_rate, max_rate)
+        rate = _clip(rate, -max_rate, max_rate)
         # Do not overshoot the yaw setpoint within one step.
         rate = np.where(~has_rate & (np.abs(rate * dt) > np.abs(error)), error / dt, rate)
-        flying = mode != MOTORS_OFF
-        rate *= flying & ~self.on_ground()
+        turning = ~self.on_ground()
+        if MOTORS_OFF in modes:
+            turning &= mode != MOTORS_OFF
+        rate *= turning
         # In place, so that references to these arrays stay valid.
         self.yaw_rate_rad_s[:] = rate
         self.yaw_rad[:] = _wrap(yaw + rate * dt)
@@ -308,6 +317,18 @@ class MulticopterPhysics:
         self.roll_rate_rad_s /= dt
         self.pitch_rad[:] = pitch
         self.roll_rad[:] = roll
+
+
+def _any(mask: npt.NDArray[np.bool_]) -> bool:
+    """``mask.any()`` for the few vehicles of an emulator, without numpy's reduction overhead."""
+    return True in mask.tolist()
+
+
+def _clip(values: FloatArray, low: FloatArray, high: FloatArray) -> FloatArray:
+    """``np.clip(values, low, high, out=values)`` (NaN stays NaN) as two ufuncs, which cost a
+    fraction of ``np.clip``'s Python-level dispatch."""
+    np.maximum(values, low, out=values)
+    return np.minimum(values, high, out=values)
 
 
 def _shrink(magnitude: FloatArray, limit: FloatArray) -> FloatArray:

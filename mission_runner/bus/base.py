@@ -30,6 +30,7 @@ import abc
 import asyncio
 import collections
 import contextlib
+import functools
 import logging
 from collections.abc import AsyncIterator
 from contextlib import AbstractAsyncContextManager
@@ -43,6 +44,21 @@ from mission_runner.bus.messages import Message
 logger = logging.getLogger(__name__)
 
 M = TypeVar("M", bound=Message)
+
+#: Payloads whose decoded message is remembered (:func:`_decoded`).
+DECODED_CACHE_SIZE = 256
+
+
+@functools.lru_cache(maxsize=DECODED_CACHE_SIZE)
+def _decoded(message_type: type[Message], payload: bytes) -> Message:
+    """``message_type.from_payload(payload)``, remembered: the in-process bus hands one payload
+    to every subscription to its topic (a step message to each vehicle), and decoding and
+    validating it again for each is most of what receiving costs the controllers. A message
+    is deeply immutable (a frozen dataclass of numbers, strings, enums and tuples), so
+    one decoded message can go to all. Errors are not remembered: each subscription counts its
+    own."""
+    return message_type.from_payload(payload)
+
 
 DEFAULT_QUEUE_SIZE = 256
 """Messages a subscription holds before dropping the oldest: 16 vehicles x 8 Hz x 2 s."""
@@ -179,6 +195,9 @@ class Subscription:
         if not payload:
             return None  # MQTT's "retained value cleared": no message, not an error
         try:
+            if type(payload) is bytes:
+                decoded: Message = _decoded(message_type, payload)  # type: ignore[arg-type]
+                return decoded  # type: ignore[return-value]  # of message_type, as cached
             return message_type.from_payload(payload)
         except MessageDecodeError as exc:
             self.decode_errors += 1

@@ -33,6 +33,7 @@ and the MQTT bus uses it to hand each incoming message to the right local subscr
 from __future__ import annotations
 
 import enum
+import functools
 from dataclasses import dataclass
 
 from mission_runner.bus.errors import TopicError
@@ -83,13 +84,20 @@ def validate_pattern(pattern: str) -> str:
     return pattern
 
 
+#: Distinct (pattern, topic) pairs remembered by :func:`topic_matches`: a mission has a few
+#: hundred; a flood of made-up topics only cycles the cache.
+MATCH_CACHE_SIZE = 4096
+
+
+@functools.lru_cache(maxsize=MATCH_CACHE_SIZE)
 def topic_matches(pattern: str, topic: str) -> bool:
     """Whether ``topic`` matches the MQTT topic filter ``pattern``.
 
     Follows MQTT 3.1.1 section 4.7: ``+`` matches exactly one level (possibly empty), ``#``
     matches the parent level and any number of levels below it, and a wildcard in the first
     level never matches a topic that starts with ``$``. Both arguments are assumed valid
-    (see ``validate_pattern`` and ``validate_topic``).
+    (see ``validate_pattern`` and ``validate_topic``). Remembered: the in-process bus asks
+    it for every subscription on every publish, the same few pairs over and over.
     """
     if pattern == topic:
         return True

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 
 import pytest
 
@@ -59,6 +60,23 @@ async def test_routing_follows_wildcards_and_copies_to_every_subscription() -> N
         assert len(everything) == 4
         assert status.poll() is None
         assert bus.published == 4
+
+
+@pytest.mark.asyncio
+async def test_every_subscription_gets_the_one_message_decoded_once() -> None:
+    # One payload to four vehicles' subscriptions: decoded and validated once, not four times
+    # (a message is immutable, so one object serves all).
+    async with InProcessBus() as bus, contextlib.AsyncExitStack() as stack:
+        subscriptions = [
+            await stack.enter_async_context(bus.subscribe(TOPICS.all_steps())) for _ in range(4)
+        ]
+        await bus.publish_message(TOPICS.step(3), step(3, 11), timeout=0.1)
+        received = [
+            (await subscription.receive_message(StepMessage, timeout=1.0))[1]
+            for subscription in subscriptions
+        ]
+    assert received[0] == step(3, 11)
+    assert all(message is received[0] for message in received)
 
 
 @pytest.mark.asyncio
