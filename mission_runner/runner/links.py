@@ -6,16 +6,19 @@ One :class:`Mavsdk` object serves every vehicle of a process (:func:`connected_v
 plugin, because the step alignment needs the autopilot's timestamp (``time_boot_ms``), which
 MAVSDK's telemetry plugin drops - and sends velocity setpoints in OFFBOARD.
 
-Failsafe: the controller only ever *streams* setpoints. If it dies, MAVSDK stops sending and PX4's
-offboard-loss failsafe (COM_OF_LOSS_T, then COM_OBL_RC_ACT) holds or lands the vehicle; if the link
-drops, PX4's data-link-loss failsafe does. :meth:`MavsdkVehicle.finish` leaves offboard and lands or
-holds on a normal end.
+Failsafe: the controller only ever *streams* setpoints, one a step, itself: nothing re-sends
+them for it. If it dies or stalls, the stream stops and PX4's offboard-loss failsafe
+(COM_OF_LOSS_T, then COM_OBL_RC_ACT) holds or lands the vehicle; if the link drops, PX4's
+data-link-loss failsafe does. :meth:`MavsdkVehicle.finish` lands, returns or holds on a normal
+end.
 
-MAVSDK's offboard plugin re-sends the last setpoint every 50 ms from its own thread until
-``offboard.stop()`` (which also commands HOLD), or until a HEARTBEAT shows the vehicle out of
-OFFBOARD (not a disarm: PX4 keeps OFFBOARD through one and, with setpoints still coming, arms
-straight into it). Whatever stops the runner driving a vehicle therefore ends that stream at once
-and for good: :meth:`MavsdkVehicle.release` (see there for who gets which command).
+The setpoints go out as SET_POSITION_TARGET_LOCAL_NED through MAVSDK's raw-message plugin, not
+MAVSDK's offboard plugin: that one re-sends the last setpoint every 50 ms from its own thread
+until ``offboard.stop()``, which also commands HOLD (a pilot's mode is the pilot's), or until a
+HEARTBEAT shows the vehicle out of OFFBOARD, and a setpoint that crosses that heartbeat starts
+it again for a 3 s grace (MAVSDK ``offboard_impl.cpp``). Whatever stops the runner driving a
+vehicle stops its setpoints at once and for good: :meth:`MavsdkVehicle.release` (see there for
+who gets which command).
 """
 
 from __future__ import annotations
@@ -33,8 +36,7 @@ from typing import Any, Self, TypeVar
 
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkError
 from mavsdk.asyncio.plugins.action import ActionAsync
-from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
-from mavsdk.asyncio.plugins.offboard import OffboardAsync, VelocityNedYaw
+from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync, MavlinkMessage
 from mavsdk.asyncio.plugins.param import ParamAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from pymavlink.dialects.v20 import common as mavlink
@@ -88,6 +90,22 @@ DISCOVERY_POLL_S = 0.1
 DISARM_LOOKBACK_S = 1.5
 #: Above this height (odometry, from an origin on the ground) a disarm was in the air [m].
 IN_AIR_ABOVE_M = 0.5
+#: The runner's address on the vehicle's link: MAVSDK's own ids as a ground station.
+OWN_SYSTEM_ID = 245
+OWN_COMPONENT_ID = mavlink.MAV_COMP_ID_MISSIONPLANNER
+#: PX4's main mode OFFBOARD (``px4_custom_mode.h``), for MAV_CMD_DO_SET_MODE's param2.
+PX4_MAIN_MODE_OFFBOARD = 6
+#: SET_POSITION_TARGET_LOCAL_NED's type_mask for a velocity and a yaw: position, acceleration
+#: and yaw rate ignored (what MAVSDK's offboard plugin sends for ``set_velocity_ned``).
+VELOCITY_YAW_MASK = (
+    mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+)
 _mavsdk_logging_routed = False
 _REASON_SEVERITIES = frozenset({"EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING"})
 
@@ -234,7 +252,6 @@ class MavsdkVehicle:
         self.system_id = system_id
         self.action = ActionAsync(system)
         self.telemetry = TelemetryAsync(system)
-        self.offboard = OffboardAsync(system)
         self.param = ParamAsync(system)
         self.raw = MavlinkDirectAsync(system)
         self.track = FedTrack()
@@ -262,9 +279,8 @@ class MavsdkVehicle:
         self.released: str | None = None
         #: Setpoints the controller asked for after that, not sent.
         self.setpoints_withheld = 0
-        self._streaming = False  # MAVSDK may be re-sending a setpoint of ours
-        self._offboard_lock = asyncio.Lock()  # orders setpoints against the stream's end
-        self._ending: asyncio.Task[None] | None = None
+        self._streamed = False  # a setpoint of the runner's went out
+        self._ending: asyncio.Task[None] | None = None  # the mode command release() gives
         self.disarms: list[Disarm] = []
 
     def _boot_s(self, mission_s: float) -> float:
@@ -500,30 +516,52 @@ class MavsdkVehicle:
     async def request_interval(self, message_id: int, rate_hz: float) -> None:
         """MAV_CMD_SET_MESSAGE_INTERVAL for ``message_id`` at ``rate_hz`` on this link (0: stop
         the stream, as MAVLink's interval -1)."""
-        from mavsdk.asyncio.plugins.mavlink_direct import MavlinkMessage  # noqa: PLC0415
+        await self._command_long(
+            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+            f"interval of {message_id}",
+            message_id,
+            1e6 / rate_hz if rate_hz > 0 else -1,
+        )
 
-        params: dict[str, float] = {f"param{i}": 0 for i in range(1, 8)}
-        params.update(param1=message_id, param2=1e6 / rate_hz if rate_hz > 0 else -1)
+    async def _command_long(self, command: int, what: str, *params: float) -> None:
+        """COMMAND_LONG ``command`` with ``params`` (the rest 0) through the raw-message plugin,
+        which re-sends it until its final COMMAND_ACK; anything but ACCEPTED is a
+        VehicleCommandError naming ``what``, the result and the autopilot's reason."""
+        fields: dict[str, float] = {f"param{i}": 0.0 for i in range(1, 8)}
+        fields.update({f"param{i}": float(value) for i, value in enumerate(params, start=1)})
         request = MavlinkMessage(
             message_name="COMMAND_LONG",
-            system_id=245,  # MAVSDK's own ids as a ground station
-            component_id=mavlink.MAV_COMP_ID_MISSIONPLANNER,
+            system_id=OWN_SYSTEM_ID,
+            component_id=OWN_COMPONENT_ID,
             target_system_id=self.system_id,
             target_component_id=1,
             fields_json=json.dumps(
                 {
                     "target_system": self.system_id,
                     "target_component": 1,
-                    "command": mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                    "command": command,
                     "confirmation": 0,
-                    **params,
+                    **fields,
                 }
             ),
         )
+        asked_s = time.monotonic()
         try:
-            await self._within(self.raw.send_command(request), f"interval of {message_id}")
+            ack = await self._within(self.raw.send_command(request), what)
+            result = int(json.loads(ack.fields_json)["result"])
         except MavsdkError as error:
-            raise VehicleCommandError(f"vehicle {self.system_id}: {error}") from error
+            raise VehicleCommandError(f"vehicle {self.system_id}: {what}: {error}") from error
+        except (ValueError, KeyError, TypeError) as error:
+            raise VehicleCommandError(
+                f"vehicle {self.system_id}: {what}: unreadable COMMAND_ACK ({error!r})"
+            ) from error
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            name = mavlink.enums["MAV_RESULT"].get(result)
+            reason = (await self.reason_since(asked_s) or "").strip()
+            raise VehicleCommandError(
+                f"vehicle {self.system_id}: {what} refused "
+                f"({name.name if name is not None else result})" + (f": {reason}" if reason else "")
+            )
 
     async def odometry_updated(self) -> None:
         """Wait for the next odometry sample (at once if one came in since the track was last
@@ -641,7 +679,13 @@ class MavsdkVehicle:
             )
         await self.set_velocity_ned(0.0, 0.0, 0.0)
         self._seen_in_control, self._control_lost = False, None
-        await self._commanded(self.offboard.start(), "offboard start")
+        armed = mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0
+        await self._command_long(
+            mavlink.MAV_CMD_DO_SET_MODE,
+            "offboard start",
+            mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | armed,
+            PX4_MAIN_MODE_OFFBOARD,
+        )
         self.in_offboard = True
         self._check_control()
 
@@ -685,42 +729,43 @@ class MavsdkVehicle:
     async def set_velocity_ned(
         self, north_m_s: float, east_m_s: float, down_m_s: float, yaw_deg: float = 0.0
     ) -> None:
-        """A velocity setpoint in metres per mission second (scaled to the autopilot's clock,
-        :attr:`velocity_scale`)."""
-        scale = self.velocity_scale
-        setpoint = VelocityNedYaw(
-            float(north_m_s) * scale,
-            float(east_m_s) * scale,
-            float(down_m_s) * scale,
-            float(yaw_deg),
-        )
-        # The blocking plugin under the asyncio one, so that the check and the send are one
-        # call in one thread: MAVSDK's watchdog (its receive thread) may end the stream between
-        # two calls, and a setpoint after that would start it again.
-        plugin = self.offboard._plugin
-        watched = self._seen_in_control
-
-        def send() -> bool:
-            if watched and not plugin.is_active():
-                return False  # MAVSDK saw the vehicle leave OFFBOARD: someone else flies it
-            plugin.set_velocity_ned(setpoint)
-            return True
-
-        if self.released is not None:  # and do not wait for the stream's end to say so
+        """Send one velocity setpoint now, in metres per mission second (scaled to the
+        autopilot's clock, :attr:`velocity_scale`); none once :attr:`released`. Sent from this
+        thread and nothing re-sends it: the controller's steps are the stream."""
+        if self.released is not None:
             self.setpoints_withheld += 1
             return
-        async with self._offboard_lock:
-            if self.released is not None:
-                self.setpoints_withheld += 1
-                return
-            loop = asyncio.get_running_loop()
-            sent = await self._within(loop.run_in_executor(None, send), "velocity setpoint")
-            if not sent:  # MAVSDK's watchdog ended the stream: nothing left to end
-                self._streaming = False
-                self.setpoints_withheld += 1
-                self._withhold("MAVSDK saw it leave OFFBOARD")
-                return
-            self._streaming = True
+        scale = self.velocity_scale
+        velocity = (float(north_m_s) * scale, float(east_m_s) * scale, float(down_m_s) * scale)
+        if not all(map(math.isfinite, (*velocity, yaw_deg))):
+            raise ValueError(f"vehicle {self.system_id}: setpoint {velocity}, {yaw_deg} not finite")
+        fields = json.dumps(
+            {
+                "time_boot_ms": int(time.monotonic() * 1000) & 0xFFFFFFFF,
+                "target_system": self.system_id,
+                "target_component": 1,
+                "coordinate_frame": mavlink.MAV_FRAME_LOCAL_NED,
+                "type_mask": VELOCITY_YAW_MASK,
+                **dict.fromkeys(("x", "y", "z", "afx", "afy", "afz", "yaw_rate"), 0.0),
+                **dict(zip(("vx", "vy", "vz"), velocity, strict=True)),
+                "yaw": math.radians(yaw_deg),
+            }
+        )
+        setpoint = MavlinkMessage(
+            "SET_POSITION_TARGET_LOCAL_NED",
+            OWN_SYSTEM_ID,
+            OWN_COMPONENT_ID,
+            self.system_id,
+            1,
+            fields,
+        )
+        try:
+            self.raw._plugin.send_message(setpoint)
+        except MavsdkError as error:
+            raise VehicleConnectionError(
+                f"vehicle {self.system_id}: setpoint not sent: {error}"
+            ) from error
+        self._streamed = True
 
     def _withhold(self, why: str) -> None:
         """From now on no setpoint of the runner's goes out (for good)."""
@@ -730,63 +775,44 @@ class MavsdkVehicle:
 
     def release(self, why: str) -> None:
         """Stop driving this vehicle, at once and for good: no setpoint of the runner's goes out
-        from here on, and MAVSDK's re-sending of the last one ends (in a task of this link).
-
-        Who gets which command, as MAVSDK can only end its stream with ``offboard.stop()``,
-        which also commands HOLD:
+        from here on. Who then gets which command (in a task of this link):
 
         - a vehicle seen armed in a mode other than OFFBOARD (a pilot's, another ground
-          station's, a failsafe's) gets none: MAVSDK stopped re-sending by itself at the
-          heartbeat that showed the mode, and HOLD would take the vehicle from whoever flies it;
-        - a disarmed one gets ``stop()``, so HOLD: inert while disarmed, and what makes a
-          pilot's re-arm arm into HOLD rather than into OFFBOARD on a stale stream (PX4 keeps
-          OFFBOARD through a disarm and arms into it while setpoints come), whoever disarmed it;
-        - one the runner still flies (lost, or its mission over: :meth:`finish`) gets
-          ``stop()`` too: HOLD is the runner's own choice for its own vehicle.
+          station's, a failsafe's) gets none: HOLD would take it from whoever flies it;
+        - a disarmed one gets HOLD: inert while disarmed, and a pilot's re-arm arms into HOLD
+          rather than into the OFFBOARD PX4 keeps through a disarm, whoever disarmed it;
+        - one the runner still flies (lost, or its mission over: :meth:`finish`) gets HOLD
+          too: the runner's own choice for its own vehicle, before its offboard-loss failsafe.
+
+        A vehicle that never had a setpoint of the runner's gets none.
         """
         if self.released is not None:
             return
         self._withhold(why)
-        if self._group is None:
-            return  # never entered: MAVSDK never streamed for it
+        ours = self._control_lost is None
+        if self._group is None or not self._streamed:
+            return  # never entered, or never driven
+        if not ours and self.armed is True and self.flight_mode != "OFFBOARD":
+            return
         try:
             # Not one of the streams cancelled at the end: the group waits for it.
             self._ending = self._group.create_task(
-                self._end_stream(ours=self._control_lost is None),
-                name=f"vehicle-{self.system_id}-end-stream",
+                self._hold_after_release(), name=f"vehicle-{self.system_id}-hold"
             )
-        except RuntimeError:  # the link is closing: closing MAVSDK ends the stream
-            logger.info("vehicle %s: link closing; its stream ends with it", self.system_id)
+        except RuntimeError:  # the link is closing: the offboard-loss failsafe takes over
+            logger.info("vehicle %s: link closing; no HOLD after its release", self.system_id)
 
     async def stream_ended(self) -> None:
-        """Wait until the stream :meth:`release` ends is over (bounded by the command
-        timeout: MAVSDK's re-sending stops before its HOLD is even sent)."""
+        """Wait until the command :meth:`release` gives is answered (bounded by the command
+        timeout); the setpoints themselves stopped with the release."""
         if self._ending is not None:
             await asyncio.shield(self._ending)
 
-    async def _end_stream(self, *, ours: bool) -> None:
-        """End MAVSDK's re-sending of the runner's setpoint as :meth:`release` says."""
-        async with self._offboard_lock:  # a setpoint on its way is out before the stream ends
-            if not self._streaming:
-                return
-            self._streaming = False
-            if not ours and self.armed is True and self.flight_mode != "OFFBOARD":
-                # Only a setpoint sent as MAVSDK saw the mode could have started it again.
-                with contextlib.suppress(RunnerTimeoutError):
-                    if await self._within(self.offboard.is_active(), "offboard state"):
-                        logger.warning(
-                            "vehicle %s: MAVSDK still re-sends a setpoint to a vehicle in %s; "
-                            "it stops at its next heartbeat",
-                            self.system_id,
-                            self.flight_mode,
-                        )
-                return
-            try:
-                # MAVSDK ends its re-sending before it asks for HOLD: the stream is over even
-                # when the vehicle does not answer.
-                await self._within(self.offboard.stop(), "offboard stop")
-            except (MavsdkError, RunnerTimeoutError) as error:
-                logger.info("vehicle %s: HOLD after the stream: %s", self.system_id, error)
+    async def _hold_after_release(self) -> None:
+        try:
+            await self._within(self.action.hold(), "hold")
+        except (MavsdkError, RunnerTimeoutError) as error:
+            logger.info("vehicle %s: HOLD after its release: %s", self.system_id, error)
 
     def _disarm_words(self, disarm: Disarm | None = None) -> str:
         """``disarmed in the air at 6.0 m (it said: ...)`` for ``disarm`` (default: the last)."""
@@ -823,7 +849,7 @@ class MavsdkVehicle:
         land (waiting for the disarm), return (RTL) or hold."""
         self._withhold(f"the runner ends its flight ({action})")
         self.in_offboard = False  # from here on a mode change is the runner's own
-        await self._end_stream(ours=True)
+        await self.stream_ended()  # a HOLD of release()'s is answered before the next command
         if action == "land":
             await self._commanded(self.action.land(), "land")
             await self._first(
