@@ -20,7 +20,7 @@ import enum
 import json
 import math
 import typing
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
 from types import NoneType, UnionType
 from typing import Any, ClassVar, Self
@@ -50,54 +50,110 @@ def _reject_constant(name: str) -> float:
     raise ValueError(f"non-finite number {name} is not allowed")
 
 
-def _check_value(name: str, value: Any, annotation: Any) -> Any:
-    """Return ``value`` checked (and normalised) against ``annotation``; raise ValueError."""
+class _Invalid(ValueError):
+    """A value that does not fit its annotation: ``problem`` ("must be ..."), at ``path``
+    (the indices into a field's nested arrays, e.g. ``[1][0]``)."""
+
+    def __init__(self, problem: str, path: str = "") -> None:
+        super().__init__(problem)
+        self.problem, self.path = problem, path
+
+
+_Checker = Callable[[Any], Any]
+
+
+def _as_float(value: Any) -> float:
+    if type(value) is float:  # what JSON numbers with a fraction decode to: the usual case
+        if math.isfinite(value):
+            return value
+        raise _Invalid(f"must be finite, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise _Invalid(f"must be a number, got {type(value).__name__}")
+    try:
+        number = float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        raise _Invalid("must be finite, got an integer too large for a float") from None
+    if not math.isfinite(number):
+        raise _Invalid(f"must be finite, got {value!r}")
+    return number
+
+
+def _as_int(value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):  # bool is an int subclass
+        raise _Invalid(f"must be an integer, got {type(value).__name__}")
+    return value
+
+
+def _as_bool(value: Any) -> bool:
+    if not isinstance(value, bool):
+        raise _Invalid(f"must be true or false, got {type(value).__name__}")
+    return value
+
+
+def _as_str(value: Any) -> str:
+    if not isinstance(value, str):
+        raise _Invalid(f"must be a string, got {type(value).__name__}")
+    return value
+
+
+def _enum_checker(kind: type[enum.Enum]) -> _Checker:
+    allowed = ", ".join(repr(member.value) for member in kind)
+
+    def check(value: Any) -> Any:
+        try:
+            return kind(value)
+        except ValueError:
+            raise _Invalid(f"must be one of {allowed}, got {value!r}") from None
+
+    return check
+
+
+def _optional_checker(check: _Checker) -> _Checker:
+    def optional(value: Any) -> Any:
+        return None if value is None else check(value)
+
+    return optional
+
+
+def _tuple_checker(items: tuple[Any, ...]) -> _Checker:
+    """``tuple[X, ...]`` or ``tuple[X, Y]`` from a JSON array."""
+    variadic = len(items) == 2 and items[1] is Ellipsis
+    checks = [_checker(item) for item in (items[:1] if variadic else items)]
+
+    def check(value: Any) -> tuple[Any, ...]:
+        if not isinstance(value, list | tuple):
+            raise _Invalid(f"must be an array, got {type(value).__name__}")
+        if not variadic and len(value) != len(checks):
+            raise _Invalid(f"must have {len(checks)} entries, got {len(value)}")
+        each = checks * len(value) if variadic else checks
+        out = []
+        for index, (entry, item) in enumerate(zip(value, each, strict=True)):
+            try:
+                out.append(item(entry))
+            except _Invalid as bad:
+                raise _Invalid(bad.problem, f"[{index}]{bad.path}") from None
+        return tuple(out)
+
+    return check
+
+
+_SCALARS: dict[Any, _Checker] = {float: _as_float, int: _as_int, bool: _as_bool, str: _as_str}
+
+
+def _checker(annotation: Any) -> _Checker:
+    """A function that returns a value checked (and normalised) against ``annotation``, built
+    once per field (decoding a message runs it for every field of every message received)."""
     if isinstance(annotation, UnionType):
         options = typing.get_args(annotation)
-        if value is None and NoneType in options:
-            return None
-        (annotation,) = (option for option in options if option is not NoneType)
+        (inner,) = (option for option in options if option is not NoneType)
+        return _optional_checker(_checker(inner))
     if typing.get_origin(annotation) is tuple:
-        return _check_tuple(name, value, typing.get_args(annotation))
-    if annotation is float:
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ValueError(f"{name} must be a number, got {type(value).__name__}")
-        if not math.isfinite(value):
-            raise ValueError(f"{name} must be finite, got {value!r}")
-        return float(value)
-    if annotation is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ValueError(f"{name} must be an integer, got {type(value).__name__}")
-        return value
-    if annotation is bool:
-        if not isinstance(value, bool):
-            raise ValueError(f"{name} must be true or false, got {type(value).__name__}")
-        return value
-    if annotation is str:
-        if not isinstance(value, str):
-            raise ValueError(f"{name} must be a string, got {type(value).__name__}")
-        return value
+        return _tuple_checker(typing.get_args(annotation))
+    if annotation in _SCALARS:
+        return _SCALARS[annotation]
     if isinstance(annotation, type) and issubclass(annotation, enum.Enum):
-        try:
-            return annotation(value)
-        except ValueError:
-            allowed = ", ".join(repr(member.value) for member in annotation)
-            raise ValueError(f"{name} must be one of {allowed}, got {value!r}") from None
-    raise TypeError(f"unsupported field annotation {annotation!r} for {name}")
-
-
-def _check_tuple(name: str, value: Any, items: tuple[Any, ...]) -> tuple[Any, ...]:
-    """``value`` (a JSON array) checked against ``tuple[X, ...]`` or ``tuple[X, Y]``."""
-    if not isinstance(value, list | tuple):
-        raise ValueError(f"{name} must be an array, got {type(value).__name__}")
-    if len(items) == 2 and items[1] is Ellipsis:
-        items = (items[0],) * len(value)
-    elif len(value) != len(items):
-        raise ValueError(f"{name} must have {len(items)} entries, got {len(value)}")
-    return tuple(
-        _check_value(f"{name}[{index}]", entry, item)
-        for index, (entry, item) in enumerate(zip(value, items, strict=True))
-    )
+        return _enum_checker(annotation)
+    raise TypeError(f"unsupported field annotation {annotation!r}")
 
 
 def _require(condition: bool, problem: str) -> None:
@@ -112,6 +168,7 @@ class Message:
 
     _hints: ClassVar[dict[str, Any]]
     _optional: ClassVar[frozenset[str]]
+    _checkers: ClassVar[tuple[tuple[str, _Checker], ...]]
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -128,17 +185,23 @@ class Message:
     def _field_types(cls) -> dict[str, Any]:
         if not cls._hints:
             hints = typing.get_type_hints(cls)
-            cls._hints = {field.name: hints[field.name] for field in fields(cls)}  # type: ignore[arg-type]
+            field_hints = {field.name: hints[field.name] for field in fields(cls)}  # type: ignore[arg-type]
             cls._optional = frozenset(
                 name
-                for name, hint in cls._hints.items()
+                for name, hint in field_hints.items()
                 if isinstance(hint, UnionType) and NoneType in typing.get_args(hint)
             )
+            cls._checkers = tuple((name, _checker(hint)) for name, hint in field_hints.items())
+            cls._hints = field_hints
         return cls._hints
 
     def _normalise(self) -> None:
-        for name, annotation in self._field_types().items():
-            value = _check_value(name, getattr(self, name), annotation)
+        self._field_types()
+        for name, check in self._checkers:
+            try:
+                value = check(getattr(self, name))
+            except _Invalid as bad:
+                raise ValueError(f"{name}{bad.path} {bad.problem}") from None
             # Frozen dataclass: normalising an int to float must bypass __setattr__.
             object.__setattr__(self, name, value)
 

@@ -238,6 +238,9 @@ def test_messages_are_immutable() -> None:
         (STEP.to_payload().replace(b"5.125", b"NaN"), "non-finite"),
         (STEP.to_payload().replace(b"5.125", b"Infinity"), "non-finite"),
         (STEP.to_payload().replace(b"5.125", b"1e999"), "time_s must be finite"),
+        # An integer of 400 digits is valid JSON but no float: once an OverflowError out of the
+        # decoder, which ended the controller's receive loop.
+        (STEP.to_payload().replace(b"5.125", b"1" * 400), "time_s must be finite"),
         (STEP.to_payload().replace(b"41", b"41.0"), "step must be an integer"),
         (STEP.to_payload().replace(b"41", b"-1"), "step must be >= 0"),
         (STEP.to_payload().replace(b"12.5", b'"12.5"'), "must be a number"),
