@@ -77,6 +77,11 @@ from .ports import ControllerBus, ControllerClock, ControllerLink, MessageSource
 
 logger = logging.getLogger(__name__)
 
+#: A controller's status goes out when what it says changes (its state or detail), else once
+#: this often [mission s]: enough for the ground's progress and its watch of a vehicle's will
+#: (final after 11 s without a status), a ninth of the step messages' rate at T = 0.125 s.
+STATUS_PERIOD_S = 1.0
+
 
 @dataclass(frozen=True)
 class ControllerSettings:
@@ -237,6 +242,8 @@ class VehicleController:
         self.mission_id: str | None = None  # carried by every status (vehicle processes set it)
         self.records: list[StepRecord] = []
         self._stale_count = (0, 0)  # (records counted, of them held or skipped)
+        self._status_said: tuple[str, str] | None = None  # the last status's (state, detail)
+        self._status_said_s = -math.inf  # and its t_k
 
     @property
     def stale_steps(self) -> int:
@@ -789,6 +796,10 @@ class VehicleController:
                 if math.isfinite(unseen_s)
                 else "target never seen"
             )
+        said = (self.state, detail)
+        if said == self._status_said and t_k - self._status_said_s < STATUS_PERIOD_S:
+            return
+        self._status_said, self._status_said_s = said, t_k
         status = VehicleStatus(
             self.vehicle_id,
             t_k,

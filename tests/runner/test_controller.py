@@ -380,7 +380,8 @@ async def test_each_step_publishes_the_own_message_runs_the_law_and_sends_its_co
         assert setpoint[2] == 0.0  # at its altitude
         assert record.setpoint_sent_s == t_(record.step)
 
-    assert [s.state for s in statuses] == ["following"] * steps
+    # A status when the state changes, else once a second: here the first step's only.
+    assert [(s.step, s.state) for s in statuses] == [(0, "following")]
     assert all(s.tracking_ok and s.vehicle_id == OWN for s in statuses)
     assert flight.clock.released == [
         t_(k) + flight.controller.settings.release_s for k in range(steps)
@@ -497,8 +498,13 @@ async def test_lost_own_odometry_holds_then_gives_the_vehicle_up():
     assert statuses[-1].state == "lost"
     assert statuses[-1].step == 5
     assert not statuses[-1].tracking_ok
-    # Every status says how many steps were held so far: the ground's verdict counts them.
-    assert [s.stale_steps for s in statuses] == [0, 0, 0, 1, 2, 3, 3]
+    # A status at each change of state, each saying how many steps were held so far (the
+    # ground's verdict counts them).
+    assert [(s.step, s.state, s.stale_steps) for s in statuses] == [
+        (0, "following", 0),
+        (3, "holding", 1),
+        (5, "lost", 3),
+    ]
     assert flight.controller.stale_steps == 3
 
 
@@ -573,7 +579,11 @@ async def test_the_operators_hold_hovers_in_place_until_resume():
 
     assert [r.state for r in records] == ["following"] * 2 + ["held"] * 3 + ["following"] * 2
     assert all(setpoint[:2] == (0.0, 0.0) for setpoint in flight.link.setpoints[2:5])
-    assert [s.state for s in statuses][2:5] == ["held"] * 3
+    assert [(s.step, s.state) for s in statuses] == [
+        (0, "following"),
+        (2, "held"),
+        (5, "following"),
+    ]
 
 
 # --- step alignment ------------------------------------------------------------------------------
@@ -895,9 +905,13 @@ async def test_a_target_nobody_sees_is_predicted_then_declared_lost_and_held_for
     assert all(
         horizontal(setpoint).tolist() == [0.0, 0.0] for setpoint in flight.link.setpoints[13:]
     )
-    assert [s.state for s in statuses[13:]] == ["target_lost"] * 3
-    assert not any(s.tracking_ok for s in statuses[13:])
-    assert statuses[13].detail == f"target not seen for {9 * T:.2f} s"
+    # Following: a status at the start and a second later; lost: every step, as its detail
+    # (how long unseen) changes.
+    assert [(s.step, s.state) for s in statuses] == [(0, "following"), (8, "following")] + [
+        (k, "target_lost") for k in (13, 14, 15)
+    ]
+    assert not any(s.tracking_ok for s in statuses[2:])
+    assert statuses[2].detail == f"target not seen for {9 * T:.2f} s"
     # It relays the freshest observation it knows of, so every vehicle predicts alike.
     assert published[0].relayed_target is None  # nothing heard yet when it sends step 0
     assert [m.relayed_target for m in published[1:]] == [
