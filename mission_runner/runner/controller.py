@@ -72,6 +72,7 @@ from ..wiring import (
     shape_schedule,
 )
 from .inbox import StepData, StepInbox
+from .odometry import ODOMETRY_PERIOD_S
 from .plausibility import CommandGate, RangeGate, RangeLimits
 from .ports import ControllerBus, ControllerClock, ControllerLink, MessageSource
 
@@ -90,10 +91,11 @@ class ControllerSettings:
     step_deadline_s: how long after t_k (mission clock) the step's inputs are awaited before the
     law runs without the missing ones. wall_deadline_s: the same in wall seconds, for lockstep
     runs whose mission clock stands still while controllers wait. release_s: in lockstep, how far
-    past t_k the world may run while the controller samples (at least one telemetry period).
+    past t_k the world may run while the controller samples (more than one odometry period).
     odometry_extrapolate_s: in real time, how far past its newest odometry sample t_k is taken
-    at that sample's velocity rather than waiting for the next (1.5 periods of 50 Hz; lockstep
-    waits: the world is there in an instant and results stay exact).
+    at that sample's velocity rather than waiting for the next (two periods: PX4 sends fewer
+    than asked; lockstep waits:
+    the world is there in an instant and results stay exact).
     target_lost_after_s: the longest the target is predicted without an observation [s];
     target_on_lost: then ``hold`` (hover) or ``orbit`` (the law around the last estimate).
     """
@@ -101,8 +103,8 @@ class ControllerSettings:
     step_s: float
     step_deadline_s: float = 0.04
     wall_deadline_s: float = 0.5
-    release_s: float = 0.03
-    odometry_extrapolate_s: float = 0.03
+    release_s: float = 1.25 * ODOMETRY_PERIOD_S
+    odometry_extrapolate_s: float = 2.0 * ODOMETRY_PERIOD_S
     odometry_timeout_s: float = 1.0
     lost_after_missed_steps: int = 3
     target_lost_after_s: float = 10.0

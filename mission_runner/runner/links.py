@@ -26,10 +26,12 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import ctypes
 import dataclasses
 import json
 import logging
 import math
+import threading
 import time
 from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable, Coroutine, Mapping
 from typing import Any, Self, TypeVar
@@ -42,14 +44,13 @@ from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from pymavlink.dialects.v20 import common as mavlink
 
 from .errors import RunnerTimeoutError, VehicleCommandError, VehicleConnectionError
-from .odometry import FedTrack, OdometrySample, OdometryTrack
+from .odometry import ODOMETRY_RATE_HZ, FedTrack, OdometrySample, OdometryTrack
 from .timesync import ClockMapping, ClockMappingError, MissionTime
 
 _T = TypeVar("_T")
 
 logger = logging.getLogger(__name__)
 
-ODOMETRY_RATE_HZ = 50.0
 #: The most a velocity setpoint is scaled from mission to autopilot seconds (see
 #: :attr:`MavsdkVehicle.velocity_scale`): clocks further apart than this are not one mission's,
 #: and a broken or hostile SYSTEM_TIME must not multiply the vehicle's speed.
@@ -107,6 +108,24 @@ VELOCITY_YAW_MASK = (
     | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
 )
 _mavsdk_logging_routed = False
+_threads_kept: set[int] = set()
+
+
+def keep_thread_state() -> None:
+    """Keep the Python thread state of the MAVSDK thread calling back, for the thread's life.
+
+    ctypes makes a thread state for each callback on a thread Python did not start and frees it
+    after (PyGILState_Ensure/Release), and Python 3.11 maps and unmaps a frame stack with each:
+    the unmap interrupts every core (a TLB shootdown), dearer than the callback itself (0.3 %
+    of a core at 35 odometry samples a second on PX4 SIH). One more Ensure, never released,
+    keeps the thread state; ctypes' Release still hands the GIL back after each callback.
+    """
+    thread = threading.get_ident()
+    if thread not in _threads_kept:
+        ctypes.pythonapi.PyGILState_Ensure()
+        _threads_kept.add(thread)
+
+
 _REASON_SEVERITIES = frozenset({"EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING"})
 
 
@@ -335,6 +354,7 @@ class MavsdkVehicle:
                 loop.call_soon_threadsafe(_resolve, waiter)
 
         def received(message: Any, _user_data: object) -> None:
+            keep_thread_state()
             if message.system_id != self.system_id:
                 return
             try:
