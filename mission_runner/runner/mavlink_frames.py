@@ -31,6 +31,8 @@ _SIGNATURE_BYTES = mavlink.MAVLINK_SIGNATURE_BLOCK_LEN
 _V2_HEADER = struct.Struct("<BBBBBBBHB")
 _CRC = struct.Struct("<H")
 _CRC_BYTES = _CRC.size
+#: struct's codes of the MAVLink types the aid packs itself.
+_STRUCT_CODES = {"uint64_t": "Q", "float": "f"}
 
 
 def _crc_with_fastcrc(data: Any, extra: bytes) -> int:
@@ -151,8 +153,9 @@ def _diagonal_covariance(linear: float, angular: float) -> list[float]:
 
 class OdometryFrames:
     """ODOMETRY frames (local NED, a VIO's) of one sender whose covariances never change: the
-    constant part of the payload is laid out once (no angular rates); each frame packs the
-    values that change (time zero: the receiver stamps it) and counts its sequence number up."""
+    payload's constant part (no angular rates, the covariances, frames, estimator type) is packed
+    once; each frame packs the values that change (time zero: the receiver stamps it) in front of
+    it and counts its sequence number up."""
 
     #: The fields each frame gives, in wire order, ahead of every constant one.
     CHANGING = ("time_usec", "x", "y", "z", "q", "vx", "vy", "vz")
@@ -179,11 +182,18 @@ class OdometryFrames:
         fields = list(_ODOMETRY.ordered_fieldnames)
         if fields[: len(self.CHANGING)] != list(self.CHANGING):
             raise RuntimeError(f"pymavlink's ODOMETRY has another layout: {fields}")
-        self._tail = [
+        tail = [
             value
             for name in fields[len(self.CHANGING) :]
             for value in (constant[name] if isinstance(constant[name], list) else [constant[name]])
         ]
+        types = dict(zip(_ODOMETRY.fieldnames, _ODOMETRY.fieldtypes, strict=True))
+        lengths = dict(zip(fields, _ODOMETRY.lengths, strict=True))
+        self._changing = struct.Struct(
+            "<" + "".join(f"{lengths[n]}{_STRUCT_CODES[types[n]]}" for n in self.CHANGING)
+        )
+        changing_zeros = [0] * sum(lengths[n] for n in self.CHANGING)
+        self._constant = _ODOMETRY.unpacker.pack(*changing_zeros, *tail)[self._changing.size :]
         self._ids = (system_id, component_id, _ODOMETRY.id & 0xFFFF, _ODOMETRY.id >> 16)
         self._extra = bytes([_ODOMETRY.crc_extra])
         self.seq = 0
@@ -195,7 +205,7 @@ class OdometryFrames:
         velocity_m_s: Sequence[float],
     ) -> bytes:
         """The next frame: ``position_m`` and ``velocity_m_s`` NED, ``quaternion`` w, x, y, z."""
-        payload = _ODOMETRY.unpacker.pack(0, *position_m, *quaternion, *velocity_m_s, *self._tail)
+        payload = self._changing.pack(0, *position_m, *quaternion, *velocity_m_s) + self._constant
         # MAVLink 2 cuts the payload's trailing zeros, keeping at least one byte.
         payload = payload.rstrip(b"\0") or payload[:1]
         system, component, id_low, id_high = self._ids
