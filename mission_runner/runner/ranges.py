@@ -179,11 +179,12 @@ class VisionOdometry:
     (origin at its first truth sample, like a VIO switched on there) and NED velocity, each with
     white noise and that noise's variance in the covariance, at most ``rate_hz``.
 
-    The noise is drawn from ``rng`` NOISE_BLOCK messages at a time (standard normals, scaled):
-    the same generator's draws as one call per message, in another order."""
+    The noise is drawn from ``rng`` NOISE_BLOCK messages ahead (standard normals, scaled): the
+    same draws, in the same order (three of position, three of velocity per message), as one
+    call per message."""
 
-    #: Messages whose noise one draw from the generator makes (a draw per message cost more
-    #: than the rest of the message).
+    #: Messages whose noise one call to the generator draws (a call per message cost more than
+    #: the rest of the message).
     NOISE_BLOCK = 256
 
     def __init__(self, vehicle_id: int, settings: VisionSettings, rng: np.random.Generator) -> None:

@@ -214,13 +214,16 @@ def test_the_odometry_frame_is_pymavlinks_byte_for_byte_with_its_sequence_counte
 
 
 def test_the_vision_odometry_counts_its_sequence_and_draws_its_noise_from_the_generator():
+    """In drawn order, six per message, across the blocks it draws ahead."""
     settings = VisionSettings(rate_hz=50.0, position_noise_std_m=0.02, velocity_noise_std_m_s=0.05)
     vision = VisionOdometry(3, settings, np.random.default_rng(9))
     (truth,) = pymavlink_reads(hil_frame(3))
-    noise = np.random.default_rng(9).normal(0.0, 1.0, (2, 6)) * np.array([0.02] * 3 + [0.05] * 3)
-    sent = [vision.message(0.0, truth), vision.message(0.02, truth)]
+    count = VisionOdometry.NOISE_BLOCK + 44
+    scale = np.array([0.02] * 3 + [0.05] * 3)
+    noise = np.random.default_rng(9).normal(0.0, 1.0, (count, 6)) * scale
+    sent = [vision.message(0.02 * index, truth) for index in range(count)]
     parsed = mavlink.MAVLink(None).parse_buffer(b"".join(sent))
-    assert [m.get_seq() for m in parsed] == [0, 1]
+    assert [m.get_seq() for m in parsed] == [index % 256 for index in range(count)]
     for message, row in zip(parsed, noise, strict=True):
         assert message.get_srcSystem() == 3
         assert [message.x, message.y, message.z] == pytest.approx(row[:3], abs=1e-6)
