@@ -60,6 +60,7 @@ from ..world.world import publish_measurements, step_measurements
 from .errors import RunnerError
 from .handshake import freeze_heap, start_command
 from .links import MavsdkVehicle, connected_vehicles
+from .mavlink_frames import OdometryFrames, TruthDecoder
 from .odometry import OdometrySample, OdometryTrack
 from .timesync import ClockMapping, MissionTime
 
@@ -98,10 +99,25 @@ def flat_earth_ned(
     reference: tuple[float, float, float], lat_deg: float, lon_deg: float, alt_m: float
 ) -> tuple[float, float, float]:
     """``(north_m, east_m, down_m)`` of a fix from ``reference`` ``(lat, lon, alt)``, flat earth."""
-    lat0, lon0, alt0 = reference
-    north = math.radians(lat_deg - lat0) * EARTH_RADIUS_M
-    east = math.radians(lon_deg - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
-    return north, east, -(alt_m - alt0)
+    return FlatEarth(reference).ned(lat_deg, lon_deg, alt_m)
+
+
+class FlatEarth:
+    """Fixes to north-east-down from one reference ``(lat, lon, alt)``, flat earth: the metres
+    per degree are worked out once (hundreds of fixes a second go through it)."""
+
+    def __init__(self, reference: tuple[float, float, float]) -> None:
+        self.reference = reference
+        self.north_m_per_deg = math.radians(1.0) * EARTH_RADIUS_M
+        self.east_m_per_deg = self.north_m_per_deg * math.cos(math.radians(reference[0]))
+
+    def ned(self, lat_deg: float, lon_deg: float, alt_m: float) -> tuple[float, float, float]:
+        lat0, lon0, alt0 = self.reference
+        return (
+            (lat_deg - lat0) * self.north_m_per_deg,
+            (lon_deg - lon0) * self.east_m_per_deg,
+            alt0 - alt_m,
+        )
 
 
 class GeodeticFrame:
@@ -113,16 +129,18 @@ class GeodeticFrame:
         self.first_id = first_id
         self.first_position_m = first_position_m
         self.reference: tuple[float, float, float] | None = None  # (lat, lon, alt) of first fix
+        self.flat_earth: FlatEarth | None = None
 
     def local(
         self, vehicle_id: int, lat_deg: float, lon_deg: float, alt_m: float
     ) -> tuple[float, float, float] | None:
         """``(north_m, east_m, down_m)`` in the scenario frame, or None before the first fix."""
-        if self.reference is None:
+        if self.flat_earth is None:
             if vehicle_id != self.first_id:
                 return None
             self.reference = (lat_deg, lon_deg, alt_m)
-        north, east, down = flat_earth_ned(self.reference, lat_deg, lon_deg, alt_m)
+            self.flat_earth = FlatEarth(self.reference)
+        north, east, down = self.flat_earth.ned(lat_deg, lon_deg, alt_m)
         return north + self.first_position_m[0], east + self.first_position_m[1], down
 
 
@@ -159,53 +177,58 @@ class VisionSettings:
 class VisionOdometry:
     """ODOMETRY messages from one instance's ground truth: position in the vehicle's own NED frame
     (origin at its first truth sample, like a VIO switched on there) and NED velocity, each with
-    white noise and that noise's variance in the covariance, at most ``rate_hz``."""
+    white noise and that noise's variance in the covariance, at most ``rate_hz``.
+
+    The noise is drawn from ``rng`` NOISE_BLOCK messages ahead (standard normals, scaled): the
+    same draws, in the same order (three of position, three of velocity per message), as one
+    call per message."""
+
+    #: Messages whose noise one call to the generator draws (a call per message cost more than
+    #: the rest of the message).
+    NOISE_BLOCK = 256
 
     def __init__(self, vehicle_id: int, settings: VisionSettings, rng: np.random.Generator) -> None:
         self.vehicle_id = vehicle_id
         self.settings = settings
         self.rng = rng
         self.origin: tuple[float, float, float] | None = None
+        self.flat_earth: FlatEarth | None = None
         self.next_s = -math.inf
         self.sent = 0
-        self.packer = mavlink.MAVLink(
-            None, srcSystem=vehicle_id, srcComponent=mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+        position_sd = settings.position_noise_std_m
+        velocity_sd = settings.velocity_noise_std_m_s
+        self.noise_scale = np.array([position_sd] * 3 + [velocity_sd] * 3)
+        self.noise: list[list[float]] = []
+        self.frames = OdometryFrames(
+            vehicle_id,
+            mavlink.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY,
+            position_variance_m2=position_sd**2,
+            attitude_variance_rad2=ATTITUDE_NOISE_STD_RAD**2,
+            velocity_variance_m2_s2=velocity_sd**2,
         )
 
     def message(self, arrived_s: float, truth: Any) -> bytes | None:
-        """The ODOMETRY for a HIL_STATE_QUATERNION ``truth`` received at ``arrived_s``, or None
-        when the last one went out less than a period ago."""
+        """The ODOMETRY for a HIL_STATE_QUATERNION ``truth`` (its fields in MAVLink units)
+        received at ``arrived_s``, or None when the last one went out less than a period ago."""
         if arrived_s < self.next_s:
             return None
         period_s = 1.0 / self.settings.rate_hz
         self.next_s = max(self.next_s + period_s, arrived_s + 0.5 * period_s)
-        fix = (truth.lat / 1e7, truth.lon / 1e7, truth.alt / 1e3)
-        if self.origin is None:
-            self.origin = fix
-        position_sd = self.settings.position_noise_std_m
-        velocity_sd = self.settings.velocity_noise_std_m_s
-        position = np.add(flat_earth_ned(self.origin, *fix), self.rng.normal(0.0, position_sd, 3))
-        velocity = np.add(
-            (truth.vx / 100.0, truth.vy / 100.0, truth.vz / 100.0),
-            self.rng.normal(0.0, velocity_sd, 3),
-        )
+        lat_deg, lon_deg, alt_m = truth.lat / 1e7, truth.lon / 1e7, truth.alt / 1e3
+        if self.flat_earth is None:
+            self.origin = (lat_deg, lon_deg, alt_m)
+            self.flat_earth = FlatEarth(self.origin)
+        north_m, east_m, down_m = self.flat_earth.ned(lat_deg, lon_deg, alt_m)
+        if not self.noise:
+            block = self.rng.standard_normal((self.NOISE_BLOCK, 6)) * self.noise_scale
+            self.noise = block.tolist()[::-1]  # popped from the end: drawn order
+        n, e, d, vn, ve, vd = self.noise.pop()
         self.sent += 1
-        return mavlink.MAVLink_odometry_message(
-            0,  # PX4 stamps it on arrival (no TIMESYNC on this link)
-            mavlink.MAV_FRAME_LOCAL_NED,
-            mavlink.MAV_FRAME_LOCAL_NED,
-            *map(float, position),
-            list(truth.attitude_quaternion),  # a VIO's attitude: for EKF2_EV_CTRL's yaw bit
-            *map(float, velocity),
-            math.nan,
-            math.nan,
-            math.nan,
-            _diagonal_covariance(position_sd**2, ATTITUDE_NOISE_STD_RAD**2),
-            _diagonal_covariance(velocity_sd**2, math.nan),
-            0,
-            mavlink.MAV_ESTIMATOR_TYPE_VIO,
-            100,
-        ).pack(self.packer)
+        return self.frames.frame(
+            (north_m + n, east_m + e, down_m + d),
+            truth.attitude_quaternion,  # a VIO's attitude: for EKF2_EV_CTRL's yaw bit
+            (truth.vx / 100.0 + vn, truth.vy / 100.0 + ve, truth.vz / 100.0 + vd),
+        )
 
 
 def _per_host_second(
@@ -218,17 +241,6 @@ def _per_host_second(
         velocity_cm_s[1] * 0.01 * clock_rate,
         velocity_cm_s[2] * 0.01 * clock_rate,
     )
-
-
-def _diagonal_covariance(linear: float, angular: float) -> list[float]:
-    """MAVLink's upper-triangular 6x6 covariance: ``linear`` on the x, y, z diagonal entries,
-    ``angular`` on the three rotations', the rest unknown (NaN)."""
-    covariance = [math.nan] * 21
-    for index in (0, 6, 11):
-        covariance[index] = linear
-    for index in (15, 18, 20):
-        covariance[index] = angular
-    return covariance
 
 
 @dataclass
@@ -330,9 +342,7 @@ class _TruthProtocol(asyncio.DatagramProtocol):
         self.positions = positions
         self.vehicle_id = vehicle_id
         self.vision = vision
-        self.parser = mavlink.MAVLink(None)
-        self.parser.robust_parsing = True
-        self.malformed = 0
+        self.decoder = TruthDecoder(vehicle_id)
         self.rate_hz = rate_hz
         self.transport: asyncio.DatagramTransport | None = None
         self.address: tuple[str | Any, int] | None = None
@@ -342,33 +352,26 @@ class _TruthProtocol(asyncio.DatagramProtocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = cast(asyncio.DatagramTransport, transport)
 
+    @property
+    def malformed(self) -> int:
+        """Frames not acted on: cut short, a bad CRC, another system's (see TruthDecoder)."""
+        return self.decoder.malformed
+
     def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
         arrived_s = time.time()
-        try:
-            messages = self.parser.parse_buffer(data) or []
-        except mavlink.MAVError:
-            self.malformed += 1
-            return
-        for message in messages:
-            if message.get_type() != "HIL_STATE_QUATERNION":
-                continue
-            if message.get_srcSystem() != self.vehicle_id:
-                self.malformed += 1  # another instance's stream on this port: never mix them
-                continue
+        for truth in self.decoder.states(data):
             if not self.asked:
                 self._ask_rate(addr)
             self.positions.add(
                 self.vehicle_id,
                 arrived_s,
-                message.lat / 1e7,
-                message.lon / 1e7,
-                message.alt / 1e3,
-                velocity_ned_m_s=_per_host_second(
-                    (message.vx, message.vy, message.vz), self.clock_rate
-                ),
+                truth.lat / 1e7,
+                truth.lon / 1e7,
+                truth.alt / 1e3,
+                velocity_ned_m_s=_per_host_second((truth.vx, truth.vy, truth.vz), self.clock_rate),
             )
             if self.vision is not None and self.transport is not None:
-                odometry = self.vision.message(arrived_s, message)
+                odometry = self.vision.message(arrived_s, truth)
                 if odometry is not None:
                     self.transport.sendto(odometry, addr)
 
