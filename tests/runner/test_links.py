@@ -126,4 +126,4 @@ async def test_a_flying_vehicle_stops_the_streams_it_never_reads():
             assert mavlink.MAVLINK_MSG_ID_ATTITUDE in streamed  # PX4's 100 Hz, as emulated
             await vehicle.quiet_unread_streams()
             assert [m for m in streamed if api.streams.period_s(m) is not None] == []
-            assert api.streams.period_s(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED) == 1 / 50
+            assert api.streams.period_s(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED) == 1 / 25
