@@ -973,11 +973,16 @@ def _ground(arguments: argparse.Namespace) -> int:
     mission_dir = prepare_out_dir(arguments.out or _mission_dir(scenario), RUN_FILES)
 
     last_state: dict[int, str] = {}
+    shown_to: dict[int, int] = {}  # the step from which a vehicle's progress is shown again
 
     def show(status: VehicleStatus) -> None:
-        changed = last_state.get(status.vehicle_id) != status.state
-        last_state[status.vehicle_id] = status.state
-        if changed or status.step % 40 == 0:
+        """A line at each change of state, else every 40 steps (the first status at or past
+        each multiple: statuses come on change and periodically, not every step)."""
+        vehicle = status.vehicle_id
+        changed = last_state.get(vehicle) != status.state
+        last_state[vehicle] = status.state
+        if changed or status.step >= shown_to.get(vehicle, 0):
+            shown_to[vehicle] = (status.step // 40 + 1) * 40
             detail = f": {status.detail}" if status.detail else ""
             print(
                 f"vehicle {status.vehicle_id}: {status.state} (step {status.step}){detail}",

@@ -78,9 +78,10 @@ from .ports import ControllerBus, ControllerClock, ControllerLink, MessageSource
 
 logger = logging.getLogger(__name__)
 
-#: A controller's status goes out when what it says changes (its state or detail), else once
-#: this often [mission s]: enough for the ground's progress and its watch of a vehicle's will
-#: (final after 11 s without a status), a ninth of the step messages' rate at T = 0.125 s.
+#: A controller's status goes out when what it says changes (its state or detail), else at the
+#: steps that are multiples of this period [mission s] (every 8th at T = 0.125 s, so on the
+#: step grid the ground's progress shows): enough for the ground's progress and its watch of a
+#: vehicle's will (final after 11 s without a status), an eighth of the step messages' rate.
 STATUS_PERIOD_S = 1.0
 
 
@@ -245,7 +246,7 @@ class VehicleController:
         self.records: list[StepRecord] = []
         self._stale_count = (0, 0)  # (records counted, of them held or skipped)
         self._status_said: tuple[str, str] | None = None  # the last status's (state, detail)
-        self._status_said_s = -math.inf  # and its t_k
+        self._status_period_steps = max(1, round(STATUS_PERIOD_S / settings.step_s))
 
     @property
     def stale_steps(self) -> int:
@@ -799,9 +800,9 @@ class VehicleController:
                 else "target never seen"
             )
         said = (self.state, detail)
-        if said == self._status_said and t_k - self._status_said_s < STATUS_PERIOD_S:
+        if said == self._status_said and k % self._status_period_steps:
             return
-        self._status_said, self._status_said_s = said, t_k
+        self._status_said = said
         status = VehicleStatus(
             self.vehicle_id,
             t_k,

@@ -151,8 +151,10 @@ def swarm(
         yield flying
     finally:
         for process in [flying.ground, *flying.vehicles]:
-            if process is not None and process.poll() is None:
-                process.kill()
+            if process is not None:
+                if process.poll() is None:
+                    process.kill()
+                process.communicate(timeout=30)  # reaped, its pipes closed (a failed test too)
         world.send_signal(signal.SIGINT)
         flying.world_output, _ = world.communicate(timeout=30)
 
