@@ -95,13 +95,6 @@ MAX_WAIT_S = 0.25
 EXTRAPOLATE_PERIODS = 1.5
 
 
-def flat_earth_ned(
-    reference: tuple[float, float, float], lat_deg: float, lon_deg: float, alt_m: float
-) -> tuple[float, float, float]:
-    """``(north_m, east_m, down_m)`` of a fix from ``reference`` ``(lat, lon, alt)``, flat earth."""
-    return FlatEarth(reference).ned(lat_deg, lon_deg, alt_m)
-
-
 class FlatEarth:
     """Fixes to north-east-down from one reference ``(lat, lon, alt)``, flat earth: the metres
     per degree are worked out once (hundreds of fixes a second go through it)."""
