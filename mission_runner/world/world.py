@@ -281,28 +281,41 @@ class World:
         self._queue.put_nowait((k, measured))
 
     async def _publish(self) -> None:
-        while not self._closing:
-            k, measured = await self._queue.get()
-            try:
+        """Hand each step's measurements to the bus as soon as they are sampled, without waiting
+        for the bus to acknowledge the step before: one slow acknowledgement (a broker starved
+        for a step on a loaded machine) held the next step back with it, so every later step
+        went out late too, past the vehicles' deadlines. Each step waits for its own
+        acknowledgements (for at most ``stale_after_steps`` steps) in a task of its own."""
+        async with asyncio.TaskGroup() as group:
+            while not self._closing:
+                k, measured = await self._queue.get()
                 stale = self.stale_after_steps
                 if stale is not None and self._next_step - k > stale:
+                    self._queue.task_done()
                     continue  # the bus was down: a stale measurement is worse than none
-                errors = await publish_measurements(self.bus, measured, timeout_s=self.step_s)
-            finally:
-                self._queue.task_done()
-            for (topic, _), error in zip(measured, errors, strict=True):
-                if error is None:
-                    self.published += 1
-                    if self._dropping:
-                        logger.info("world: publishing again (%d dropped)", self._dropping)
-                        self._dropping = 0
-                    continue
-                # Once per outage: a warning per message (13 a step with four vehicles) filled
-                # a pipe nobody read and stopped the emulator with it.
-                if not self._dropping:
-                    logger.warning("world: could not publish %s: %s (dropping)", topic, error)
-                self._dropping += 1
-                self.dropped += 1
+                # Tasks start in the order they were made: a step's messages are handed over
+                # before the next step's (the bus seals and queues before its first await).
+                group.create_task(self._publish_step(measured), name=f"world-step-{k}")
+
+    async def _publish_step(self, measured: Measured) -> None:
+        try:
+            steps = self.stale_after_steps or 1
+            errors = await publish_measurements(self.bus, measured, timeout_s=steps * self.step_s)
+        finally:
+            self._queue.task_done()
+        for (topic, _), error in zip(measured, errors, strict=True):
+            if error is None:
+                self.published += 1
+                if self._dropping:
+                    logger.info("world: publishing again (%d dropped)", self._dropping)
+                    self._dropping = 0
+                continue
+            # Once per outage: a warning per message (13 a step with four vehicles) filled
+            # a pipe nobody read and stopped the emulator with it.
+            if not self._dropping:
+                logger.warning("world: could not publish %s: %s (dropping)", topic, error)
+            self._dropping += 1
+            self.dropped += 1
 
 
 async def publish_measurements(

@@ -195,6 +195,41 @@ async def test_a_bus_outage_is_one_warning_and_a_count_not_a_line_per_message(ca
     assert "publishing again (56 dropped)" in lines[1].getMessage()
 
 
+class SlowAcknowledgement:
+    """Step 3's messages are handed on, then acknowledged only once a later step's have been
+    handed on too (a broker slow to acknowledge one step)."""
+
+    def __init__(self, bus):
+        self.bus, self.start_s, self.later = bus, None, asyncio.Event()
+
+    async def publish_message(self, topic, message, *, timeout):
+        self.start_s = message.time_s if self.start_s is None else self.start_s
+        step = round((message.time_s - self.start_s) / STEP_S)
+        await self.bus.publish_message(topic, message, timeout=timeout)
+        if step > 3:
+            self.later.set()
+        elif step == 3:
+            try:
+                async with asyncio.timeout(timeout):
+                    await self.later.wait()
+            except TimeoutError:
+                raise BusConnectionError("broker", "not acknowledged in time") from None
+
+
+async def test_a_step_slow_to_be_acknowledged_does_not_hold_the_next_steps_back():
+    """Each step waited for the one before it to be acknowledged: a broker starved for one
+    step's acknowledgement delayed every later step's measurements past the vehicles'
+    deadlines (and this step, waited for in vain, was counted as dropped)."""
+    wrapped = []
+    ranges, targets, world = await collect(
+        SensorConfig(),
+        seconds=2,
+        wrap=lambda bus: wrapped.append(SlowAcknowledgement(bus)) or wrapped[0],
+    )
+    assert wrapped[0].later.is_set()
+    assert world.dropped == 0 and world.published == len(ranges) + len(targets) == 7 * 16
+
+
 async def test_a_failed_uwb_stops_every_range_from_and_to_it():
     faults = [(1, "uwb", 0.0, None)]  # vehicle index 1 (id 2) from the start
     ranges, _, _ = await collect(SensorConfig(), seconds=3, faults=faults)
