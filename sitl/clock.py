@@ -44,7 +44,7 @@ import itertools
 import logging
 import math
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
@@ -89,6 +89,7 @@ class Clock:
         *,
         lockstep_max_speed: float | None = None,
         participant_timeout_s: float | None = 10.0,
+        pace: Sequence[tuple[float, float]] = (),
         wall_time: Callable[[], float] = time.monotonic,
     ) -> None:
         if mode not in ("realtime", "lockstep"):
@@ -97,6 +98,10 @@ class Clock:
             raise ClockError(f"speed must be > 0, got {speed!r}")
         self.mode: ClockMode = mode
         self.speed = float(speed)
+        #: Realtime: (wall seconds after the start, speed from then on), in order.
+        self.pace = [(float(after_s), float(later)) for after_s, later in pace]
+        if any(not later > 0 for _, later in self.pace):
+            raise ClockError(f"every speed of pace must be > 0, got {pace!r}")
         self.lockstep_max_speed = lockstep_max_speed
         self.participant_timeout_s = participant_timeout_s
         self._wall_time = wall_time
@@ -115,6 +120,7 @@ class Clock:
             config.speed,
             lockstep_max_speed=config.lockstep_max_speed,
             participant_timeout_s=config.participant_timeout_s,
+            pace=[(change.after_s, change.speed) for change in config.pace],
             **kwargs,  # type: ignore[arg-type]
         )
 
@@ -149,8 +155,26 @@ class Clock:
     def now_s(self) -> float:
         """Current simulated time in seconds since start."""
         if self.mode == "realtime":
-            return self._wall_elapsed_s() * self.speed
+            return self._realtime_s(self._wall_elapsed_s())
         return self._lockstep_now_s
+
+    def _realtime_s(self, wall_s: float) -> float:
+        """Simulated time ``wall_s`` wall seconds after the start, through :attr:`pace`."""
+        time_s, since_s, speed = 0.0, 0.0, self.speed
+        for after_s, later in self.pace:
+            if wall_s <= after_s:
+                break
+            time_s += (after_s - since_s) * speed
+            since_s, speed = after_s, later
+        return time_s + (wall_s - since_s) * speed
+
+    @property
+    def current_speed(self) -> float:
+        """Simulated seconds per wall second now (realtime: through :attr:`pace`)."""
+        wall_s = self._wall_elapsed_s()
+        return next(
+            (later for after_s, later in reversed(self.pace) if wall_s > after_s), self.speed
+        )
 
     def allowed_time_s(self) -> float:
         """How far the driver may advance simulated time right now."""
@@ -220,7 +244,7 @@ class Clock:
                 remaining = time_s - self.now_s()
                 if remaining <= 0:
                     return
-                await asyncio.sleep(remaining / self.speed)
+                await asyncio.sleep(remaining / self.current_speed)
         wake_s = self._reachable(time_s) - 1e-9
         if self._lockstep_now_s >= wake_s:
             return

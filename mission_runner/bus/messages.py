@@ -34,10 +34,12 @@ class ControlCommand(enum.StrEnum):
 
     ``prepare``/``start`` run the handshake; during a mission ``hold`` (hover in place, still in
     OFFBOARD) and ``resume`` pause and continue the law; ``land``, ``return`` (to launch) and
-    ``stop`` (leave OFFBOARD, the autopilot holds) end it.
+    ``stop`` (leave OFFBOARD, the autopilot holds) end it. ``clock`` changes the mission
+    clock's rate during a mission (see :class:`MissionControl`).
     """
 
     PREPARE = "prepare"
+    CLOCK = "clock"
     START = "start"
     STOP = "stop"
     HOLD = "hold"
@@ -449,6 +451,8 @@ class MissionControl(Message):
     mission is recognised as such. ``start`` carries k = 0 as ``time_s`` on the mission clock,
     which is ``mission_s = clock_reference_s + clock_rate * (unix_s - clock_reference_s)``
     (``clock_rate`` follows autopilots whose simulated time runs faster or slower than wall time).
+    ``clock`` changes it during the mission: from UNIX time ``clock_reference_s`` on, the clock
+    runs at ``clock_rate``, reading ``time_s`` then.
     """
 
     command: ControlCommand

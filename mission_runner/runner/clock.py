@@ -139,7 +139,8 @@ class WallClock:
         await self.sleep_until(self.now_s() + seconds)
 
     async def sleep_until(self, time_s: float) -> None:
-        delay = (time_s - self.now_s()) / self.time.rate
+        # Through the mission clock's rate changes, if one falls in the sleep.
+        delay = self.time.to_unix(time_s) - self.time.unix_now_s()
         if delay > 0:
             await asyncio.sleep(delay)
 

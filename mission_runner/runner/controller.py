@@ -243,6 +243,9 @@ class VehicleController:
             else None
         )
         self.mission_id: str | None = None  # carried by every status (vehicle processes set it)
+        #: Its autopilot's recent boot-clock rate, carried by every status so the ground's mission
+        #: clock can follow it (vehicle processes set it; None: its clock is the mission's).
+        self.autopilot_clock_rate: Callable[[], float] | None = None
         self.records: list[StepRecord] = []
         self._stale_count = (0, 0)  # (records counted, of them held or skipped)
         self._status_said: tuple[str, str] | None = None  # the last status's (state, detail)
@@ -811,6 +814,7 @@ class VehicleController:
             self.state == "following",
             detail,
             mission_id=self.mission_id,
+            clock_rate=None if self.autopilot_clock_rate is None else self.autopilot_clock_rate(),
             stale_steps=self.stale_steps,
         )
         await self._publish(self.topics.status(self.vehicle_id), status)

@@ -23,6 +23,7 @@ from ..bus import ControlCommand, MissionControl
 from ..bus.auth import RateLimitedWarnings
 from .errors import RunnerError, RunnerTimeoutError
 from .ports import MessageSource
+from .timesync import MissionTime
 
 logger = logging.getLogger(__name__)
 
@@ -32,6 +33,10 @@ MAX_START_LEAD_S = 120.0
 #: The earliest, before now [s]: link latency and clock skew between synchronised machines,
 #: with a margin; a start further in the past would make every vehicle skip its first steps.
 MAX_START_LAG_S = 5.0
+#: How far a ``clock`` change may move this receiver's mission clock where it takes effect [s]:
+#: it is meant to be continuous there; a larger step means a forged change or a receiver that
+#: missed the start, and is ignored.
+MAX_CLOCK_STEP_S = 1.0
 
 _warnings = RateLimitedWarnings(logger)
 
@@ -111,3 +116,37 @@ async def start_command(
 ) -> MissionControl:
     """The next ``start``, whichever mission it belongs to (for aids that follow any mission)."""
     return await next_command(control, {ControlCommand.START}, timeout_s=timeout_s)
+
+
+def clock_change_problem(
+    command: MissionControl, mission_time: MissionTime, unix_now_s: float
+) -> str | None:
+    """Why ``command`` (a ``clock``) cannot be taken by ``mission_time`` now, or None."""
+    at_unix_s, rate = command.clock_reference_s, command.clock_rate
+    if at_unix_s is None or rate is None:
+        return "it has no clock_rate or clock_reference_s"
+    if abs(at_unix_s - unix_now_s) > MAX_START_LAG_S:
+        return f"it takes effect {at_unix_s - unix_now_s:+.1f} s from this clock's now"
+    step_s = command.time_s - mission_time.from_unix(at_unix_s)
+    if abs(step_s) > MAX_CLOCK_STEP_S:
+        return f"it would step this mission clock by {step_s:+.3f} s"
+    return None
+
+
+def take_clock_change(
+    command: MissionControl, mission_time: MissionTime, *, unix_clock: Callable[[], float]
+) -> bool:
+    """Apply a ``clock`` command to ``mission_time`` (logged), or log why not; whether taken."""
+    problem = clock_change_problem(command, mission_time, unix_clock())
+    if problem is not None:
+        _warnings.warn("clock", "ignoring a clock change: %s", problem)
+        return False
+    assert command.clock_rate is not None and command.clock_reference_s is not None
+    mission_time.change(command.clock_rate, command.clock_reference_s, command.time_s)
+    logger.info(
+        "mission clock runs at %.4fx from UNIX time %.3f (mission time %.3f)",
+        command.clock_rate,
+        command.clock_reference_s,
+        command.time_s,
+    )
+    return True

@@ -33,11 +33,12 @@ from ..bus import BusError, ControlCommand, MissionControl, Topics
 from ..bus.messages import MAX_REASON_CHARS, Message
 from ..tasks import first_completed
 from .errors import RunnerError
-from .handshake import next_command
+from .handshake import next_command, take_clock_change
 
 if TYPE_CHECKING:
     from .controller import StepRecord, VehicleController
     from .ports import MessageSource
+    from .timesync import MissionTime
 
 logger = logging.getLogger(__name__)
 
@@ -168,15 +169,23 @@ async def obey(
     controller: VehicleController,
     *,
     mission_id: str | None,
+    mission_time: MissionTime | None = None,
 ) -> MissionControl:
     """The operator's commands for ``controller``'s vehicle (or all) of mission ``mission_id``:
     ``hold`` and ``resume`` act on the controller's next step; the first ``land``, ``return``
-    or ``stop`` is returned (it ends this vehicle's mission)."""
+    or ``stop`` is returned (it ends this vehicle's mission). With ``mission_time`` (a vehicle
+    process), the ground's ``clock`` changes are taken too."""
     wanted = set(OPERATOR_COMMANDS)
+    if mission_time is not None:
+        wanted.add(ControlCommand.CLOCK)
     vehicle_id = controller.vehicle_id
     while True:
         command = await next_command(control, wanted, mission_id=mission_id)
         if command.vehicle_id not in (None, vehicle_id):
+            continue
+        if command.command is ControlCommand.CLOCK:
+            assert mission_time is not None  # only then wanted
+            take_clock_change(command, mission_time, unix_clock=mission_time.unix_now_s)
             continue
         # The step being flown is the last the controller decided (or is deciding) under the
         # old command; the next one is the first under this command.
@@ -207,6 +216,7 @@ async def fly_obeying(
     control: MessageSource,
     *,
     mission_id: str | None,
+    mission_time: MissionTime | None = None,
 ) -> MissionControl | None:
     """Await ``flight`` (``controller.run(...)``) while obeying the operator (:func:`obey`).
     Returns None when the flight ended on its own, or the ``land``, ``return`` or ``stop`` that
@@ -217,7 +227,7 @@ async def fly_obeying(
     ended_by, ended_with = await first_completed(
         {
             f"{name}-fly": cast(Awaitable[object], flight),
-            watch: obey(control, controller, mission_id=mission_id),
+            watch: obey(control, controller, mission_id=mission_id, mission_time=mission_time),
         }
     )
     return cast(MissionControl, ended_with) if ended_by == watch else None

@@ -77,7 +77,7 @@ from .operator import (
     publish_operator,
     serving,
 )
-from .timesync import ClockMapping, MissionTime
+from .timesync import ClockFollower, ClockMapping, MissionTime
 
 if TYPE_CHECKING:
     from ..bus.auth import AuthCounters
@@ -227,6 +227,7 @@ async def run_vehicle(
             on_step=on_step,
         )
         report.controller = controller
+        controller.autopilot_clock_rate = mapping.recent_boot_rate
         try:
             await _fly(scenario, vehicle, controller, control, report, run, mapping, mission_time)
         except BaseException as error:
@@ -338,6 +339,7 @@ async def _fly(  # noqa: PLR0917
         controller.run(run.start_s, steps),
         control,
         mission_id=run.mission_id,
+        mission_time=mission_time,
     )
     if ending is not None:
         await _abort(vehicle, report, run, scenario, ending)
@@ -383,7 +385,7 @@ async def _until_start(
     or stop for this vehicle."""
     wanted = {ControlCommand.PREPARE, ControlCommand.START, *ENDING_ACTIONS}
     while True:
-        await report("ready", clock_rate=mapping.fit.boot_rate)
+        await report("ready", clock_rate=mapping.recent_boot_rate())
         command = await next_command(control, wanted)
         if command.command is ControlCommand.PREPARE:
             run.mission_id = command.mission_id
@@ -460,6 +462,8 @@ class GroundOutcome:
     bus_messages: dict[str, int] = field(default_factory=dict)
     #: By vehicle, the last wills it outlived: dropped off the bus, then heard again (not lost).
     bus_drops: dict[int, int] = field(default_factory=dict)
+    #: How often the mission clock changed its rate to follow the autopilots (ClockFollower).
+    clock_changes: int = 0
 
     @property
     def lost(self) -> list[int]:
@@ -496,6 +500,7 @@ async def run_ground(
     mission_id = uuid.uuid4().hex[:12]
     latest: dict[int, VehicleStatus] = {}
     started: dict[str, float | None] = {"at": None}
+    clock: dict[str, ClockFollower] = {}  # from the start: the mission clock following them
     wills = _Wills(rejoin_grace_s(scenario))
     async with (
         open_bus(scenario.bus, sender=Sender.ground(), client_id=f"{scenario.name}-ground") as bus,
@@ -523,6 +528,8 @@ async def run_ground(
             if _final_already(latest.get(status.vehicle_id), status):
                 return False
             latest[status.vehicle_id] = status
+            if "follower" in clock:
+                clock["follower"].heard(status.vehicle_id, status.clock_rate, time.time())
             if on_status is not None:
                 on_status(status)
             return True
@@ -563,8 +570,27 @@ async def run_ground(
                     topic, payload = await heard.receive(timeout=max(wake_s - loop.time(), 0.0))
                 except BusTimeoutError:
                     continue
-                if hear(topic, payload, loop.time()) and condition():
+                changed = hear(topic, payload, loop.time())
+                await follow_clock()
+                if changed and condition():
                     return
+
+        async def follow_clock() -> None:
+            change = clock["follower"].due(time.time()) if "follower" in clock else None
+            if change is None:
+                return
+            await control(
+                ControlCommand.CLOCK,
+                change.mission_s,
+                clock_rate=change.rate,
+                clock_reference_s=change.at_unix_s,
+            )
+            logger.warning(
+                "ground: the autopilots' clocks run at %.4fx now: so does the mission clock, "
+                "from %.3f",
+                change.rate,
+                change.at_unix_s,
+            )
 
         def states(*wanted: str) -> set[int]:
             return {i for i, s in latest.items() if s.state in wanted}
@@ -606,6 +632,9 @@ async def run_ground(
                 reference_s = time.time()
                 start_s = math.ceil((reference_s + start_delay_s * rate) / step_s) * step_s
                 started["at"] = start_s
+                mission_time = MissionTime()
+                mission_time.set(rate, reference_s)
+                clock["follower"] = ClockFollower(mission_time)
                 await control(
                     ControlCommand.START,
                     start_s,
@@ -635,7 +664,10 @@ async def run_ground(
             with contextlib.suppress(BusError):
                 await bus.publish(topics.control(), b"", retain=True, timeout=2.0)
             counters = bus.auth_counters.as_dict()
-    return GroundOutcome(mission_id, started["at"], rate, latest, counters, dict(wills.drops))
+    changes = clock["follower"].changes if "follower" in clock else 0
+    return GroundOutcome(
+        mission_id, started["at"], rate, latest, counters, dict(wills.drops), changes
+    )
 
 
 def _vehicle_status(

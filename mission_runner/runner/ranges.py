@@ -48,8 +48,10 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from ..bus import (
     Bus,
+    ControlCommand,
     RangeMessage,
     Sender,
+    Subscription,
     Topics,
     open_bus,
 )
@@ -58,7 +60,7 @@ from ..sensors import UwbRanging, ranging_plan
 from ..sim.metrics import TruthSample
 from ..world.world import publish_measurements, step_measurements
 from .errors import RunnerError
-from .handshake import freeze_heap, start_command
+from .handshake import freeze_heap, next_command, start_command, take_clock_change
 from .links import MavsdkVehicle, connected_vehicles
 from .mavlink_frames import OdometryFrames, TruthDecoder
 from .odometry import OdometrySample, OdometryTrack
@@ -536,6 +538,10 @@ async def run_range_provider(
         if mission_time.rate != 1.0:
             for protocol in truth:
                 protocol.ask_rate(mission_time.rate)
+        following = group.create_task(
+            _follow_clock(control, mission_time, truth, start.mission_id), name="aid-clock"
+        )
+        stack.callback(following.cancel)  # before the task group waits for its tasks
         # Up to 1.5 periods of the positions' rate: SIH's truth as asked, or the GPS stream's.
         rate_hz = (truth_rate_hz or SIH_TRUTH_RATE_HZ) if source == "sih" else POSITION_RATE_HZ
         extrapolate_s = EXTRAPOLATE_PERIODS / rate_hz
@@ -565,6 +571,21 @@ async def run_range_provider(
         }
         stats.vision_rates_hz = {i: (o.sent - sent[i]) / elapsed_s for i, o in odometry.items()}
     return stats
+
+
+async def _follow_clock(
+    control: Subscription,
+    mission_time: MissionTime,
+    truth: Sequence[_TruthProtocol],
+    mission_id: str | None,
+) -> None:
+    """Take the ground's mission clock changes as the vehicles take them (the aid's steps keep
+    theirs), and ask the simulators' truth at the new rate."""
+    while True:
+        command = await next_command(control, {ControlCommand.CLOCK}, mission_id=mission_id)
+        if take_clock_change(command, mission_time, unix_clock=mission_time.unix_now_s):
+            for protocol in truth:
+                protocol.ask_rate(mission_time.latest_rate)
 
 
 async def _publish_step(  # noqa: PLR0917

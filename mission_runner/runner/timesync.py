@@ -16,6 +16,7 @@ survives a jump of the autopilot's UNIX clock (GPS time arriving, NTP stepping) 
 from __future__ import annotations
 
 import bisect
+import itertools
 import math
 import time
 from collections import deque
@@ -30,6 +31,11 @@ MIN_RATE, MAX_RATE = 0.01, 100.0
 
 class ClockMappingError(RunnerError):
     """The mapping cannot answer yet (no pair) or was given an impossible pair."""
+
+
+def _check_rate(rate: float) -> None:
+    if not (math.isfinite(rate) and MIN_RATE <= rate <= MAX_RATE):
+        raise ClockMappingError(f"mission clock rate must be in [{MIN_RATE}, {MAX_RATE}]")
 
 
 @dataclass(frozen=True, slots=True)
@@ -197,6 +203,30 @@ class ClockMapping:
             count,
         )
 
+    def recent_boot_rate(self, span_s: float = 5.0) -> float:
+        """Boot-clock seconds per UNIX second over the pairs of the last ``span_s`` boot seconds
+        (least squares; the whole window's :attr:`ClockFit.boot_rate` until they span
+        ``min_span_s``). Follows a simulated clock that changes pace (PX4 SITL starved of CPU,
+        then not) within seconds, where the window's fit takes ``window_s`` to."""
+        pairs = self._pairs
+        if not pairs:
+            return self.fit.boot_rate
+        newest_boot_s = pairs[-1][0]
+        recent = [
+            p
+            for p in itertools.takewhile(lambda p: p[0] >= newest_boot_s - span_s, reversed(pairs))
+        ]
+        if len(recent) < 3 or newest_boot_s - recent[-1][0] < self.min_span_s:
+            return self.fit.boot_rate
+        boot0, unix0 = recent[-1]
+        mean_boot = sum(b - boot0 for b, _ in recent) / len(recent)
+        mean_unix = sum(u - unix0 for _, u in recent) / len(recent)
+        sxx = sum((b - boot0 - mean_boot) ** 2 for b, _ in recent)
+        sxy = sum((b - boot0 - mean_boot) * (u - unix0 - mean_unix) for b, u in recent)
+        if sxx <= 0.0 or not MIN_RATE <= sxy / sxx <= MAX_RATE:
+            return self.fit.boot_rate
+        return sxx / sxy
+
     def unix_s(self, boot_s: float) -> float:
         """UNIX time of boot time ``boot_s``: interpolated between the pairs that bracket it
         (they follow a simulated clock's jitter, which a line does not: PX4 SIH on a loaded
@@ -231,9 +261,16 @@ class MissionTime:
     or exactly 1 where that is within ``UNITY_BAND`` of 1, as for hardware) and sends it with the
     start command, so that every process runs the same clock; ``started`` says :meth:`set` has
     taken it (before, the clock is plain UNIX time). ``unix`` is injectable for tests.
+
+    The rate may change during the mission (:meth:`change`, the ground's ``clock`` command when
+    simulated autopilots speed up or slow down: PX4 SITL starved of CPU runs its clock at 0.5-0.7x
+    for a while): the clock then runs on at the new rate from a given UNIX instant, continuous
+    there, so every process that takes the same change keeps the same clock.
     """
 
     UNITY_BAND = 0.002
+    #: Rate changes remembered, so that a mission time of the last minutes still maps back.
+    KEPT_SEGMENTS = 16
 
     def __init__(
         self,
@@ -243,6 +280,8 @@ class MissionTime:
         unix: Callable[[], float] = time.time,
     ) -> None:
         self._unix = unix
+        #: (unix_s, mission_s, rate) from which the clock runs at ``rate``, oldest first.
+        self._segments: list[tuple[float, float, float]] = []
         self._apply(rate, reference_s)
         self.started = False
 
@@ -252,10 +291,40 @@ class MissionTime:
         self.started = True
 
     def _apply(self, rate: float, reference_s: float) -> None:
-        if not (math.isfinite(rate) and MIN_RATE <= rate <= MAX_RATE):
-            raise ClockMappingError(f"mission clock rate must be in [{MIN_RATE}, {MAX_RATE}]")
-        self.rate = float(rate)
-        self.reference_s = float(reference_s)
+        _check_rate(rate)
+        self._segments = [(float(reference_s), float(reference_s), float(rate))]
+
+    def change(self, rate: float, at_unix_s: float, mission_s: float) -> None:
+        """From UNIX time ``at_unix_s`` on, run at ``rate``, reading ``mission_s`` then (the
+        ground's clock there: one that missed an earlier change takes this one's word for it).
+        A change at or before an earlier one's instant replaces it."""
+        _check_rate(rate)
+        if not (math.isfinite(at_unix_s) and math.isfinite(mission_s)):
+            raise ClockMappingError("a clock change needs a finite instant and mission time")
+        kept = [s for s in self._segments if s[0] < at_unix_s]
+        kept.append((float(at_unix_s), float(mission_s), float(rate)))
+        self._segments = kept[-self.KEPT_SEGMENTS :]
+
+    @property
+    def rate(self) -> float:
+        """Mission seconds per UNIX second now."""
+        return self._segment(self._unix(), 0)[2]
+
+    @property
+    def latest_rate(self) -> float:
+        """The rate of the newest change, even if it is still to come."""
+        return self._segments[-1][2]
+
+    @property
+    def reference_s(self) -> float:
+        """UNIX time (= mission time) of the start's reference."""
+        return self._segments[0][0]
+
+    def _segment(self, value: float, axis: int) -> tuple[float, float, float]:
+        for segment in reversed(self._segments):
+            if segment[axis] <= value:
+                return segment
+        return self._segments[0]
 
     @classmethod
     def rate_for(cls, autopilot_rates: list[float]) -> float:
@@ -270,10 +339,81 @@ class MissionTime:
         return 1.0 if abs(median - 1.0) <= cls.UNITY_BAND else median
 
     def from_unix(self, unix_s: float) -> float:
-        return self.reference_s + self.rate * (unix_s - self.reference_s)
+        start_unix_s, start_mission_s, rate = self._segment(unix_s, 0)
+        return start_mission_s + rate * (unix_s - start_unix_s)
 
     def to_unix(self, mission_s: float) -> float:
-        return self.reference_s + (mission_s - self.reference_s) / self.rate
+        start_unix_s, start_mission_s, rate = self._segment(mission_s, 1)
+        return start_unix_s + (mission_s - start_mission_s) / rate
 
     def now_s(self) -> float:
         return self.from_unix(self._unix())
+
+    def unix_now_s(self) -> float:
+        """The UNIX clock this mission clock runs on, now."""
+        return self._unix()
+
+
+@dataclass(frozen=True, slots=True)
+class ClockChange:
+    """Run the mission clock at ``rate`` from UNIX time ``at_unix_s``, reading ``mission_s``."""
+
+    rate: float
+    at_unix_s: float
+    mission_s: float
+
+
+class ClockFollower:
+    """The ground's mission clock, following the autopilots' clocks through the mission.
+
+    At the start the ground sets the rate to the autopilots' (:meth:`MissionTime.rate_for`). A
+    simulated autopilot does not keep its pace: PX4 SITL sharing two cores with the mission ran
+    its clock at 0.63x while everything started, 1x a minute later (and the other way round when
+    the machine got busy mid-flight). Vehicles then had to fly 1.4-1.6x faster or slower than the
+    law asked on their autopilot's clock, which velocity setpoints cannot do (bounded at
+    :data:`~mission_runner.runner.links.MAX_VELOCITY_SCALE`), and the formation ended metres off.
+    So the vehicles report their autopilots' recent rates (statuses, every second) and once their
+    median has been more than ``band`` off the mission clock's rate for ``hold_s``, the ground
+    changes the clock (:meth:`due`) ``lead_s`` ahead, for every process alike. Rates are only
+    those heard within ``fresh_s``; hardware (rates within ``UNITY_BAND`` of 1) never changes.
+    """
+
+    def __init__(
+        self,
+        time: MissionTime,
+        *,
+        band: float = 0.03,
+        hold_s: float = 2.0,
+        lead_s: float = 0.5,
+        fresh_s: float = 5.0,
+    ) -> None:
+        self.time = time
+        self.band, self.hold_s, self.lead_s, self.fresh_s = band, hold_s, lead_s, fresh_s
+        self._rates: dict[int, tuple[float, float]] = {}  # vehicle -> (boot rate, heard at)
+        self._off_since_s: float | None = None
+        self.changes = 0
+
+    def heard(self, vehicle_id: int, boot_rate: float | None, unix_s: float) -> None:
+        """Vehicle ``vehicle_id`` reported its autopilot's recent boot-clock rate."""
+        if boot_rate is not None and math.isfinite(boot_rate) and MIN_RATE <= boot_rate <= MAX_RATE:
+            self._rates[vehicle_id] = (boot_rate, unix_s)
+
+    def due(self, unix_s: float) -> ClockChange | None:
+        """The change to send now, if one is due (it is then taken by :attr:`time`)."""
+        rates = [r for r, heard_s in self._rates.values() if unix_s - heard_s <= self.fresh_s]
+        if not rates:
+            return None
+        wanted = MissionTime.rate_for(rates)
+        if abs(wanted / self.time.latest_rate - 1.0) <= self.band:
+            self._off_since_s = None
+            return None
+        if self._off_since_s is None:
+            self._off_since_s = unix_s
+        if unix_s - self._off_since_s < self.hold_s:
+            return None
+        at_unix_s = unix_s + self.lead_s
+        change = ClockChange(wanted, at_unix_s, self.time.from_unix(at_unix_s))
+        self.time.change(change.rate, change.at_unix_s, change.mission_s)
+        self._off_since_s = None
+        self.changes += 1
+        return change

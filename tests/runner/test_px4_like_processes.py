@@ -49,13 +49,14 @@ def scenario_file(tmp_path, broker, **flight):
     return path, data
 
 
-def emulator_file(tmp_path, data):
+def emulator_file(tmp_path, data, **sections):
     positions = [
         {"north_m": v["initial_position_m"][0], "east_m": v["initial_position_m"][1]}
         for v in data["vehicles"]
     ]
     path = tmp_path / "emulator.yaml"
-    path.write_text(yaml.safe_dump({"placement": {"positions": positions}, **SIH_EMULATOR}))
+    emulator = {"placement": {"positions": positions}, **SIH_EMULATOR, **sections}
+    path.write_text(yaml.safe_dump(emulator))
     return path
 
 
@@ -63,8 +64,9 @@ class Swarm:
     """sitl (SIH-like) + range aid + one process per vehicle + ground station; everything
     stopped on exit, whatever happened."""
 
-    def __init__(self, tmp_path, scenario, data, *sitl_arguments):
+    def __init__(self, tmp_path, scenario, data, *sitl_arguments, emulator=None):
         self.tmp_path, self.scenario, self.data = tmp_path, str(scenario), data
+        self.emulator = emulator or {}
         n = len(data["vehicles"])
         self.ports = free_port_config(n, gcs=False)
         self.truth = free_truth_stream(n, self.ports)
@@ -77,7 +79,7 @@ class Swarm:
             "--vehicles",
             str(len(self.data["vehicles"])),
             "--config",
-            str(emulator_file(self.tmp_path, self.data)),
+            str(emulator_file(self.tmp_path, self.data, **self.emulator)),
             "--sih-like",
             "--no-gcs",
             "--api-port-base",
@@ -191,6 +193,30 @@ def test_the_mission_flies_on_px4_like_vehicles_as_separate_processes(tmp_path, 
     for number in range(1, 5):
         own = summary_of(mission / f"vehicle_{number}" / RECORDING)
         assert own[f"/vehicles/{number}/state"] == ("mission_runner.VehicleState", STEPS)
+
+
+@pytest.mark.timeout(420)
+def test_the_mission_clock_follows_autopilots_that_change_pace(tmp_path, mosquitto):
+    """PX4 SIH sharing two cores with the mission ran its clock at 0.63-0.7x while everything
+    started and at 1x later: the mission clock, set at the start, stayed at 0.7x, the vehicles
+    had to fly 1.4x faster than the law on their autopilots' clocks, which velocity setpoints
+    are not allowed to (bounded at 1.25x), and the formation ended 0.3-0.6 m off. Here the
+    emulated autopilots run at 0.7x until well into the mission, then at SIH's 0.986x."""
+    scenario, data = scenario_file(tmp_path, mosquitto)
+    slow_start = {"clock": {"speed": 0.7, "pace": [{"after_s": 70.0, "speed": 0.986}]}}
+    with Swarm(tmp_path, scenario, data, emulator=slow_start) as swarm:
+        mission, ground, ground_out, _, outputs, _ = swarm.fly(timeout_s=380)
+
+    assert re.search(r"mission \w+ starts at [0-9.]+ \(clock rate 0\.7", ground_out), ground_out
+    followed = re.findall(r"clocks run at ([0-9.]+)x now: so does the mission clock", ground_out)
+    assert followed and float(followed[-1]) == pytest.approx(0.986, abs=0.01), ground_out
+    assert "expectations: PASS" in ground_out, ground_out
+    assert ground.returncode == 0, ground_out
+    for number, output in enumerate(outputs, start=1):
+        summary = json.loads((mission / f"vehicle_{number}" / "summary.json").read_text())
+        assert summary["steps_by_state"] == {"following": STEPS}, output
+        # Never asked to fly faster than its autopilot's clock allows (the bound's warning).
+        assert "velocity setpoints are scaled by" not in output, output
 
 
 @pytest.mark.timeout(240)

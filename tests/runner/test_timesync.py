@@ -8,7 +8,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mission_runner.runner.timesync import ClockMapping, ClockMappingError, MissionTime
+from mission_runner.runner.timesync import (
+    ClockFollower,
+    ClockMapping,
+    ClockMappingError,
+    MissionTime,
+)
 
 UNIX_AT_BOOT = 1_764_000_000.0
 
@@ -171,3 +176,79 @@ def test_the_running_fit_is_the_windows_least_squares_line_after_hours():
     )
     residual = unixes - (unixes[0] + intercept + rate * (boots - boots[0]))
     assert fit.residual_s == pytest.approx(np.sqrt(np.mean(residual**2)), rel=1e-4)
+
+
+def test_the_recent_rate_follows_a_clock_that_changes_pace_where_the_fit_lags():
+    """PX4 SIH sharing the CPU with the mission's start runs its clock slower, then not."""
+    mapping = ClockMapping()
+    for boot_s, unix_s in pairs(0.9, 20.0, every_s=0.1):
+        mapping.add(boot_s, unix_s)
+    assert mapping.recent_boot_rate() == pytest.approx(0.9, rel=1e-3)
+    boot_at_change = 37.2 + 0.9 * 20.0
+    for boot_s, unix_s in pairs(1.0, 4.5, every_s=0.1, boot_offset_s=boot_at_change):
+        mapping.add(boot_s, unix_s + 20.0)
+    assert mapping.recent_boot_rate(span_s=4.0) == pytest.approx(1.0, rel=2e-3)
+    assert mapping.fit.boot_rate < 0.95  # the 20 s window still holds the slower part
+
+
+def test_a_rate_change_keeps_the_mission_clock_continuous_and_invertible():
+    now = {"unix": 1000.0}
+    time = MissionTime(unix=lambda: now["unix"])
+    time.set(0.63, reference_s=1000.0)
+    at_mission_s = time.from_unix(1010.0)
+    time.change(1.0, 1010.0, at_mission_s)
+    now["unix"] = 1005.0
+    assert time.rate == 0.63 and time.latest_rate == 1.0  # not yet in force
+    assert time.now_s() == pytest.approx(1000.0 + 0.63 * 5.0)
+    now["unix"] = 1012.0
+    assert time.rate == 1.0
+    assert time.now_s() == pytest.approx(at_mission_s + 2.0)
+    for unix_s in (995.0, 1003.0, 1010.0, 1030.0):
+        assert time.to_unix(time.from_unix(unix_s)) == pytest.approx(unix_s)
+    # A change at or before a pending one's instant replaces it.
+    time.change(2.0, 1011.0, time.from_unix(1011.0))
+    time.change(0.5, 1010.5, time.from_unix(1010.5))
+    assert time.latest_rate == 0.5 and time.from_unix(1020.0) == pytest.approx(
+        at_mission_s + 0.5 + 0.5 * 9.5
+    )
+    with pytest.raises(ClockMappingError, match="rate"):
+        time.change(1000.0, 1020.0, 0.0)
+
+
+def follower(rate=1.0, **kwargs):
+    now = {"unix": 1000.0}
+    time = MissionTime(unix=lambda: now["unix"])
+    time.set(rate, reference_s=1000.0)
+    return ClockFollower(time, **kwargs), time, now
+
+
+def test_the_ground_follows_autopilots_that_change_pace_for_longer_than_its_hold():
+    clock, time, now = follower(0.63, band=0.03, hold_s=2.0, lead_s=0.5)
+    for unix_s in np.arange(1000.0, 1003.0, 0.5):
+        now["unix"] = unix_s
+        for vehicle in (1, 2, 3):
+            clock.heard(vehicle, 0.64, unix_s)  # within the band: nothing to do
+        assert clock.due(unix_s) is None
+    seen = []
+    for unix_s in np.arange(1003.0, 1010.0, 0.5):
+        now["unix"] = unix_s
+        for vehicle, rate in ((1, 0.99), (2, 1.0), (3, 1.01)):
+            clock.heard(vehicle, rate, unix_s)
+        seen.append((unix_s, clock.due(unix_s)))
+    changes = [(unix_s, change) for unix_s, change in seen if change is not None]
+    assert len(changes) == 1 and clock.changes == 1
+    sent_s, change = changes[0]
+    assert sent_s == 1005.0  # off the band for the hold
+    assert (change.rate, change.at_unix_s) == (1.0, 1005.5)
+    assert change.mission_s == pytest.approx(1000.0 + 0.63 * 5.5)
+    assert time.latest_rate == 1.0
+
+
+def test_the_ground_ignores_stale_and_impossible_rates_and_hardware_clocks():
+    clock, time, _ = follower(1.0, hold_s=0.0)
+    clock.heard(1, 0.5, 990.0)  # heard 10 s ago: not a rate of now
+    clock.heard(2, float("nan"), 1000.0)
+    clock.heard(3, 1e9, 1000.0)
+    assert clock.due(1000.0) is None
+    clock.heard(1, 1.00004, 1000.0)  # a crystal: the mission clock stays UNIX time
+    assert clock.due(1000.0) is None and time.latest_rate == 1.0

@@ -31,6 +31,21 @@ def test_realtime_scales_wall_time_by_speed() -> None:
     assert clock.allowed_time_s() == pytest.approx(10.0)
 
 
+def test_a_realtime_clock_changes_pace_as_a_starved_simulator_does() -> None:
+    """PX4 SITL sharing its CPU ran at 0.7x while everything started, then at about 1x."""
+    wall = FakeWall()
+    clock = Clock("realtime", 0.7, pace=[(10.0, 0.986), (20.0, 2.0)], wall_time=wall)
+    clock.start()
+    wall.now += 5.0
+    assert (clock.now_s(), clock.current_speed) == (pytest.approx(3.5), 0.7)
+    wall.now += 10.0  # 15 s: 10 s at 0.7, 5 at 0.986
+    assert (clock.now_s(), clock.current_speed) == (pytest.approx(7.0 + 4.93), 0.986)
+    wall.now += 10.0  # 25 s: then 5 at 2
+    assert clock.now_s() == pytest.approx(7.0 + 9.86 + 10.0)
+    with pytest.raises(ClockError, match="pace"):
+        Clock("realtime", 1.0, pace=[(1.0, 0.0)])
+
+
 def test_lockstep_allows_the_minimum_release() -> None:
     clock = Clock("lockstep", wall_time=FakeWall())
     clock.start()
