@@ -79,7 +79,7 @@ def figures(result):
 #: The range models the table compares, at 0.1 m of timestamp noise and 5 mm of displacement
 #: noise: as the simulator drew ranges before (independent at each end), one exchange per pair
 #: with white noise only, and the UWB reference model (pair bias 5 cm, multipath 5 cm with 2 s
-#: correlation; README "The range model"), without and with 5 % NLOS in 2 s bursts.
+#: correlation; docs/algorithm.md, "The range model"), without and with 5 % NLOS in 2 s bursts.
 UWB = {"range_bias_std_m": 0.05, "range_multipath_std_m": 0.05}
 NLOS = {"range_outlier_probability": 0.05, "range_nlos_duration_s": 2.0}
 MODELS = [

@@ -3,8 +3,8 @@
     python bench/flood_bench.py                          # none, big and flood, size-limited broker
     python bench/flood_bench.py --attacks big --no-limits
 
-Each run flies ``configs/paper_tracking_flyable.yaml`` (``--steps`` steps) as the README's process
-mode does: ``mission-runner emulate``, four ``mission-runner vehicle`` and ``mission-runner
+Each run flies ``configs/paper_tracking_flyable.yaml`` (``--steps`` steps) in process mode
+(docs/flying.md): ``mission-runner emulate``, four ``mission-runner vehicle`` and ``mission-runner
 ground`` on a private mosquitto that anyone may publish to (``--no-limits``: without
 ``broker-config``'s size limits). Once the ground shows a vehicle following, an outsider publishes
 on the control topic: ``none``; ``big``, four 64 MiB payloads; ``flood``, 20,000 64-byte garbage

@@ -15,7 +15,7 @@ from mission_runner.sensors import (
 from mission_runner.world import step_measurements
 
 STEP_S = 0.1
-#: Every error of the model on, at the figures the README cites.
+#: Every error of the model on, at the figures docs/algorithm.md cites.
 EVERYTHING = {
     "range_noise_std_m": 0.1,
     "range_bias_std_m": 0.05,

@@ -69,7 +69,7 @@ def test_written_as_root_the_broker_stays_root_to_read_its_logins(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, uid: int, as_root: bool
 ) -> None:
     """mosquitto started as root switches to the user "mosquitto" unless told otherwise, and
-    that user cannot read root's 0600 logins ("Unable to open pwfile"): following the README
+    that user cannot read root's 0600 logins ("Unable to open pwfile"): following docs/real-px4.md
     as root failed so."""
     monkeypatch.setattr("mission_runner.bus.broker.os.geteuid", lambda: uid)
     files = write_broker_config(tmp_path / "out", TOPICS, [1], port=1883)

@@ -22,7 +22,7 @@ pytestmark = [pytest.mark.mavsdk, pytest.mark.asyncio]
 
 @pytest.mark.timeout(60)
 async def test_a_vehicle_that_comes_up_after_its_controller_is_found():
-    """A vehicle process started with PX4 (as the README's block starts them) listens before
+    """A vehicle process started with PX4 (as docs/real-px4.md's block starts them) listens before
     the autopilot exists; discovery must keep looking. It died after its first 0.2 s wait."""
     ports = free_port_config(2, gcs=False)
     config = EmulatorConfig(vehicles=2, ports=ports, clock=ClockConfig(speed=1.0))

@@ -29,8 +29,8 @@ STEPS = 600  # the whole 75 s mission at PX4 SIH's omega = pi/8
 #: response: with PX4 SIH's (physics airspeed_drag_1_s 1.0, velocity_integral_gain_1_s2 0.4,
 #: velocity_time_constant_s 0.55, tilt_time_constant_s 0.25) the formation does not converge
 #: reliably in real time - half the runs end metres off, as on real SIH - which is the open part
-#: of flying real PX4 (README), not what this test guards: clocks, data in time, the handshake,
-#: the outputs.
+#: of flying real PX4 (docs/real-px4.md), not what this test guards: clocks, data in time, the
+#: handshake, the outputs.
 SIH_EMULATOR = {"odometry": {"position_noise_std_m": 0.009}}
 
 
@@ -107,7 +107,7 @@ class Swarm:
             "sih",
             "--truth-port-base",
             str(self.truth.remote_base),
-            "--vision",  # as the README's block: the file's EKF2 fuses it on SIH
+            "--vision",  # as docs/real-px4.md's block: the file's EKF2 fuses it on SIH
             "50",
             "--out",
             str(mission / "truth"),
