@@ -342,6 +342,7 @@ class _TruthProtocol(asyncio.DatagramProtocol):
         self.transport: asyncio.DatagramTransport | None = None
         self.address: tuple[str | Any, int] | None = None
         self.clock_rate = 1.0
+        self._asks = 0  # requests sent
         self.asked = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -383,6 +384,7 @@ class _TruthProtocol(asyncio.DatagramProtocol):
         self.clock_rate = clock_rate
         if self.rate_hz is None or self.transport is None or self.address is None:
             return
+        self._asks += 1
         sender = mavlink.MAVLink(
             None, srcSystem=255, srcComponent=mavlink.MAV_COMP_ID_MISSIONPLANNER
         )
@@ -404,7 +406,9 @@ class _TruthProtocol(asyncio.DatagramProtocol):
                 0,
             )
             self.transport.sendto(request.pack(sender), self.address)
-        logger.info(
+        # Asked again at every mission clock change: the first ask and the start's are the news.
+        logger.log(
+            logging.DEBUG if self._asks > 1 else logging.INFO,
             "vehicle %s: ground truth asked for at %g Hz (from %s:%s, clock %gx)",
             self.vehicle_id,
             self.rate_hz,
