@@ -478,7 +478,7 @@ def _parser(command: str | None = None) -> argparse.ArgumentParser:
         type=argtypes.at_most(argtypes.non_negative_float, MAX_STREAM_HZ),
         default=None,
         help="with --source sih: ground-truth rate to ask of each instance, Hz (PX4 SIH streams "
-        "25; a step's ranges wait for the first sample after t_k; 0: leave it; default 100)",
+        "25; at least the --vision rate; 0: leave it; default 50)",
     )
     ranges.add_argument(
         "--vision",

@@ -77,9 +77,11 @@ SOURCES = ("sih", "gps")
 TRUTH_PORT_BASE = 19410
 #: SIH's own ground-truth rate [Hz], when the aid asks for none.
 SIH_TRUTH_RATE_HZ = 25.0
-#: The ground truth's rate asked of each SIH instance [Hz] (PX4 streams 25): a step's ranges wait
-#: for the first sample after t_k, so this bounds that wait (10 ms).
-TRUTH_RATE_HZ = 100.0
+#: The ground truth's rate asked of each SIH instance [Hz] (PX4 streams 25), or the vision
+#: odometry's if that is higher (each ODOMETRY is made from a truth sample). A step's ranges take
+#: the newest sample at its velocity when it is at most EXTRAPOLATE_PERIODS old, so a faster
+#: truth barely shortens the wait; 100 Hz cost the aid twice the datagrams for nothing.
+TRUTH_RATE_HZ = 50.0
 #: The attitude's std a vision odometry reports [rad]: the truth's, sent as is.
 ATTITUDE_NOISE_STD_RAD = 0.01
 #: A vehicle whose last position is older than this at t_k is not waited for (dead or silent).
@@ -508,6 +510,8 @@ async def run_range_provider(
         raise RunnerError(f"unknown range source {source!r}: use one of {', '.join(SOURCES)}")
     if vision is not None and source != "sih":
         raise RunnerError("a vision odometry is made from a simulator's truth: use --source sih")
+    if vision is not None and truth_rate_hz is not None:
+        truth_rate_hz = max(truth_rate_hz, vision.rate_hz)
     steps = scenario.timing.steps if steps is None else steps
     topics = scenario.bus.topics(scenario.name)
     rng = np.random.default_rng([seed, 11])

@@ -231,3 +231,18 @@ def test_the_vision_odometry_counts_its_sequence_and_draws_its_noise_from_the_ge
         assert velocity == pytest.approx(row[3:], abs=1e-6)
         assert message.q == pytest.approx(QUATERNION)
         assert message.pose_covariance[0] == pytest.approx(0.02**2)
+
+
+def test_a_vision_odometry_at_its_truths_own_rate_keeps_that_rate_through_jitter():
+    """Each ODOMETRY is made from one truth sample, so the aid asks for the truth at the vision's
+    rate (--vision 50: 50 Hz, not 100): arrivals a few ms early or late (PX4 SIH on a loaded
+    machine) must still each give one, and a faster truth no more than the rate."""
+    vision = VisionOdometry(3, VisionSettings(rate_hz=50.0), np.random.default_rng(9))
+    (truth,) = pymavlink_reads(hil_frame(3))
+    jitter_s = np.random.default_rng(4).uniform(-0.004, 0.004, 500)
+    sent = [vision.message(0.02 * index + jitter_s[index], truth) for index in range(500)]
+    assert sum(frame is not None for frame in sent) >= 495
+    # A truth twice as fast still gives the vision's rate, not more.
+    faster = VisionOdometry(3, VisionSettings(rate_hz=50.0), np.random.default_rng(9))
+    sent = [faster.message(0.01 * index + jitter_s[index] / 2, truth) for index in range(500)]
+    assert 245 <= sum(frame is not None for frame in sent) <= 255
