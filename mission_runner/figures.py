@@ -16,14 +16,13 @@ import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
-from .outputs import PathName, write_atomic
-from .wiring import omega_of
+from .paths import PathName, write_atomic
+from .scenario import omega_of
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
-    from .sim.simulator import SimulationResult
-    from .sim.sweep import SweepPoint
+    from .metrics import SimulationResult, SweepPoint
 
 
 def write_figures(result: SimulationResult, out_dir: PathName, run: int = 0) -> list[str]:

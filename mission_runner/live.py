@@ -39,14 +39,14 @@ from .recording import (
     finite_or_none,
     view_of_record,
 )
+from .scenario import shape_schedule
 
 if TYPE_CHECKING:
     from foxglove.websocket import ServerListener, WebSocketServer
 
     from .bus import StepMessage, Subscription, VehicleStatus
     from .config import Scenario
-    from .runner.controller import StepRecord
-    from .runner.mission import Progress
+    from .records import Progress, StepRecord
 
 logger = logging.getLogger(__name__)
 
@@ -134,7 +134,6 @@ class FlightFeed:
     goes out as in the recording."""
 
     def __init__(self, scenario: Scenario, channels: MissionChannels) -> None:
-        from .wiring import shape_schedule  # noqa: PLC0415
 
         self.scenario, self.channels = scenario, channels
         self.ids = [vehicle.id for vehicle in scenario.vehicles]

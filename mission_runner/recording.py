@@ -66,12 +66,13 @@ from numpy.typing import NDArray
 from .bus.messages import FORMATION_STATES
 from .enclosing.shape import desired_offsets
 from .enclosing.target import LOST, STATUS_NAMES
+from .scenario import shape_schedule
 
 if TYPE_CHECKING:
     from .config import Scenario
-    from .outputs import PathName
-    from .runner.controller import StepRecord
-    from .sim.simulator import SimulationResult
+    from .metrics import SimulationResult
+    from .paths import PathName
+    from .records import StepRecord
 
 #: The recording's file name in every output folder.
 RECORDING = "recording.mcap"
@@ -567,7 +568,6 @@ def write_recording(
     records: the flight's controllers' records ``{id: [StepRecord]}`` (None for a simulation:
     its estimates come with the result); start_s: the mission clock at k = 0; logs: the run's
     log lines; verdict: the ``expect:`` verdict, recorded as the last event."""
-    from .wiring import shape_schedule  # noqa: PLC0415 - config imports stay out of module load
 
     scenario = result.scenario
     ids = [vehicle.id for vehicle in scenario.vehicles]

@@ -36,7 +36,8 @@ from .errors import RunnerError
 from .handshake import next_command
 
 if TYPE_CHECKING:
-    from .controller import StepRecord, VehicleController
+    from ..records import StepRecord
+    from .controller import VehicleController
     from .ports import MessageSource
 
 logger = logging.getLogger(__name__)

@@ -62,9 +62,10 @@ from ..bus import (
 )
 from ..bus.broker import OPERATOR_USER, USERNAME_ENV, flight_user, read_credentials
 from ..errors import error_reason
+from ..records import StepRecord, VehicleRun
 from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
-from .controller import StepRecord, VehicleController, build_controller
+from .controller import VehicleController, build_controller
 from .errors import RunnerError, RunnerTimeoutError
 from .handshake import freeze_heap, next_command
 from .links import SAFE_STATE_TIMEOUT_S, MavsdkVehicle, connected_vehicles
@@ -82,8 +83,8 @@ from .timesync import ClockMapping, MissionTime
 if TYPE_CHECKING:
     from ..bus.auth import AuthCounters
     from ..config import Scenario
-    from ..outputs import PathName
-    from ..sim.simulator import SimulationResult
+    from ..metrics import SimulationResult
+    from ..paths import PathName
 
 logger = logging.getLogger(__name__)
 
@@ -107,29 +108,6 @@ def default_url(scenario: Scenario, vehicle_id: int) -> str:
     emulator's) API port for its instance."""
     index = [v.id for v in scenario.vehicles].index(vehicle_id)
     return f"udpin://0.0.0.0:{DEFAULT_API_PORT_BASE + index}"
-
-
-@dataclass
-class VehicleRun:
-    """What one vehicle process did: its step records, final state and clock fit."""
-
-    vehicle_id: int
-    mission_id: str | None = None
-    state: str = "connecting"
-    detail: str = ""
-    records: list[StepRecord] = field(default_factory=list)
-    start_s: float | None = None
-    clock_rate: float = 1.0
-    autopilot_clock_rate: float | None = None
-    clock_residual_s: float | None = None
-    skipped_steps: int = 0
-    params: dict[str, float | int] = field(default_factory=dict)
-    #: Received bus messages accepted and dropped by reason (``AuthCounters.as_dict``).
-    bus_messages: dict[str, int] = field(default_factory=dict)
-    #: Ranges the controller found impossible, by reason (``RangeGate.rejected``).
-    ranges_rejected: dict[str, int] = field(default_factory=dict)
-    #: Neighbours' setpoints in force dropped as impossible (``CommandGate.rejected``).
-    commands_rejected: int = 0
 
 
 class _Reporter:
