@@ -23,22 +23,19 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("mission_runner", "sitl")
 
 # mission_runner's layers, highest first: a module may import its own layer and the ones below it.
-# A module is placed by the longest prefix listed (docs/layers.md says what each layer holds).
+# A module is placed by the longest prefix listed. The same order as [tool.importlinter] in
+# pyproject.toml (tests/test_layers.py holds the two together); docs/layers.md says what each holds.
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("mission_runner.cli",),
     ("mission_runner.emulate", "mission_runner.px4sitl"),
     ("mission_runner.runner",),
     ("mission_runner.world",),
     ("mission_runner.sim",),
-    (
-        "mission_runner.live",
-        "mission_runner.replay",
-        "mission_runner.outputs",
-        "mission_runner.figure_process",
-        "mission_runner.figures",
-        "mission_runner.recording",
-        "mission_runner.layout",
-    ),
+    ("mission_runner.live", "mission_runner.replay"),
+    ("mission_runner.outputs",),
+    ("mission_runner.figure_process",),
+    ("mission_runner.layout",),
+    ("mission_runner.figures", "mission_runner.recording"),
     ("mission_runner.checks",),
     ("mission_runner.wiring",),
     ("mission_runner.metrics",),
