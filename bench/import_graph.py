@@ -226,7 +226,7 @@ def report(root: Path) -> str:
     unplaced = [m for m in names if m != "mission_runner" and layer_of(m) is None]
     lines.append(f"modules in no layer: {unplaced}")
     function_level = [a for a in arrows if a.kind == "function"]
-    statements = _function_level_statements(root)
+    statements = function_level_statements(root)
     with_reason = sum(1 for _, _, reason in statements if reason)
     lines.append(
         f"function-level imports (statements, any target): {len(statements)}, "
@@ -238,7 +238,7 @@ def report(root: Path) -> str:
     return "\n".join(lines)
 
 
-def _function_level_statements(root: Path) -> list[tuple[str, int, str]]:
+def function_level_statements(root: Path) -> list[tuple[str, int, str]]:
     """Every import statement inside a function, whatever it imports, with its reason."""
     found = []
     for module, path in module_names(root).items():
@@ -257,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     arguments = parser.parse_args(argv)
     print(report(arguments.root.resolve()))
     if arguments.list_unreasoned:
-        for module, line, reason in _function_level_statements(arguments.root.resolve()):
+        for module, line, reason in function_level_statements(arguments.root.resolve()):
             if not reason:
                 print(f"  no reason: {module}:{line}")
     return 0

@@ -22,9 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 from numpy.typing import NDArray
-from pydantic import (
-    ValidationError,
-)
+from pydantic import ValidationError
 
 from .config import (
     MAX_COORDINATE_M,
@@ -46,7 +44,8 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-
+#: A scenario file is a few kilobytes; the cap makes ``/dev/zero`` or a wrong, huge file end at
+#: once instead of being read (and parsed) into memory.
 MAX_FILE_BYTES = 1 << 20
 #: The deepest a scenario nests is about six levels (``flight.emulator.physics.wind...``); beyond
 #: this the YAML composer would recurse out of the stack.

@@ -1,6 +1,7 @@
 """The scenario model: one typed YAML file describes a mission, for the simulator, the emulator and
-the flying runner alike. It is validated once at load; every problem is reported with its YAML
-path (``vehicles[2].initial_phase_rad``) and the rule it breaks, before anything runs or is written.
+the flying runner alike. It is validated once at load (:mod:`.checks` reads the file and adds the
+rules that span fields); every problem is reported with its YAML path
+(``vehicles[2].initial_phase_rad``) and the rule it breaks, before anything runs or is written.
 
 Planar quantities are ``[north, east]`` pairs in metres (m/s for velocities): the paper's ``[x, y]``
 is ``[north, east]`` here. Time-varying values (the target's path, the affine shape) are data:
@@ -919,7 +920,3 @@ def scenario_json_schema() -> dict[str, Any]:
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         **Scenario.model_json_schema(),
     }
-
-
-#: A scenario file is a few kilobytes; the cap makes ``/dev/zero`` or a wrong, huge file end at
-#: once instead of being read (and parsed) into memory.

@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING
 import matplotlib
 
 matplotlib.use("Agg")
+import io
+
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.figure import Figure
@@ -48,7 +50,6 @@ def write_figures(result: SimulationResult, out_dir: PathName, run: int = 0) -> 
 
 
 def _save(figure: Figure, path: Path) -> None:
-    import io  # noqa: PLC0415
 
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=120)

@@ -29,7 +29,8 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import foxglove
 import numpy as np
 
-from .bus.messages import FORMATION_STATES
+from .bus import Sender, StepMessage, VehicleStatus, open_bus
+from .bus.broker import VIEWER_USER
 from .enclosing import splay_spacing_error
 from .recording import (
     LogCapture,
@@ -39,6 +40,7 @@ from .recording import (
     finite_or_none,
     view_of_record,
 )
+from .records import FORMATION_STATES
 from .scenario import shape_schedule
 
 if TYPE_CHECKING:
@@ -208,8 +210,6 @@ async def serve_bus(
 ) -> None:
     """Publish what the mission's bus carries until cancelled: each vehicle's step message as
     its state (phase, odometry) and its frame in its odometry, each status change as an event."""
-    from .bus import Sender, StepMessage, VehicleStatus, open_bus  # noqa: PLC0415
-    from .bus.broker import VIEWER_USER  # noqa: PLC0415
 
     topics = scenario.bus.topics(scenario.name)
     known = {vehicle.id for vehicle in scenario.vehicles}

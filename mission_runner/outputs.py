@@ -380,7 +380,7 @@ def write_vehicle_run(
     and ``logs``, see :mod:`.recording`) and ``summary.json`` (how the process ended, final
     state, counts including gated ranges, the autopilot's clock fit, parameters applied).
     Written atomically."""
-    from .recording import RECORDING, write_vehicle_recording  # noqa: PLC0415
+    from .recording import RECORDING, write_vehicle_recording  # noqa: PLC0415 - foxglove, mcap
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,7 @@
-"""The records every layer shares: what a controller did at a step, what a vehicle process did,
-a flight's progress as views show it, and the ground truth a flight is scored against. Plain data
-(numpy arrays at most), so outputs, recordings and live views read them without the runner."""
+"""The records every layer shares: the controller's state names, what a controller did at a
+step, what a vehicle process did, a flight's progress as views show it, and the ground truth a
+flight is scored against. Plain data (numpy arrays at most), so outputs, recordings and live views
+read them without the runner."""
 
 from __future__ import annotations
 
@@ -9,6 +10,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+
+#: Controller states (:attr:`VehicleStatus.state`) in which a vehicle flies the law on fresh data
+#: as part of the formation: ``following`` the target (observed, or predicted while hidden), or
+#: ``target_lost`` (no estimate of the target left: it holds or orbits the last estimate).
+FORMATION_STATES = frozenset({"following", "target_lost"})
+#: Controller states of a step not flown by the law for want of fresh data: held (no fresh
+#: neighbour message within the silence timeout, no own odometry, or not in OFFBOARD) or skipped
+#: (its instant had passed before it could run).
+STALE_STATES = frozenset({"holding", "skipped"})
 
 
 @dataclass(frozen=True)

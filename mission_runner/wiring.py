@@ -1,6 +1,7 @@
-"""One place that turns a scenario into what every layer needs: the algorithm's parameters and
-each vehicle's frequency (simulator and controllers), the shape schedule, a controller's settings,
-the autopilot parameters every vehicle gets, and the bundled emulator's config. The simulator
+"""One place that turns a scenario into what the layers below the runner need: the algorithm's
+and the filter's parameters (simulator and controllers), the autopilot parameters every vehicle
+gets, and the bundled emulator's config (a vehicle's frequency and the shape schedule are the
+scenario's geometry, :mod:`.scenario`; a controller's settings the runner's own). The simulator
 (:mod:`.sim`), the in-process mission and the vehicle processes (:mod:`.runner`) and the emulated
 world (:mod:`.world`) all build from here, so a default lives once, in the config model.
 """

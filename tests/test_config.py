@@ -532,7 +532,7 @@ def test_a_flight_refuses_vehicle_ids_beyond_mavlink_but_the_model_does_not(tmp_
 @pytest.mark.timeout(30)
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes")
 def test_a_named_pipe_is_read_while_written_and_refused_when_nobody_writes(tmp_path, monkeypatch):
-    import mission_runner.config as config_module
+    import mission_runner.checks as checks_module
 
     pipe = tmp_path / "scenario.yaml"
     os.mkfifo(pipe)
@@ -541,7 +541,7 @@ def test_a_named_pipe_is_read_while_written_and_refused_when_nobody_writes(tmp_p
     writer.start()  # as `simulate <(generate)` gives it
     assert load_scenario(pipe).name == "paper_tracking"
     writer.join()
-    monkeypatch.setattr(config_module, "READ_TIMEOUT_S", 0.05)
+    monkeypatch.setattr(checks_module, "READ_TIMEOUT_S", 0.05)
     with pytest.raises(ConfigError) as caught:
         load_scenario(pipe)
     [(where, message)] = caught.value.problems

@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..bus import (
-    STALE_STATES,
+    BusError,
     Message,
     RangeMessage,
     StepMessage,
@@ -62,7 +62,7 @@ from ..enclosing import (
 )
 from ..enclosing.separation import separation_guard
 from ..enclosing.target import STATUS_NAMES
-from ..records import StepRecord
+from ..records import STALE_STATES, StepRecord
 from ..scenario import ShapeSchedule, omega_of, shape_schedule
 from ..tasks import first_completed
 from ..wiring import (
@@ -774,7 +774,6 @@ class VehicleController:
         return float(np.clip(self.settings.altitude_gain_per_s * error, -limit, limit))
 
     async def _publish(self, topic: str, message: Message) -> None:
-        from ..bus import BusError  # noqa: PLC0415
 
         try:
             await self.bus.publish_message(topic, message, timeout=self.settings.step_s / 2)

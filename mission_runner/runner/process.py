@@ -41,6 +41,7 @@ import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -78,6 +79,7 @@ from .operator import (
     publish_operator,
     serving,
 )
+from .scoring import merge_mission
 from .timesync import ClockMapping, MissionTime
 
 if TYPE_CHECKING:
@@ -654,9 +656,6 @@ async def wait_and_merge(
     ``steps.csv`` and for the range aid's truth under ``mission_dir``, then score the mission
     (:func:`.scoring.merge_mission`); None when there is no truth to score against.
     ``vehicles_disarmed_at_end`` counts the vehicles that reported done after landing."""
-    from pathlib import Path  # noqa: PLC0415
-
-    from .scoring import merge_mission  # noqa: PLC0415
 
     mission_dir = Path(mission_dir)
     wanted = [mission_dir / "truth" / "truth.csv"] + [
