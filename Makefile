@@ -19,6 +19,7 @@ test: install
 	    else echo "mosquitto missing: install it (e.g. sudo apt-get install mosquitto)"; exit 1; fi; }
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m mypy
+	lint-imports
 	$(PYTHON) -m pytest
 
 ## The fast lane while developing (< 1 min): lint, types and every test that flies nothing and
@@ -27,12 +28,14 @@ check: install
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m ruff format --check .
 	$(PYTHON) -m mypy
+	lint-imports
 	$(PYTHON) -m pytest -q -m "not slow and not mavsdk and not mqtt"
 
 lint:
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m ruff format --check .
 	$(PYTHON) -m mypy
+	lint-imports
 
 ## The headline figures (demo wall time, vehicle-process CPU, 1x lateness, swarm size, simulator),
 ## printed and written to out/bench/headline.json (about 6 minutes on 2 cores).

@@ -35,11 +35,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mission_runner.config import load_scenario, validate_scenario  # noqa: E402
+from mission_runner.checks import load_scenario, validate_scenario  # noqa: E402
 from mission_runner.enclosing.ekf import FilterEdges, filter_update  # noqa: E402
+from mission_runner.metrics import (  # noqa: E402
+    SimulationResult,
+    edge_rms,
+    run_metrics,
+)
 from mission_runner.sensors import UwbRanging, odometry_error_step, range_readings  # noqa: E402
-from mission_runner.sim.metrics import edge_rms, run_metrics  # noqa: E402
-from mission_runner.sim.simulator import SimulationResult, simulate  # noqa: E402
+from mission_runner.sim.simulator import simulate  # noqa: E402
 from mission_runner.wiring import filter_settings  # noqa: E402
 
 LEVELS = [(0.1, 0.005), (0.02, 0.005), (0.1, 0.0)]

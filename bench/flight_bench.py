@@ -44,9 +44,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mission_runner.config import Scenario, load_scenario, validate_scenario  # noqa: E402
+from mission_runner.checks import load_scenario, validate_scenario  # noqa: E402
+from mission_runner.config import Scenario  # noqa: E402
+from mission_runner.metrics import run_metrics  # noqa: E402
 from mission_runner.runner.mission import FlightOutcome, fly  # noqa: E402
-from mission_runner.sim.metrics import run_metrics  # noqa: E402
 from tests.runner.flying import free_ports  # noqa: E402
 
 CONFIG = ROOT / "configs" / "paper_tracking_flyable.yaml"

@@ -32,10 +32,10 @@ from flight_bench import (  # noqa: E402
     timing,
 )
 
-from mission_runner.config import validate_scenario  # noqa: E402
+from mission_runner.checks import validate_scenario  # noqa: E402
 from mission_runner.live import FlightFeed, LiveLog, LiveServer  # noqa: E402
+from mission_runner.metrics import run_metrics  # noqa: E402
 from mission_runner.runner.mission import fly  # noqa: E402
-from mission_runner.sim.metrics import run_metrics  # noqa: E402
 from tests.runner.flying import free_ports  # noqa: E402
 from tests.test_live import foxglove_client  # noqa: E402
 

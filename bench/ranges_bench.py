@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from mission_runner.config import load_scenario
+from mission_runner.checks import load_scenario
 from mission_runner.runner import ranges
 from mission_runner.runner.ranges import (
     TRUTH_RATE_HZ,

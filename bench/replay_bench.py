@@ -18,7 +18,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mission_runner.config import load_scenario  # noqa: E402
+from mission_runner.checks import load_scenario  # noqa: E402
 from mission_runner.recording import RECORDING, write_recording  # noqa: E402
 from mission_runner.replay import write_replay  # noqa: E402
 from mission_runner.sim.simulator import simulate  # noqa: E402

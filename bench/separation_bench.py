@@ -22,8 +22,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mission_runner.config import load_scenario, validate_scenario  # noqa: E402
-from mission_runner.sim.metrics import run_metrics  # noqa: E402
+from mission_runner.checks import load_scenario, validate_scenario  # noqa: E402
+from mission_runner.metrics import run_metrics  # noqa: E402
 from mission_runner.sim.simulator import simulate  # noqa: E402
 
 RUNS = 1000

@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from baseline_loop import simulate_loop  # noqa: E402
 
-from mission_runner.config import load_scenario, validate_scenario  # noqa: E402
+from mission_runner.checks import load_scenario, validate_scenario  # noqa: E402
 from mission_runner.sim.simulator import simulate  # noqa: E402
 
 

@@ -59,13 +59,8 @@ from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 from . import argtypes
 from .bus.cli_options import add_bus_arguments, with_bus_access
 from .bus.errors import BusConnectionError, BusTimeoutError
-from .config import (
-    MAX_CLOCK_SPEED,
-    MAX_MAVLINK_ID,
-    MAX_NOISE_STD_M,
-    MAX_WAIT_S,
-    load_scenario,
-)
+from .checks import MAX_MAVLINK_ID, load_scenario
+from .config import MAX_CLOCK_SPEED, MAX_NOISE_STD_M, MAX_WAIT_S
 from .errors import ConfigError, MissionRunnerError, leaf_errors
 from .recording import LogCapture
 from .runner.errors import RunnerError
@@ -77,9 +72,8 @@ if TYPE_CHECKING:
     from .config import Scenario
     from .live import LiveServer
     from .outputs import RunSummary
+    from .records import Progress, StepRecord
     from .replay import ReplayFiles
-    from .runner.controller import StepRecord
-    from .runner.mission import Progress
     from .runner.operator import OperatorConsole
 
 P = ParamSpec("P")
@@ -565,7 +559,7 @@ def _parser(command: str | None = None) -> argparse.ArgumentParser:
         "vehicle processes (what 'sitl --scenario' did)",
     )
     if command in (None, "emulate"):
-        from .world import emulated  # noqa: PLC0415 - the emulator, for this command only
+        from . import emulate as emulated  # noqa: PLC0415 - the emulator, for this command only
 
         emulated.add_arguments(emulate)
         add_bus_arguments(emulate)
@@ -616,7 +610,7 @@ def _print_json(document: object, out: Path | None) -> int:
     if out is None:
         sys.stdout.write(text)
     else:
-        from .outputs import write_atomic  # noqa: PLC0415
+        from .paths import write_atomic  # noqa: PLC0415
 
         write_atomic(out, text)
     return EXIT_OK
@@ -812,7 +806,7 @@ def _sweep(arguments: argparse.Namespace) -> int:
 
 
 def _run(arguments: argparse.Namespace) -> int:
-    from .config import validate_scenario  # noqa: PLC0415
+    from .checks import validate_scenario  # noqa: PLC0415
     from .figure_process import FigureProcess  # noqa: PLC0415
     from .outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from .runner.mission import fly  # noqa: PLC0415
@@ -1087,7 +1081,7 @@ def _score_without_truth(
     skipped on stale or missing data (``stale_steps``, from their reports; None: unknown).
     Expectations that need the truth are listed as not checked, and the status says so:
     ``unchecked``, never ``passed``."""
-    from .sim.metrics import check_expectations  # noqa: PLC0415
+    from .metrics import check_expectations  # noqa: PLC0415
 
     observed = {"vehicles_in_formation_at_end": sum(s.state == "done" for s in statuses.values())}
     if stale_steps is not None:

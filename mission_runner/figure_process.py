@@ -34,8 +34,8 @@ from typing import TYPE_CHECKING, Self
 from .errors import OutputError
 
 if TYPE_CHECKING:
-    from .outputs import PathName
-    from .sim.simulator import SimulationResult
+    from .metrics import SimulationResult
+    from .paths import PathName
 
 logger = logging.getLogger(__name__)
 

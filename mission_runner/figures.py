@@ -11,19 +11,20 @@ from typing import TYPE_CHECKING
 import matplotlib
 
 matplotlib.use("Agg")
+import io
+
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
-from .outputs import PathName, write_atomic
-from .wiring import omega_of
+from .paths import PathName, write_atomic
+from .scenario import omega_of
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
-    from .sim.simulator import SimulationResult
-    from .sim.sweep import SweepPoint
+    from .metrics import SimulationResult, SweepPoint
 
 
 def write_figures(result: SimulationResult, out_dir: PathName, run: int = 0) -> list[str]:
@@ -49,7 +50,6 @@ def write_figures(result: SimulationResult, out_dir: PathName, run: int = 0) -> 
 
 
 def _save(figure: Figure, path: Path) -> None:
-    import io  # noqa: PLC0415
 
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=120)

@@ -29,7 +29,8 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import foxglove
 import numpy as np
 
-from .bus.messages import FORMATION_STATES
+from .bus import Sender, StepMessage, VehicleStatus, open_bus
+from .bus.broker import VIEWER_USER
 from .enclosing import splay_spacing_error
 from .recording import (
     LogCapture,
@@ -39,14 +40,15 @@ from .recording import (
     finite_or_none,
     view_of_record,
 )
+from .records import FORMATION_STATES
+from .scenario import shape_schedule
 
 if TYPE_CHECKING:
     from foxglove.websocket import ServerListener, WebSocketServer
 
     from .bus import StepMessage, Subscription, VehicleStatus
     from .config import Scenario
-    from .runner.controller import StepRecord
-    from .runner.mission import Progress
+    from .records import Progress, StepRecord
 
 logger = logging.getLogger(__name__)
 
@@ -134,7 +136,6 @@ class FlightFeed:
     goes out as in the recording."""
 
     def __init__(self, scenario: Scenario, channels: MissionChannels) -> None:
-        from .wiring import shape_schedule  # noqa: PLC0415
 
         self.scenario, self.channels = scenario, channels
         self.ids = [vehicle.id for vehicle in scenario.vehicles]
@@ -209,8 +210,6 @@ async def serve_bus(
 ) -> None:
     """Publish what the mission's bus carries until cancelled: each vehicle's step message as
     its state (phase, odometry) and its frame in its odometry, each status change as an event."""
-    from .bus import Sender, StepMessage, VehicleStatus, open_bus  # noqa: PLC0415
-    from .bus.broker import VIEWER_USER  # noqa: PLC0415
 
     topics = scenario.bus.topics(scenario.name)
     known = {vehicle.id for vehicle in scenario.vehicles}

@@ -28,20 +28,17 @@ import numpy as np
 
 from . import __version__
 from .errors import OutputError, error_reason
-from .sim.metrics import MetricValue, check_expectations, distribution, run_metrics
+from .metrics import MetricValue, check_expectations, distribution, run_metrics
+from .paths import PathName, write_atomic
 
 if TYPE_CHECKING:
     from .config import Scenario
     from .figure_process import FigureProcess
+    from .metrics import SimulationResult
     from .recording import LogLine
-    from .runner.controller import StepRecord
-    from .runner.process import VehicleRun
-    from .sim.simulator import SimulationResult
+    from .records import StepRecord, VehicleRun
 
 logger = logging.getLogger(__name__)
-
-#: A file or folder name as callers hold it.
-PathName = str | os.PathLike[str]
 
 #: How a run ended, as ``summary.json`` says (``running`` until it ends).
 #: unchecked: the run ended and nothing that could be checked failed, but some expectations
@@ -92,18 +89,6 @@ def prepare_out_dir(out_dir: PathName, files: Sequence[str]) -> Path:
         reason = error.strerror or str(error)
         raise OutputError(f"output folder {out_dir} cannot be written: {reason}") from None
     return out_dir
-
-
-def write_atomic(path: PathName, data: str | bytes) -> None:
-    """Write ``data`` (str or bytes) to ``path`` via a temporary file and an atomic rename."""
-    path = Path(path)
-    temporary = path.with_name(f".{path.name}.partial")
-    mode = "wb" if isinstance(data, bytes) else "w"
-    with open(temporary, mode, encoding=None if mode == "wb" else "utf-8") as handle:
-        handle.write(data)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(temporary, path)
 
 
 def versions() -> dict[str, str]:
@@ -395,7 +380,7 @@ def write_vehicle_run(
     and ``logs``, see :mod:`.recording`) and ``summary.json`` (how the process ended, final
     state, counts including gated ranges, the autopilot's clock fit, parameters applied).
     Written atomically."""
-    from .recording import RECORDING, write_vehicle_recording  # noqa: PLC0415
+    from .recording import RECORDING, write_vehicle_recording  # noqa: PLC0415 - foxglove, mcap
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -96,7 +96,8 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from . import argtypes
-from .config import MAX_CLOCK_SPEED, Scenario, load_scenario
+from .checks import load_scenario
+from .config import MAX_CLOCK_SPEED, Scenario
 from .runner.errors import RunnerError, RunnerTimeoutError
 from .tasks import first_completed
 

@@ -63,15 +63,16 @@ from mcap.decoder import DecoderFactory as McapDecoderFactory
 from mcap.records import Schema as McapSchema
 from numpy.typing import NDArray
 
-from .bus.messages import FORMATION_STATES
 from .enclosing.shape import desired_offsets
 from .enclosing.target import LOST, STATUS_NAMES
+from .records import FORMATION_STATES
+from .scenario import shape_schedule
 
 if TYPE_CHECKING:
     from .config import Scenario
-    from .outputs import PathName
-    from .runner.controller import StepRecord
-    from .sim.simulator import SimulationResult
+    from .metrics import SimulationResult
+    from .paths import PathName
+    from .records import StepRecord
 
 #: The recording's file name in every output folder.
 RECORDING = "recording.mcap"
@@ -567,7 +568,6 @@ def write_recording(
     records: the flight's controllers' records ``{id: [StepRecord]}`` (None for a simulation:
     its estimates come with the result); start_s: the mission clock at k = 0; logs: the run's
     log lines; verdict: the ``expect:`` verdict, recorded as the last event."""
-    from .wiring import shape_schedule  # noqa: PLC0415 - config imports stay out of module load
 
     scenario = result.scenario
     ids = [vehicle.id for vehicle in scenario.vehicles]
@@ -690,7 +690,7 @@ def read_recording(
 ) -> Iterator[RecordedMessage]:
     """The messages of a recording in log-time order, decoded (``topics``: only those)."""
     from mcap.reader import make_reader  # noqa: PLC0415 - only readers need these
-    from mcap_protobuf.decoder import DecoderFactory  # noqa: PLC0415
+    from mcap_protobuf.decoder import DecoderFactory  # noqa: PLC0415 - only readers need it
 
     with open(path, "rb") as handle:
         reader = make_reader(handle, decoder_factories=[DecoderFactory(), _JsonDecoders()])
@@ -706,7 +706,7 @@ def read_recording(
 def recording_metadata(path: PathName) -> dict[str, dict[str, str]]:
     """A recording's metadata records by name (``scenario``: name, step_s, steps, vehicles,
     radius_m)."""
-    from mcap.reader import make_reader  # noqa: PLC0415
+    from mcap.reader import make_reader  # noqa: PLC0415 - only readers need it
 
     with open(path, "rb") as handle:
         return {

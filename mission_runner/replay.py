@@ -28,14 +28,16 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 from PIL import Image, ImageDraw, ImageFont
 
+from .checks import validate_scenario
 from .enclosing.shape import desired_offsets
 from .errors import ReplayError
 from .recording import PALETTE, RECORDING, circle_points, read_recording, recording_metadata
+from .scenario import shape_schedule
 
 if TYPE_CHECKING:
     from matplotlib.lines import Line2D
 
-    from .outputs import PathName
+    from .paths import PathName
 
 GIF = "replay.gif"
 MP4 = "replay.mp4"
@@ -91,8 +93,6 @@ def load_track(out_dir: PathName) -> Track:
 def _track_from_tables(out_dir: Path) -> Track:
     """A track from ``timeseries.csv``, the circle and slots from the scenario in
     ``summary.json`` (its ``parameters``)."""
-    from .config import validate_scenario  # noqa: PLC0415
-    from .wiring import shape_schedule  # noqa: PLC0415
 
     document = json.loads((out_dir / "summary.json").read_text())
     scenario = validate_scenario(document["parameters"], str(out_dir / "summary.json"))

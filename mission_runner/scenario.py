@@ -4,6 +4,8 @@ Numpy only; shared by the simulator, the emulator's target and the flying contro
 part of the system sees the same target and the same shape at the same instant.
 """
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -13,11 +15,13 @@ from .config import (
     ExpressionPath,
     ExpressionSignal,
     LinePath,
+    Scenario,
     ShapeConfig,
     Signal,
     SinusoidPath,
     SinusoidSignal,
     TargetPath,
+    VehicleConfig,
     WaypointPath,
     WaypointSignal,
 )
@@ -79,3 +83,19 @@ def shape_matrices(shape: ShapeConfig, times_s: ArrayLike) -> NDArray[np.float64
         pair(shape.scale_north, shape.scale_east),
         pair(shape.shear_a, shape.shear_b),
     )
+
+
+#: k -> the affine shape matrix ``(3, 3)`` at step k.
+ShapeSchedule = Callable[[int], NDArray[np.float64]]
+
+
+def omega_of(scenario: Scenario, vehicle: VehicleConfig) -> float:
+    """``vehicle``'s oscillator frequency [rad/s]: its own, else the scenario's."""
+    return vehicle.omega_rad_s or scenario.algorithm.omega_rad_s
+
+
+def shape_schedule(scenario: Scenario) -> ShapeSchedule:
+    """k -> the affine shape matrix at step k (held after the last step)."""
+    steps = scenario.timing.steps
+    shapes = shape_matrices(scenario.algorithm.shape, np.arange(steps + 2) * scenario.timing.step_s)
+    return lambda k: shapes[min(k, len(shapes) - 1)]

@@ -1,6 +1,7 @@
-"""One place that turns a scenario into what every layer needs: the algorithm's parameters and
-each vehicle's frequency (simulator and controllers), the shape schedule, a controller's settings,
-the autopilot parameters every vehicle gets, and the bundled emulator's config. The simulator
+"""One place that turns a scenario into what the layers below the runner need: the algorithm's
+and the filter's parameters (simulator and controllers), the autopilot parameters every vehicle
+gets, and the bundled emulator's config (a vehicle's frequency and the shape schedule are the
+scenario's geometry, :mod:`.scenario`; a controller's settings the runner's own). The simulator
 (:mod:`.sim`), the in-process mission and the vehicle processes (:mod:`.runner`) and the emulated
 world (:mod:`.world`) all build from here, so a default lives once, in the config model.
 """
@@ -8,26 +9,16 @@ world (:mod:`.world`) all build from here, so a default lives once, in the confi
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
-
-import numpy as np
-from numpy.typing import NDArray
 
 from .config import Scenario, SensorConfig, VehicleConfig
 from .enclosing import EnclosingParams
 from .enclosing.ekf import FilterSettings
-from .scenario import shape_matrices
 from .sensors import SPEED_OF_LIGHT_M_S
 
 if TYPE_CHECKING:
     from sitl.config import EmulatorConfig
 
-    from .runner.controller import ControllerSettings
-    from .runner.plausibility import RangeLimits
-
-#: k -> the affine shape matrix ``(3, 3)`` at step k.
-ShapeSchedule = Callable[[int], NDArray[np.float64]]
 
 #: PX4's COM_OBL_RC_ACT (offboard-loss failsafe) for each ``flight.on_lost``.
 OFFBOARD_LOSS_ACTION = {"return": 3, "land": 4, "hold": 5}
@@ -152,72 +143,9 @@ def odometry_noise_std_m(scenario: Scenario) -> float:
     return math.hypot(math.sqrt(2.0) * odometry.position_noise_std_m, drift_m_s * step_s)
 
 
-def omega_of(scenario: Scenario, vehicle: VehicleConfig) -> float:
-    """``vehicle``'s oscillator frequency [rad/s]: its own, else the scenario's."""
-    return vehicle.omega_rad_s or scenario.algorithm.omega_rad_s
-
-
-def controller_settings(scenario: Scenario, vehicle: VehicleConfig) -> ControllerSettings:
-    """The :class:`ControllerSettings` of ``vehicle`` (a scenario vehicle entry)."""
-    from .runner.controller import ControllerSettings  # noqa: PLC0415 - the simulator needs none
-
-    flight = scenario.flight
-    return ControllerSettings(
-        step_s=scenario.timing.step_s,
-        step_deadline_s=flight.step_deadline_s,
-        wall_deadline_s=flight.lockstep_wait_s,
-        silence_timeout_s=flight.silence_timeout_s,
-        member_timeout_steps=flight.member_timeout_steps,
-        max_horizontal_speed_m_s=vehicle.speed_limit_m_s,
-        max_vertical_speed_m_s=flight.max_vertical_speed_m_s,
-        velocity_lead_s=flight.velocity_lead_s,
-        tracking_gain_1_s=flight.displacement_tracking.gain_1_s,
-        tracking_integral_gain_1_s2=flight.displacement_tracking.integral_gain_1_s2,
-        tracking_max_correction_m_s=flight.displacement_tracking.max_correction_m_s,
-        min_separation_m=scenario.safety.min_separation_m,
-        separation_gain_1_s=scenario.safety.separation_gain_1_s,
-        separation_margin_m=scenario.safety.separation_margin_m,
-        separation_braking_m_s2=scenario.safety.separation_braking_m_s2,
-        separation_latency_s=scenario.safety.separation_latency_s,
-        separation_range_noise_std_m=scenario.sensors.range_noise_std_m,
-        range_limits=range_limits(scenario),
-        fleet_speed_limit_m_s=max(v.speed_limit_m_s for v in scenario.vehicles),
-        target_lost_after_s=scenario.algorithm.target_lost_after_s,
-        target_on_lost=scenario.algorithm.target_on_lost,
-    )
-
-
-#: A UWB radio's line-of-sight reach, when the scenario gives none [m].
-DEFAULT_RADIO_REACH_M = 300.0
-
-
-def range_limits(scenario: Scenario) -> RangeLimits:
-    """What a range can be in ``scenario`` (``flight.range_check``, defaults from the sensors
-    and the vehicles' speed limits)."""
-    from .runner.plausibility import RangeLimits  # noqa: PLC0415
-
-    check = scenario.flight.range_check
-    sensors = scenario.sensors
-    reach_m = check.max_range_m or sensors.range_max_m or DEFAULT_RADIO_REACH_M
-    speed_m_s = check.max_relative_speed_m_s or 2.0 * max(
-        vehicle.speed_limit_m_s for vehicle in scenario.vehicles
-    )
-    margin_m = check.margin_m
-    if margin_m is None:
-        margin_m = 0.2 + 6.0 * math.sqrt(2.0) * sensors.range_noise_std_m
-    return RangeLimits(reach_m, speed_m_s, margin_m)
-
-
 def altitude_of(scenario: Scenario, vehicle: VehicleConfig) -> float:
     """The altitude ``vehicle`` holds [m above home]."""
     return vehicle.altitude_m or scenario.flight.altitude_m
-
-
-def shape_schedule(scenario: Scenario) -> ShapeSchedule:
-    """k -> the affine shape matrix at step k (held after the last step)."""
-    steps = scenario.timing.steps
-    shapes = shape_matrices(scenario.algorithm.shape, np.arange(steps + 2) * scenario.timing.step_s)
-    return lambda k: shapes[min(k, len(shapes) - 1)]
 
 
 def autopilot_params(scenario: Scenario) -> dict[str, float | int]:

@@ -19,7 +19,7 @@ import logging
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from sitl.ftp import Directory, File
 from sitl.params import PARAM_TABLE, ParamStore
@@ -27,7 +27,8 @@ from sitl.telemetry import euler_to_quaternion
 from sitl.ulog import Topic, ULogWriter
 
 if TYPE_CHECKING:
-    from sitl.autopilot import Px4Autopilot
+    from sitl import imu
+    from sitl.modes import FlightMode
 
 logger = logging.getLogger(__name__)
 
@@ -153,12 +154,32 @@ def _entries_of(
     return lambda: files
 
 
+class LoggedVehicle(Protocol):
+    """What a flight log samples of a vehicle (:class:`sitl.autopilot.Px4Autopilot` has it)."""
+
+    @property
+    def armed(self) -> bool: ...
+    def attitude(self) -> tuple[float, float, float, float]: ...
+    @property
+    def battery_remaining_pct(self) -> float: ...
+    def battery_voltage_mv(self) -> int: ...
+    @property
+    def failsafe_active(self) -> bool: ...
+    def global_position(self) -> tuple[float, float, float]: ...
+    def inertial_frd(self) -> tuple[imu.Vector3, imu.Vector3, imu.Vector3]: ...
+    @property
+    def mode(self) -> FlightMode: ...
+    def odometry_sample(self) -> tuple[float, float, float, float, float, float]: ...
+    def time_usec(self, now_s: float) -> int: ...
+    def unix_time_us(self, now_s: float) -> int: ...
+
+
 class FlightLogger:
     """Records ``vehicle``'s flights into ``store`` as SDLOG_MODE of ``params`` says."""
 
     def __init__(
         self,
-        vehicle: Px4Autopilot,
+        vehicle: LoggedVehicle,
         params: ParamStore,
         store: FlightLogStore,
         *,

@@ -17,6 +17,7 @@ import pytest
 import yaml
 
 from mission_runner.bus import VehicleStatus
+from mission_runner.checks import load_scenario
 from mission_runner.cli import (
     EXIT_BAD_INPUT,
     EXIT_EXPECTATION_FAILED,
@@ -27,7 +28,6 @@ from mission_runner.cli import (
     _score_without_truth,
     main,
 )
-from mission_runner.config import load_scenario
 from mission_runner.outputs import RUN_FILES, RunSummary
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -846,9 +846,9 @@ def test_steps_held_on_stale_data_are_in_the_verdict_and_can_be_bounded(tmp_path
 def test_a_flight_counts_the_steps_its_controllers_held_or_skipped():
     import numpy as np
 
-    from mission_runner.runner.controller import StepRecord
+    from mission_runner.metrics import run_metrics
+    from mission_runner.records import StepRecord, TruthSample
     from mission_runner.runner.scoring import score_flight
-    from mission_runner.sim.metrics import TruthSample, run_metrics
 
     scenario = load_scenario(CONFIGS / "paper_tracking_flyable.yaml")
     scenario = scenario.model_copy(

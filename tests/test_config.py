@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from mission_runner.config import MAX_FILE_BYTES, load_scenario, parse_scenario
+from mission_runner.checks import MAX_FILE_BYTES, load_scenario, parse_scenario
 from mission_runner.errors import ConfigError
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -392,7 +392,7 @@ def test_a_speed_limit_below_what_the_law_commands_is_a_warning_naming_the_paths
     data = yaml.safe_load((CONFIGS / "paper_narrow_passage.yaml").read_text())
     for vehicle in data["vehicles"]:
         vehicle["speed_limit_m_s"] = 10.0  # the circle grows to 6 m: the law asks ~10.8 m/s
-    with caplog.at_level("WARNING", logger="mission_runner.config"):
+    with caplog.at_level("WARNING", logger="mission_runner.checks"):
         parse_scenario(yaml.safe_dump(data), source="narrow.yaml")
     lines = caplog.text.splitlines()
     assert len(lines) == 4
@@ -405,7 +405,7 @@ def test_a_speed_limit_below_what_the_law_commands_is_a_warning_naming_the_paths
 def test_a_vehicle_of_its_own_frequency_is_named_in_the_warning(caplog):
     data = base()
     data["vehicles"][2]["omega_rad_s"] = 3.0  # 4 m x 3 rad/s = 12 m/s on the circle
-    with caplog.at_level("WARNING", logger="mission_runner.config"):
+    with caplog.at_level("WARNING", logger="mission_runner.checks"):
         parse_scenario(yaml.safe_dump(data), source="fast.yaml")
     assert "vehicles[2].speed_limit_m_s" in caplog.text
     assert "vehicles[2].omega_rad_s" in caplog.text
@@ -414,7 +414,7 @@ def test_a_vehicle_of_its_own_frequency_is_named_in_the_warning(caplog):
 
 @pytest.mark.parametrize("path", sorted(CONFIGS.glob("*.yaml")), ids=lambda path: path.stem)
 def test_bundled_scenarios_load_without_warnings(path, caplog):
-    with caplog.at_level("WARNING", logger="mission_runner.config"):
+    with caplog.at_level("WARNING", logger="mission_runner.checks"):
         load_scenario(path)
     assert caplog.text == ""
 
@@ -532,7 +532,7 @@ def test_a_flight_refuses_vehicle_ids_beyond_mavlink_but_the_model_does_not(tmp_
 @pytest.mark.timeout(30)
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes")
 def test_a_named_pipe_is_read_while_written_and_refused_when_nobody_writes(tmp_path, monkeypatch):
-    import mission_runner.config as config_module
+    import mission_runner.checks as checks_module
 
     pipe = tmp_path / "scenario.yaml"
     os.mkfifo(pipe)
@@ -541,7 +541,7 @@ def test_a_named_pipe_is_read_while_written_and_refused_when_nobody_writes(tmp_p
     writer.start()  # as `simulate <(generate)` gives it
     assert load_scenario(pipe).name == "paper_tracking"
     writer.join()
-    monkeypatch.setattr(config_module, "READ_TIMEOUT_S", 0.05)
+    monkeypatch.setattr(checks_module, "READ_TIMEOUT_S", 0.05)
     with pytest.raises(ConfigError) as caught:
         load_scenario(pipe)
     [(where, message)] = caught.value.problems

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from mission_runner.config import validate_scenario
+from mission_runner.checks import validate_scenario
 from mission_runner.figure_process import FigureProcess
 from mission_runner.outputs import write_results
 from mission_runner.sim.simulator import simulate

@@ -15,11 +15,10 @@ import yaml
 from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
+from mission_runner.checks import validate_scenario
 from mission_runner.cli import EXIT_BAD_INPUT, main
-from mission_runner.config import validate_scenario
 from mission_runner.live import FlightFeed, LiveLog, LiveServer
-from mission_runner.runner.mission import Progress
-from mission_runner.sim.metrics import TruthSample
+from mission_runner.records import Progress, TruthSample
 from mission_runner.sim.simulator import simulate
 
 from .test_recording import flight_records

@@ -13,12 +13,11 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 
+from mission_runner.checks import load_scenario, validate_scenario
 from mission_runner.cli import EXIT_OK, main
-from mission_runner.config import load_scenario, validate_scenario
 from mission_runner.outputs import write_results, write_vehicle_run
 from mission_runner.recording import RECORDING, LogCapture, read_recording
-from mission_runner.runner.controller import StepRecord
-from mission_runner.runner.process import VehicleRun
+from mission_runner.records import StepRecord, VehicleRun
 from mission_runner.sim.simulator import simulate
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

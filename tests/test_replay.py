@@ -9,8 +9,8 @@ import pytest
 import yaml
 from PIL import Image
 
+from mission_runner.checks import validate_scenario
 from mission_runner.cli import EXIT_BAD_INPUT, EXIT_OK, main
-from mission_runner.config import validate_scenario
 from mission_runner.errors import ReplayError
 from mission_runner.outputs import write_results
 from mission_runner.recording import PALETTE

@@ -225,7 +225,7 @@ def test_the_emulated_world_publishes_one_number_for_both_ends_of_a_pair():
 
 
 def test_a_step_must_carry_at_least_one_exchange():
-    from mission_runner.config import validate_scenario
+    from mission_runner.checks import validate_scenario
     from mission_runner.errors import ConfigError
     from tests.test_config import base
 

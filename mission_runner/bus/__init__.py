@@ -67,9 +67,7 @@ from mission_runner.bus.errors import (
 )
 from mission_runner.bus.inprocess import InProcessBus, LinkModel
 from mission_runner.bus.messages import (
-    FORMATION_STATES,
     MESSAGE_TYPES,
-    STALE_STATES,
     ControlCommand,
     Message,
     MissionControl,
@@ -102,9 +100,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "DEFAULT_QUEUE_SIZE",
-    "FORMATION_STATES",
     "MESSAGE_TYPES",
-    "STALE_STATES",
     "AuthCounters",
     "AuthPolicy",
     "AuthSettings",

@@ -8,17 +8,29 @@ from __future__ import annotations
 
 import argparse
 import logging
+from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any, Protocol, Self, TypeVar
 
 from mission_runner.bus.auth import DEFAULT_KEY_ENV
 from mission_runner.bus.broker import PASSWORD_ENV, USERNAME_ENV, read_credentials
-from mission_runner.bus.settings import BusAccess
-
-if TYPE_CHECKING:
-    from mission_runner.config import Scenario
+from mission_runner.bus.settings import BusAccess, BusSettings
 
 logger = logging.getLogger(__name__)
+
+
+class WithBus(Protocol):
+    """What :func:`with_bus_access` needs of a scenario (the bus sits below the scenario model)."""
+
+    @property
+    def bus(self) -> BusSettings: ...
+
+    def model_copy(self, *, update: Mapping[str, Any] | None = None, deep: bool = False) -> Self:
+        """A copy with ``update``'s fields replaced (pydantic's)."""
+        ...
+
+
+ScenarioT = TypeVar("ScenarioT", bound=WithBus)
 
 
 def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,7 +62,7 @@ def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def with_bus_access(scenario: Scenario, arguments: argparse.Namespace) -> Scenario:
+def with_bus_access(scenario: ScenarioT, arguments: argparse.Namespace) -> ScenarioT:
     """``scenario`` with the command line's bus options attached and checked now (a missing key
     or an unreadable credentials file stops the command before anything connects or flies).
     Raises BusAuthError."""

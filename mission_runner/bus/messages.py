@@ -482,16 +482,6 @@ class MissionControl(Message):
         )
 
 
-#: Controller states (:attr:`VehicleStatus.state`) in which a vehicle flies the law on fresh data
-#: as part of the formation: ``following`` the target (observed, or predicted while hidden), or
-#: ``target_lost`` (no estimate of the target left: it holds or orbits the last estimate).
-FORMATION_STATES = frozenset({"following", "target_lost"})
-#: Controller states of a step not flown by the law for want of fresh data: held (no fresh
-#: neighbour message within the silence timeout, no own odometry, or not in OFFBOARD) or skipped
-#: (its instant had passed before it could run).
-STALE_STATES = frozenset({"holding", "skipped"})
-
-
 @dataclass(frozen=True, slots=True)
 class VehicleStatus(Message):
     """A vehicle's progress report (retained, and its last will), for progress views.
@@ -502,7 +492,7 @@ class VehicleStatus(Message):
     ``mission_id`` is the mission it reports for (see :class:`MissionControl`);
     ``clock_rate`` its autopilot's boot-clock seconds per UNIX second, as measured;
     ``stale_steps`` (in its final report) how many steps it held or skipped for want of fresh
-    data (:data:`STALE_STATES`).
+    data (:data:`mission_runner.records.STALE_STATES`).
     """
 
     vehicle_id: int

@@ -33,14 +33,14 @@ import dataclasses
 import logging
 import math
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..bus import (
-    STALE_STATES,
+    BusError,
     Message,
     RangeMessage,
     StepMessage,
@@ -62,18 +62,16 @@ from ..enclosing import (
 )
 from ..enclosing.separation import separation_guard
 from ..enclosing.target import STATUS_NAMES
+from ..records import STALE_STATES, StepRecord
+from ..scenario import ShapeSchedule, omega_of, shape_schedule
 from ..tasks import first_completed
 from ..wiring import (
-    ShapeSchedule,
     algorithm_params,
     altitude_of,
-    controller_settings,
-    omega_of,
-    shape_schedule,
 )
 from .inbox import StepData, StepInbox
 from .odometry import ODOMETRY_PERIOD_S
-from .plausibility import CommandGate, RangeGate, RangeLimits
+from .plausibility import CommandGate, RangeGate, RangeLimits, range_limits
 from .ports import ControllerBus, ControllerClock, ControllerLink, MessageSource
 
 logger = logging.getLogger(__name__)
@@ -131,39 +129,32 @@ class ControllerSettings:
     fleet_speed_limit_m_s: float | None = None
 
 
-@dataclass
-class StepRecord:
-    """What the controller did at one step (for logs and progress views).
-
-    setpoint_sent_s: mission-clock time at which the step's setpoint had been handed to the
-    vehicle link (after ``set_velocity_ned`` returned); ``setpoint_sent_s - time_s`` is the
-    step's lateness, for timing figures only (NaN if not measured). odometry_m: the own odometry
-    (north, east, down) sampled at t_k (NaN if none). estimates_m: phat_ij ``(2,)`` [m] by peer
-    id (0 = target). gated: peer ids whose range the estimator rejected as an outlier.
-    ranges_m: the (horizontal) ranges the law was given, by peer id (0 = target).
-    target: what the vehicle knew of the target at the step: ``observed`` (by itself or a
-    neighbour), ``predicted`` or ``lost`` (``""``: not tracked, a skipped step).
-    """
-
-    step: int
-    time_s: float
-    state: str
-    velocity_ned_m_s: tuple[float, float, float]
-    consensus_m_s: tuple[float, float]
-    phase_rad: float
-    neighbours_used: tuple[int, ...]
-    estimates_m: dict[int, NDArray[np.float64]]
-    setpoint_sent_s: float = math.nan
-    odometry_m: tuple[float, float, float] = (math.nan, math.nan, math.nan)
-    gated: tuple[int, ...] = ()
-    ranges_m: dict[int, float] = field(default_factory=dict)
-    target: str = ""
-    #: Where the step's time went (mission clock): when the own odometry at t_k was in, when
-    #: the own step message had been published, when the step's inputs were complete (or the
-    #: deadline passed). NaN where the step did not get that far.
-    odometry_ready_s: float = math.nan
-    message_sent_s: float = math.nan
-    inputs_ready_s: float = math.nan
+def controller_settings(scenario: Scenario, vehicle: VehicleConfig) -> ControllerSettings:
+    """The :class:`ControllerSettings` of ``vehicle`` (a scenario vehicle entry)."""
+    flight = scenario.flight
+    return ControllerSettings(
+        step_s=scenario.timing.step_s,
+        step_deadline_s=flight.step_deadline_s,
+        wall_deadline_s=flight.lockstep_wait_s,
+        silence_timeout_s=flight.silence_timeout_s,
+        member_timeout_steps=flight.member_timeout_steps,
+        max_horizontal_speed_m_s=vehicle.speed_limit_m_s,
+        max_vertical_speed_m_s=flight.max_vertical_speed_m_s,
+        velocity_lead_s=flight.velocity_lead_s,
+        tracking_gain_1_s=flight.displacement_tracking.gain_1_s,
+        tracking_integral_gain_1_s2=flight.displacement_tracking.integral_gain_1_s2,
+        tracking_max_correction_m_s=flight.displacement_tracking.max_correction_m_s,
+        min_separation_m=scenario.safety.min_separation_m,
+        separation_gain_1_s=scenario.safety.separation_gain_1_s,
+        separation_margin_m=scenario.safety.separation_margin_m,
+        separation_braking_m_s2=scenario.safety.separation_braking_m_s2,
+        separation_latency_s=scenario.safety.separation_latency_s,
+        separation_range_noise_std_m=scenario.sensors.range_noise_std_m,
+        range_limits=range_limits(scenario),
+        fleet_speed_limit_m_s=max(v.speed_limit_m_s for v in scenario.vehicles),
+        target_lost_after_s=scenario.algorithm.target_lost_after_s,
+        target_on_lost=scenario.algorithm.target_on_lost,
+    )
 
 
 class VehicleController:
@@ -786,7 +777,6 @@ class VehicleController:
         return float(np.clip(self.settings.altitude_gain_per_s * error, -limit, limit))
 
     async def _publish(self, topic: str, message: Message) -> None:
-        from ..bus import BusError  # noqa: PLC0415
 
         try:
             await self.bus.publish_message(topic, message, timeout=self.settings.step_s / 2)

@@ -39,8 +39,9 @@ from typing import Any, Self, TypeVar
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkError
 from mavsdk.asyncio.plugins.action import ActionAsync
 from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync, MavlinkMessage
-from mavsdk.asyncio.plugins.param import ParamAsync
+from mavsdk.asyncio.plugins.param import ParamAsync, ParamError, ParamResult
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+from mavsdk.logging import LogLevel, log_subscribe
 from pymavlink.dialects.v20 import common as mavlink
 
 from .errors import RunnerTimeoutError, VehicleCommandError, VehicleConnectionError
@@ -137,8 +138,6 @@ def route_mavsdk_logs() -> None:
     global _mavsdk_logging_routed  # noqa: PLW0603 - MAVSDK's log hook is process-wide
     if _mavsdk_logging_routed:
         return
-    from mavsdk.logging import LogLevel, log_subscribe  # noqa: PLC0415
-
     mavsdk_logger = logging.getLogger("mavsdk")
     levels = {
         LogLevel.DEBUG: logging.DEBUG,
@@ -717,8 +716,6 @@ class MavsdkVehicle:
         (INT32 or REAL32) is the autopilot's, so ``5`` sets a float parameter to 5.0. Returns
         ``{name: value read back}``; a parameter the autopilot refuses or does not have raises
         :class:`VehicleCommandError`, one it changes (rounds, clamps) is logged as a warning."""
-        from mavsdk.asyncio.plugins.param import ParamError, ParamResult  # noqa: PLC0415
-
         applied: dict[str, float | int] = {}
         for name, value in params.items():
             try:

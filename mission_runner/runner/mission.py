@@ -42,12 +42,14 @@ from ..bus import (
     lost_vehicle_will,
     open_bus,
 )
+from ..metrics import tracking_error
 from ..outputs import bus_security
-from ..sim.metrics import tracking_error
-from ..wiring import altitude_of, autopilot_params, emulator_config, shape_schedule
+from ..records import Progress, StepRecord
+from ..scenario import shape_schedule
+from ..wiring import altitude_of, autopilot_params, emulator_config
 from ..world import World
 from .clock import EmulatorClock
-from .controller import StepRecord, VehicleController, build_controller
+from .controller import VehicleController, build_controller
 from .errors import RunnerError
 from .links import SAFE_STATE_TIMEOUT_S, MavsdkVehicle, connected_vehicles
 from .operator import (
@@ -66,8 +68,7 @@ if TYPE_CHECKING:
     from sitl.emulator import Emulator, EmulatorStats
 
     from ..config import Scenario
-    from ..sim.metrics import TruthSample
-    from ..sim.simulator import SimulationResult
+    from ..metrics import SimulationResult
 
 #: Sees every controller step: ``(vehicle_id, record)``.
 StepCallback = Callable[[int, StepRecord], None]
@@ -82,20 +83,6 @@ LOCKSTEP_MAX_SPEED = 25.0
 #: (observed: 10 to 50 s stalls, or the 60 s take-off timeout, at 25x on a loaded 2-core machine).
 PACED_SPEED = 10.0
 PACE_PERIOD_S = 0.02
-
-
-@dataclass(frozen=True)
-class Progress:
-    """One step of a flight as a progress view shows it (truth-based errors: emulator only)."""
-
-    step: int
-    steps: int
-    time_s: float
-    states: dict[int, str]
-    tracking_error_m: float
-    localization_error_m: float
-    #: The emulator's truth at t_k, for views (None if the world had no sample of step k).
-    truth: TruthSample | None = None
 
 
 class _ProgressAggregator:

@@ -36,7 +36,8 @@ from .errors import RunnerError
 from .handshake import next_command, take_clock_change
 
 if TYPE_CHECKING:
-    from .controller import StepRecord, VehicleController
+    from ..records import StepRecord
+    from .controller import VehicleController
     from .ports import MessageSource
     from .timesync import MissionTime
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 from ..bus import StepMessage
 from ..bus.auth import RateLimitedWarnings
+from ..config import Scenario
 
 logger = logging.getLogger(__name__)
 
@@ -46,6 +47,25 @@ class RangeLimits:
             value = getattr(self, name)
             if not math.isfinite(value) or value < 0:
                 raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+
+
+#: A UWB radio's line-of-sight reach, when the scenario gives none [m].
+DEFAULT_RADIO_REACH_M = 300.0
+
+
+def range_limits(scenario: Scenario) -> RangeLimits:
+    """What a range can be in ``scenario`` (``flight.range_check``, defaults from the sensors
+    and the vehicles' speed limits)."""
+    check = scenario.flight.range_check
+    sensors = scenario.sensors
+    reach_m = check.max_range_m or sensors.range_max_m or DEFAULT_RADIO_REACH_M
+    speed_m_s = check.max_relative_speed_m_s or 2.0 * max(
+        vehicle.speed_limit_m_s for vehicle in scenario.vehicles
+    )
+    margin_m = check.margin_m
+    if margin_m is None:
+        margin_m = 0.2 + 6.0 * math.sqrt(2.0) * sensors.range_noise_std_m
+    return RangeLimits(reach_m, speed_m_s, margin_m)
 
 
 @dataclass

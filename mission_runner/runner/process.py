@@ -41,6 +41,7 @@ import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -62,9 +63,10 @@ from ..bus import (
 )
 from ..bus.broker import OPERATOR_USER, USERNAME_ENV, flight_user, read_credentials
 from ..errors import error_reason
+from ..records import StepRecord, VehicleRun
 from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
-from .controller import StepRecord, VehicleController, build_controller
+from .controller import VehicleController, build_controller
 from .errors import RunnerError, RunnerTimeoutError
 from .handshake import freeze_heap, next_command
 from .links import SAFE_STATE_TIMEOUT_S, MavsdkVehicle, connected_vehicles
@@ -77,13 +79,14 @@ from .operator import (
     publish_operator,
     serving,
 )
+from .scoring import merge_mission
 from .timesync import ClockFollower, ClockMapping, MissionTime
 
 if TYPE_CHECKING:
     from ..bus.auth import AuthCounters
     from ..config import Scenario
-    from ..outputs import PathName
-    from ..sim.simulator import SimulationResult
+    from ..metrics import SimulationResult
+    from ..paths import PathName
 
 logger = logging.getLogger(__name__)
 
@@ -107,29 +110,6 @@ def default_url(scenario: Scenario, vehicle_id: int) -> str:
     emulator's) API port for its instance."""
     index = [v.id for v in scenario.vehicles].index(vehicle_id)
     return f"udpin://0.0.0.0:{DEFAULT_API_PORT_BASE + index}"
-
-
-@dataclass
-class VehicleRun:
-    """What one vehicle process did: its step records, final state and clock fit."""
-
-    vehicle_id: int
-    mission_id: str | None = None
-    state: str = "connecting"
-    detail: str = ""
-    records: list[StepRecord] = field(default_factory=list)
-    start_s: float | None = None
-    clock_rate: float = 1.0
-    autopilot_clock_rate: float | None = None
-    clock_residual_s: float | None = None
-    skipped_steps: int = 0
-    params: dict[str, float | int] = field(default_factory=dict)
-    #: Received bus messages accepted and dropped by reason (``AuthCounters.as_dict``).
-    bus_messages: dict[str, int] = field(default_factory=dict)
-    #: Ranges the controller found impossible, by reason (``RangeGate.rejected``).
-    ranges_rejected: dict[str, int] = field(default_factory=dict)
-    #: Neighbours' setpoints in force dropped as impossible (``CommandGate.rejected``).
-    commands_rejected: int = 0
 
 
 class _Reporter:
@@ -708,9 +688,6 @@ async def wait_and_merge(
     ``steps.csv`` and for the range aid's truth under ``mission_dir``, then score the mission
     (:func:`.scoring.merge_mission`); None when there is no truth to score against.
     ``vehicles_disarmed_at_end`` counts the vehicles that reported done after landing."""
-    from pathlib import Path  # noqa: PLC0415
-
-    from .scoring import merge_mission  # noqa: PLC0415
 
     mission_dir = Path(mission_dir)
     wanted = [mission_dir / "truth" / "truth.csv"] + [

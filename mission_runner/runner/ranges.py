@@ -55,9 +55,9 @@ from ..bus import (
     Topics,
     open_bus,
 )
+from ..records import TruthSample
 from ..scenario import target_positions
 from ..sensors import UwbRanging, ranging_plan
-from ..sim.metrics import TruthSample
 from ..world.world import publish_measurements, step_measurements
 from .errors import RunnerError
 from .handshake import freeze_heap, next_command, start_command, take_clock_change

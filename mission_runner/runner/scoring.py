@@ -13,15 +13,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..bus import FORMATION_STATES, STALE_STATES
 from ..enclosing.target import OBSERVED, STATUS_NAMES
-from ..sim.metrics import TruthSample, closest_pair
-from ..sim.simulator import SimulationResult, score
-from .controller import StepRecord
+from ..metrics import SimulationResult, closest_pair, score
+from ..paths import write_atomic
+from ..records import FORMATION_STATES, STALE_STATES, StepRecord, TruthSample
 
 if TYPE_CHECKING:
     from ..config import Scenario
-    from ..outputs import PathName
+    from ..paths import PathName
 
 
 def estimate_errors(
@@ -139,7 +138,6 @@ def score_flight(
 def write_truth_csv(samples: Iterable[TruthSample], ids: Sequence[int], path: PathName) -> None:
     """Truth samples as CSV: step, time_s, target_north_m, target_east_m, then per vehicle
     ``v<id>_north_m``, ``v<id>_east_m`` (empty where unknown)."""
-    from ..outputs import write_atomic  # noqa: PLC0415
 
     lines = [
         ",".join(

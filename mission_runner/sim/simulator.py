@@ -9,9 +9,7 @@ at once. Ground truth is used here only to make measurements and to score the ru
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
-from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,12 +20,12 @@ from ..enclosing import (
     StepOutputs,
     SwarmEnclosing,
     TargetTrack,
-    splay_spacing_error,
     track_target,
 )
 from ..enclosing.separation import separation_guard
 from ..errors import ConfigError, SimulationError
-from ..scenario import shape_matrices, target_positions
+from ..metrics import SimulationResult, closest_pair, edge_rms, score
+from ..scenario import omega_of, shape_matrices, target_positions
 from ..sensors import (
     UwbRanging,
     odometry_drift,
@@ -35,54 +33,7 @@ from ..sensors import (
     range_readings,
     target_seen,
 )
-from ..wiring import algorithm_params, omega_of
-from .metrics import closest_pair, edge_rms, tracking_error
-
-
-@dataclass(frozen=True)
-class SimulationResult:
-    """Time series of a (batched) run; B runs, K steps, N vehicles.
-
-    times_s ``(K+1,)``; target_m ``(K+1, 2)``; positions_m ``(B, K+1, N, 2)``;
-    phases_rad ``(B, K+1, N)``; commands_m_s ``(B, K, N, 2)`` (after the speed bound);
-    live ``(B, K+1, N)``; tracking_error_m ``(B, K+1)``; localization_error_m ``(B, K)`` (max over
-    estimated edges at step k); localization_rms_m ``(B, K)`` (RMS over the estimated edges at
-    step k); gated_ranges ``(B, K)`` (ranges the estimators rejected as outliers at step k);
-    phase_spacing_error_rad ``(B, K+1)``; consensus_speed_m_s ``(B, K)`` (max over vehicles of
-    |sat(ubar)|); separation_m ``(B, K+1)`` (closest live pair); target_status ``(B, K)`` (what
-    the formation knew of the target at step k: ``enclosing.target`` OBSERVED, PREDICTED or LOST;
-    a flight's worst over its vehicles); estimates_m ``(K, N, N+1, 2)``
-    run 0's phat_ij(k) [north, east] (slot 0 the target; NaN where not estimated), or None
-    (flights carry theirs in the controllers' step records; a swarm whose estimates would exceed
-    ``ESTIMATES_LIMIT_BYTES`` does not keep them).
-    """
-
-    scenario: Scenario
-    times_s: NDArray[np.float64]
-    target_m: NDArray[np.float64]
-    positions_m: NDArray[np.float64]
-    phases_rad: NDArray[np.float64]
-    commands_m_s: NDArray[np.float64]
-    live: NDArray[np.bool_]
-    tracking_error_m: NDArray[np.float64]
-    localization_error_m: NDArray[np.float64]
-    localization_rms_m: NDArray[np.float64]
-    gated_ranges: NDArray[np.int_]
-    phase_spacing_error_rad: NDArray[np.float64]
-    consensus_speed_m_s: NDArray[np.float64]
-    separation_m: NDArray[np.float64]
-    target_status: NDArray[np.int8]
-    #: Simulated only, ``(B, K)``: ranges between vehicles read in an NLOS burst at step k, and
-    #: ranges the estimators gated that were not (the gate's false rejections).
-    nlos_ranges: NDArray[np.int_] | None = None
-    false_rejections: NDArray[np.int_] | None = None
-    #: Flight-only metrics, ``{name: (B,) array}`` (see ``config.FLIGHT_METRICS``).
-    extra_metrics: dict[str, NDArray[Any]] = field(default_factory=dict)
-    estimates_m: NDArray[np.float64] | None = None
-
-    @property
-    def runs(self) -> int:
-        return self.tracking_error_m.shape[0]
+from ..wiring import algorithm_params
 
 
 def initial_conditions(
@@ -419,32 +370,4 @@ def _guarded(  # noqa: PLR0917 - the step's pieces, each named
         latency_s=safety.separation_latency_s,
         range_noise_std_m=scenario.sensors.range_noise_std_m,
         bearing_std_rad=step.bearing_std_rad[..., 1:],
-    )
-
-
-def score(
-    scenario: Scenario,
-    times: NDArray[np.float64],
-    target: NDArray[np.float64],
-    out: Mapping[str, NDArray[Any]],
-    extra_metrics: dict[str, NDArray[Any]] | None = None,
-) -> SimulationResult:
-    """A :class:`SimulationResult` from recorded series (simulated or flown): adds the tracking
-    error (centroid of live vehicles to target) and the phase-spacing error.
-
-    times ``(K+1,)``, target ``(K+1, 2)``; ``out`` the series named as the result's fields
-    (positions_m, phases_rad, commands_m_s, live, localization_error_m, localization_rms_m,
-    gated_ranges, consensus_speed_m_s, separation_m; optionally estimates_m), shaped as
-    documented there."""
-    positions, live = out["positions_m"], out["live"]
-    tracking = tracking_error(positions, live, target)
-    spacing = splay_spacing_error(out["phases_rad"], live)
-    return SimulationResult(
-        scenario=scenario,
-        times_s=times,
-        target_m=target,
-        tracking_error_m=tracking,
-        phase_spacing_error_rad=spacing,
-        extra_metrics=extra_metrics or {},
-        **out,
     )

@@ -20,11 +20,11 @@ from typing import Any
 
 import numpy as np
 import yaml
-from numpy.typing import NDArray
 
-from ..config import Scenario, validate_scenario
+from ..checks import validate_scenario
+from ..config import Scenario
 from ..errors import ConfigError
-from .metrics import run_metrics
+from ..metrics import SweepPoint, run_metrics
 from .simulator import check_memory, simulate
 
 _PART = re.compile(r"([^.\[\]]+)|\[(\d+|\*)\]")
@@ -45,14 +45,6 @@ class Axis:
             raise ValueError(f"expected PATH=V1,V2,... (got {text!r})")
         _parts(path)
         return cls(path, tuple(yaml.safe_load(value) for value in values.split(",")))
-
-
-@dataclass(frozen=True)
-class SweepPoint:
-    """One combination: its values (by path) and every metric over its runs, ``{name: (B,)}``."""
-
-    values: dict[str, Any]
-    metrics: dict[str, NDArray[Any]]
 
 
 def _parts(path: str) -> list[str | int]:

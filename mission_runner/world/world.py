@@ -32,9 +32,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..bus import BusError, RangeMessage, TargetObservation
 from ..errors import MissionRunnerError
+from ..records import TruthSample
 from ..scenario import target_positions
 from ..sensors import UwbRanging, measure_ranges, target_seen
-from ..sim.metrics import TruthSample
 
 if TYPE_CHECKING:
     from sitl.emulator import Emulator, Truth

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import yaml
 
-from mission_runner.config import load_scenario
+from mission_runner.checks import load_scenario
 from sitl.config import PortsConfig
 from tests.sitl.helpers import free_port_config
 

@@ -33,7 +33,7 @@ from mission_runner.bus import (
     open_bus,
 )
 from mission_runner.bus.broker import size_limits, write_broker_config
-from mission_runner.config import load_scenario
+from mission_runner.checks import load_scenario
 from mission_runner.runner.process import flight_bus
 from tests.mosquitto import MosquittoBroker, bus_test_key, free_loopback_port
 

@@ -22,7 +22,8 @@ from mission_runner.bus import (
     Topics,
 )
 from mission_runner.bus.broker import read_credentials
-from mission_runner.config import validate_scenario
+from mission_runner.checks import validate_scenario
+from mission_runner.metrics import run_metrics
 from mission_runner.outputs import bus_security, bus_security_line
 from mission_runner.runner.handshake import (
     MAX_START_LAG_S,
@@ -31,7 +32,6 @@ from mission_runner.runner.handshake import (
     start_problem,
 )
 from mission_runner.runner.mission import fly
-from mission_runner.sim.metrics import run_metrics
 from tests.mosquitto import add_login, bus_test_key, secured_broker
 
 from .flying import free_ports, load

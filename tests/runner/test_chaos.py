@@ -17,7 +17,7 @@ from pymavlink import mavutil
 
 from mission_runner.bus import ControlCommand, MissionControl, RangeMessage, Sender
 from mission_runner.bus.auth import BusKey, MessageAuth
-from mission_runner.config import load_scenario
+from mission_runner.checks import load_scenario
 
 from .flying import CONFIGS, swarm, wait_for
 

@@ -24,7 +24,7 @@ from mission_runner.bus import (
     open_bus,
     shared_range,
 )
-from mission_runner.config import validate_scenario
+from mission_runner.checks import validate_scenario
 from mission_runner.enclosing import NeighbourReport, TargetReport, VehicleEnclosing
 from mission_runner.runner import controller as controller_module
 from mission_runner.runner.controller import build_controller

@@ -3,8 +3,8 @@ must meet its own ``expect:`` block. The scenarios are data; this file only flie
 
 import pytest
 
+from mission_runner.metrics import check_expectations, run_metrics
 from mission_runner.runner.mission import fly
-from mission_runner.sim.metrics import check_expectations, run_metrics
 
 from .flying import flight_configs, free_ports, load
 

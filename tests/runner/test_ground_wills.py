@@ -18,7 +18,7 @@ from mission_runner.bus import (
     VehicleStatus,
     lost_vehicle_will,
 )
-from mission_runner.config import load_scenario
+from mission_runner.checks import load_scenario
 from mission_runner.runner.handshake import next_command
 from mission_runner.runner.process import run_ground
 from tests.mosquitto import bus_test_key

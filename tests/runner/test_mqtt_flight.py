@@ -11,9 +11,9 @@ import asyncio
 import numpy as np
 import pytest
 
-from mission_runner.config import validate_scenario
+from mission_runner.checks import validate_scenario
+from mission_runner.metrics import run_metrics
 from mission_runner.runner.mission import fly
-from mission_runner.sim.metrics import run_metrics
 
 from .flying import free_ports, load
 

@@ -6,9 +6,14 @@ import math
 import pytest
 
 from mission_runner.bus import StepMessage
-from mission_runner.config import validate_scenario
-from mission_runner.runner.plausibility import CommandGate, RangeGate, RangeLimits
-from mission_runner.wiring import DEFAULT_RADIO_REACH_M, range_limits
+from mission_runner.checks import validate_scenario
+from mission_runner.runner.plausibility import (
+    DEFAULT_RADIO_REACH_M,
+    CommandGate,
+    RangeGate,
+    RangeLimits,
+    range_limits,
+)
 
 from .flying import load
 

@@ -18,7 +18,8 @@ import yaml
 from pymavlink.dialects.v20 import common as mavlink2
 
 from mission_runner import px4sitl
-from mission_runner.config import Scenario, validate_scenario
+from mission_runner.checks import validate_scenario
+from mission_runner.config import Scenario
 from mission_runner.px4sitl import (
     DEFAULT_NICE,
     EARTH_RADIUS_M,

@@ -18,7 +18,7 @@ from mission_runner.bus import (
     RangeMessage,
     TargetObservation,
 )
-from mission_runner.config import validate_scenario
+from mission_runner.checks import validate_scenario
 from mission_runner.runner.errors import RunnerError
 from mission_runner.runner.ranges import (
     MAX_WAIT_S,

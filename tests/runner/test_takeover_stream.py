@@ -10,9 +10,9 @@ import json
 import pytest
 import yaml
 
-from mission_runner.config import load_scenario
+from mission_runner.checks import load_scenario
+from mission_runner.metrics import run_metrics
 from mission_runner.runner.mission import fly
-from mission_runner.sim.metrics import run_metrics
 
 from .flying import CONFIGS, OFFBOARD_MODE, free_ports, stream_after_takeover, swarm
 

@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mission_runner.config import load_scenario, validate_scenario
-from mission_runner.sim.metrics import run_metrics
+from mission_runner.checks import load_scenario, validate_scenario
+from mission_runner.metrics import run_metrics
 from mission_runner.sim.simulator import simulate
 from mission_runner.wiring import filter_settings
 

@@ -1,7 +1,7 @@
 import numpy as np
 
 from mission_runner.config import Expectation
-from mission_runner.sim.metrics import check_expectations, converged_step, distribution
+from mission_runner.metrics import check_expectations, converged_step, distribution
 
 
 def test_converged_step_is_the_first_step_after_the_last_violation():

@@ -5,9 +5,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mission_runner.config import load_scenario, validate_scenario
+from mission_runner.checks import load_scenario, validate_scenario
 from mission_runner.enclosing import LOST
-from mission_runner.sim.metrics import check_expectations, run_metrics
+from mission_runner.metrics import check_expectations, run_metrics
 from mission_runner.sim.simulator import flight_only_events, simulate
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"

@@ -4,9 +4,9 @@ every vehicle in one plane, with and without a 1 m guard (seeded, so the counts 
 import numpy as np
 import pytest
 
-from mission_runner.config import load_scenario, validate_scenario
+from mission_runner.checks import load_scenario, validate_scenario
 from mission_runner.errors import ConfigError
-from mission_runner.sim.metrics import run_metrics
+from mission_runner.metrics import run_metrics
 from mission_runner.sim.simulator import simulate
 from tests.runner.flying import CONFIGS
 

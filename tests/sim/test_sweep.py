@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from mission_runner.checks import load_scenario, validate_scenario
 from mission_runner.cli import EXIT_BAD_INPUT, EXIT_OK, main
-from mission_runner.config import load_scenario, validate_scenario
 from mission_runner.errors import ConfigError
 from mission_runner.sim.sweep import Axis, set_path, sweep, sweep_csv
 

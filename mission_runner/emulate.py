@@ -26,20 +26,20 @@ from pydantic import ValidationError
 from sitl import cli as sitl_cli
 from sitl.emulator import Emulator
 
-from ..bus import Sender, open_bus
-from ..bus.cli_options import with_bus_access
-from ..config import load_scenario
-from ..errors import ConfigError
-from ..runner.handshake import start_command
-from ..sim.metrics import tracking_error
-from ..wiring import emulator_config
-from .world import World
+from .bus import Sender, open_bus
+from .bus.cli_options import with_bus_access
+from .checks import load_scenario
+from .errors import ConfigError
+from .metrics import tracking_error
+from .runner.handshake import start_command
+from .wiring import emulator_config
+from .world.world import World
 
 if TYPE_CHECKING:
     from sitl.config import EmulatorConfig
 
-    from ..bus import Subscription
-    from ..config import Scenario
+    from .bus import Subscription
+    from .config import Scenario
 
 logger = logging.getLogger(__name__)
 

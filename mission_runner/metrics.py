@@ -1,21 +1,20 @@
-"""Headline metrics of a simulated (or flown) run, their distribution over a batch, and the
+"""A run's result and its scoring, the same for a simulated and a flown run: the result's time
+series (:class:`SimulationResult`), the headline metrics, their distribution over a batch, and the
 scenario's pass/fail expectations.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..config import FLIGHT_METRICS, Expectation, MetricName
-from ..enclosing.target import LOST
-
-if TYPE_CHECKING:
-    from .simulator import SimulationResult
+from .config import FLIGHT_METRICS, Expectation, MetricName, Scenario
+from .enclosing import splay_spacing_error
+from .enclosing.target import LOST
 
 #: One run's value of a metric (a Python or numpy number; None where there is none).
 MetricValue = float | np.floating[Any] | np.integer[Any] | None
@@ -173,19 +172,6 @@ def check_expectations(
     return failures
 
 
-@dataclass(frozen=True)
-class TruthSample:
-    """Ground truth at t_k, for scoring only (never given to a controller): target_m ``(2,)``,
-    positions_m ``(n, 2)`` north/east [m], alive ``(n,)`` (False where the vehicle's position is
-    unknown at t_k)."""
-
-    step: int
-    time_s: float
-    target_m: NDArray[np.float64]
-    positions_m: NDArray[np.float64]
-    alive: NDArray[np.bool_]
-
-
 def formation_centre(
     positions_m: NDArray[np.float64], live: NDArray[np.bool_]
 ) -> NDArray[np.float64]:
@@ -217,3 +203,85 @@ def closest_pair(distance_m: NDArray[np.float64], live: NDArray[np.bool_]) -> ND
     -> ``(...)`` (inf with fewer than two)."""
     pair = live[..., :, None] & live[..., None, :] & ~np.eye(live.shape[-1], dtype=bool)
     return np.where(pair, distance_m, np.inf).min(axis=(-1, -2))
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """Time series of a (batched) run; B runs, K steps, N vehicles.
+
+    times_s ``(K+1,)``; target_m ``(K+1, 2)``; positions_m ``(B, K+1, N, 2)``;
+    phases_rad ``(B, K+1, N)``; commands_m_s ``(B, K, N, 2)`` (after the speed bound);
+    live ``(B, K+1, N)``; tracking_error_m ``(B, K+1)``; localization_error_m ``(B, K)`` (max over
+    estimated edges at step k); localization_rms_m ``(B, K)`` (RMS over the estimated edges at
+    step k); gated_ranges ``(B, K)`` (ranges the estimators rejected as outliers at step k);
+    phase_spacing_error_rad ``(B, K+1)``; consensus_speed_m_s ``(B, K)`` (max over vehicles of
+    |sat(ubar)|); separation_m ``(B, K+1)`` (closest live pair); target_status ``(B, K)`` (what
+    the formation knew of the target at step k: ``enclosing.target`` OBSERVED, PREDICTED or LOST;
+    a flight's worst over its vehicles); estimates_m ``(K, N, N+1, 2)``
+    run 0's phat_ij(k) [north, east] (slot 0 the target; NaN where not estimated), or None
+    (flights carry theirs in the controllers' step records; a swarm whose estimates would exceed
+    ``ESTIMATES_LIMIT_BYTES`` does not keep them).
+    """
+
+    scenario: Scenario
+    times_s: NDArray[np.float64]
+    target_m: NDArray[np.float64]
+    positions_m: NDArray[np.float64]
+    phases_rad: NDArray[np.float64]
+    commands_m_s: NDArray[np.float64]
+    live: NDArray[np.bool_]
+    tracking_error_m: NDArray[np.float64]
+    localization_error_m: NDArray[np.float64]
+    localization_rms_m: NDArray[np.float64]
+    gated_ranges: NDArray[np.int_]
+    phase_spacing_error_rad: NDArray[np.float64]
+    consensus_speed_m_s: NDArray[np.float64]
+    separation_m: NDArray[np.float64]
+    target_status: NDArray[np.int8]
+    #: Simulated only, ``(B, K)``: ranges between vehicles read in an NLOS burst at step k, and
+    #: ranges the estimators gated that were not (the gate's false rejections).
+    nlos_ranges: NDArray[np.int_] | None = None
+    false_rejections: NDArray[np.int_] | None = None
+    #: Flight-only metrics, ``{name: (B,) array}`` (see ``config.FLIGHT_METRICS``).
+    extra_metrics: dict[str, NDArray[Any]] = field(default_factory=dict)
+    estimates_m: NDArray[np.float64] | None = None
+
+    @property
+    def runs(self) -> int:
+        return self.tracking_error_m.shape[0]
+
+
+def score(
+    scenario: Scenario,
+    times: NDArray[np.float64],
+    target: NDArray[np.float64],
+    out: Mapping[str, NDArray[Any]],
+    extra_metrics: dict[str, NDArray[Any]] | None = None,
+) -> SimulationResult:
+    """A :class:`SimulationResult` from recorded series (simulated or flown): adds the tracking
+    error (centroid of live vehicles to target) and the phase-spacing error.
+
+    times ``(K+1,)``, target ``(K+1, 2)``; ``out`` the series named as the result's fields
+    (positions_m, phases_rad, commands_m_s, live, localization_error_m, localization_rms_m,
+    gated_ranges, consensus_speed_m_s, separation_m; optionally estimates_m), shaped as
+    documented there."""
+    positions, live = out["positions_m"], out["live"]
+    tracking = tracking_error(positions, live, target)
+    spacing = splay_spacing_error(out["phases_rad"], live)
+    return SimulationResult(
+        scenario=scenario,
+        times_s=times,
+        target_m=target,
+        tracking_error_m=tracking,
+        phase_spacing_error_rad=spacing,
+        extra_metrics=extra_metrics or {},
+        **out,
+    )
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    """One combination: its values (by path) and every metric over its runs, ``{name: (B,)}``."""
+
+    values: dict[str, Any]
+    metrics: dict[str, NDArray[Any]]
