@@ -77,6 +77,73 @@ BUILDABLE: frozenset[int] = frozenset(
 #: Of those, the ones only sent on request here.
 NOT_STREAMABLE: frozenset[int] = frozenset([MSG_AUTOPILOT_VERSION, MSG_PROTOCOL_VERSION])
 
+#: Messages PX4 has a stream of (PX4 v1.16 src/modules/mavlink/mavlink_messages.cpp,
+#: ``streams_list``; those pymavlink's common dialect knows). PX4 accepts SET_MESSAGE_INTERVAL for
+#: any of them (``MavlinkReceiver::set_message_interval``: FAILED only for an id without a stream).
+#: The emulator builds only :data:`BUILDABLE`: stopping one of the others is accepted (it is not
+#: sent anyway, as a client that stops PX4's defaults expects); starting one is FAILED.
+PX4_STREAMS: frozenset[int] = frozenset(
+    getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
+    for name in (
+        "ACTUATOR_OUTPUT_STATUS",
+        "ALTITUDE",
+        "ATTITUDE",
+        "ATTITUDE_QUATERNION",
+        "ATTITUDE_TARGET",
+        "AUTOPILOT_VERSION",
+        "BATTERY_STATUS",
+        "CAMERA_IMAGE_CAPTURED",
+        "CAMERA_TRIGGER",
+        "COMMAND_LONG",
+        "DISTANCE_SENSOR",
+        "EFI_STATUS",
+        "ESTIMATOR_STATUS",
+        "EXTENDED_SYS_STATE",
+        "FLIGHT_INFORMATION",
+        "GLOBAL_POSITION_INT",
+        "GPS_GLOBAL_ORIGIN",
+        "GPS_RAW_INT",
+        "GPS_RTCM_DATA",
+        "GPS_STATUS",
+        "HIGHRES_IMU",
+        "HIL_ACTUATOR_CONTROLS",
+        "HIL_STATE_QUATERNION",
+        "HOME_POSITION",
+        "LANDING_TARGET",
+        "LOCAL_POSITION_NED",
+        "MAG_CAL_REPORT",
+        "MANUAL_CONTROL",
+        "MOUNT_ORIENTATION",
+        "NAV_CONTROLLER_OUTPUT",
+        "OBSTACLE_DISTANCE",
+        "ODOMETRY",
+        "OPEN_DRONE_ID_BASIC_ID",
+        "OPEN_DRONE_ID_LOCATION",
+        "OPEN_DRONE_ID_SYSTEM",
+        "OPEN_DRONE_ID_ARM_STATUS",
+        "OPTICAL_FLOW_RAD",
+        "ORBIT_EXECUTION_STATUS",
+        "PING",
+        "POSITION_TARGET_GLOBAL_INT",
+        "POSITION_TARGET_LOCAL_NED",
+        "RAW_RPM",
+        "RC_CHANNELS",
+        "SCALED_IMU",
+        "SCALED_IMU2",
+        "SCALED_IMU3",
+        "SCALED_PRESSURE",
+        "SERVO_OUTPUT_RAW",
+        "STATUSTEXT",
+        "STORAGE_INFORMATION",
+        "SYS_STATUS",
+        "SYSTEM_TIME",
+        "TIMESYNC",
+        "VFR_HUD",
+        "VIBRATION",
+        "WIND_COV",
+    )
+)
+
 # SYS_STATUS sensor bits (MAV_SYS_STATUS_SENSOR)
 _GYRO = 0x1
 _ACCEL = 0x2
@@ -157,8 +224,11 @@ class StreamScheduler:
 
     def set_interval(self, msg_id: int, interval_us: float, now_s: float) -> bool:
         """Apply SET_MESSAGE_INTERVAL; False if this message cannot be streamed."""
-        if msg_id not in BUILDABLE or msg_id in NOT_STREAMABLE or not math.isfinite(interval_us):
+        if not math.isfinite(interval_us):
             return False
+        if msg_id not in BUILDABLE or msg_id in NOT_STREAMABLE:
+            # A stream PX4 has and the emulator does not send: stopping it is what PX4 does.
+            return interval_us < 0 and msg_id in PX4_STREAMS
         if interval_us < 0:
             period: float | None = None
         elif interval_us == 0:

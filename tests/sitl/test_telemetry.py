@@ -42,6 +42,23 @@ def test_interval_changes() -> None:
     assert scheduler.interval_us(30) == 20_000
 
 
+def test_a_px4_stream_the_emulator_does_not_send_can_be_stopped_as_on_px4() -> None:
+    """A companion computer stops PX4's onboard defaults it never reads (ATTITUDE_TARGET,
+    SERVO_OUTPUT_RAW, ...): PX4 accepts, the emulator refused each (9 FAILED commands and log
+    lines per vehicle). Starting one it cannot build stays FAILED; an id PX4 has no stream of
+    (RAW_IMU) is FAILED either way, as on PX4."""
+    scheduler = StreamScheduler(StreamRates())
+    for msg_id in (
+        mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET,
+        mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW,
+        mavlink.MAVLINK_MSG_ID_ODOMETRY,
+    ):
+        assert scheduler.set_interval(msg_id, -1, now_s=1.0)
+        assert not scheduler.set_interval(msg_id, 20_000, now_s=1.0)
+        assert msg_id not in scheduler.due(2.0)
+    assert not scheduler.set_interval(mavlink.MAVLINK_MSG_ID_RAW_IMU, -1, now_s=1.0)
+
+
 def test_health_bits_for_mavsdk() -> None:
     bench = Bench(ready_after_s=1.0)
     early = bench.ap.telemetry.sys_status(0.5)
