@@ -131,12 +131,16 @@ def missing_paths(path: Path) -> Iterator[str]:
             yield f"no such module: {code}"
 
 
+#: A function, class or module-level name (a constant or table) defined in a module.
+DEFINITION = r"^(?:\s*(?:async\s+)?(?:def|class)\s+{name}\b|{name}\s*(?::[^=\n]+)?=)"
+
+
 def missing_definitions(path: Path) -> Iterator[str]:
     for module, name in MODULE_AND_NAME.findall(without_fences(path.read_text())):
         found = module_file(module)
         if found is None:
             yield f"no such module: {module} (for {name})"
-        elif not re.search(rf"^\s*(?:async\s+)?(?:def|class)\s+{name}\b", found.read_text(), re.M):
+        elif not re.search(DEFINITION.format(name=re.escape(name)), found.read_text(), re.M):
             yield f"{module} defines no {name}"
 
 
