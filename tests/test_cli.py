@@ -29,6 +29,7 @@ from mission_runner.cli import (
     main,
 )
 from mission_runner.outputs import RUN_FILES, RunSummary
+from tests.sitl.helpers import free_port_config
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -585,7 +586,6 @@ def test_a_stop_signal_reaches_the_flight_whichever_thread_the_kernel_gives_it_t
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_sigterm_stops_a_flight_with_exit_143_and_an_interrupted_summary(tmp_path):
-    from tests.sitl.helpers import free_port_config
 
     data = yaml.safe_load((CONFIGS / "paper_tracking_flyable.yaml").read_text())
     data["flight"]["emulator"] = {"ports": free_port_config(4, gcs=False).model_dump()}
@@ -626,7 +626,10 @@ def test_a_taken_port_is_one_line_naming_the_setting(tmp_path, capsys):
         port = taken.getsockname()[1]
 
         def gcs_port(data):
-            data["flight"]["emulator"] = {"ports": {"gcs_local_base": port}}
+            # Every other port free too: PX4 SITL on this machine holds the defaults (14580...).
+            ports = free_port_config(len(data["vehicles"]), gcs=True).model_dump(mode="json")
+            ports = {key: value for key, value in ports.items() if value is not None}
+            data["flight"]["emulator"] = {"ports": {**ports, "gcs_local_base": port}}
 
         config = tmp_path / "flyable.yaml"
         data = yaml.safe_load((CONFIGS / "paper_tracking_flyable.yaml").read_text())
