@@ -24,9 +24,9 @@ from mission_runner.cli import (
     EXIT_OK,
     EXIT_RUNTIME_FAILURE,
     EXIT_TERMINATED,
-    _score_without_truth,
     main,
 )
+from mission_runner.cli.ground import score_without_truth
 from mission_runner.config import load_scenario
 from mission_runner.outputs import RUN_FILES, RunSummary
 
@@ -423,7 +423,7 @@ def test_a_signal_stops_simulate_with_its_exit_code_and_an_interrupted_summary(
 
 ASYNC_STOP = """
 import asyncio, signal, sys
-from mission_runner import cli
+from mission_runner.cli import stopping
 
 signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job: asyncio adds no handler then
 
@@ -437,9 +437,9 @@ async def fly():
         raise
 
 
-with cli._terminate_as_interrupt():
+with stopping.terminate_as_interrupt():
     try:
-        cli._run_async(fly())
+        stopping.run_async(fly())
     except KeyboardInterrupt:
         print("KeyboardInterrupt", flush=True)
 """
@@ -468,7 +468,7 @@ def test_sigterm_cancels_the_asyncio_main_task_even_where_sigint_is_ignored(tmp_
 
 SECOND_STOP = """
 import asyncio
-from mission_runner import cli
+from mission_runner.cli import stopping
 
 
 async def fly():
@@ -484,11 +484,11 @@ async def fly():
             raise
 
 
-with cli._terminate_as_interrupt():
+with stopping.terminate_as_interrupt():
     try:
-        cli._run_async(fly(), cli._RUN_STOPPING)
+        stopping.run_async(fly(), stopping.RUN_STOPPING)
     except KeyboardInterrupt:
-        print("KeyboardInterrupt", cli._signals.received, flush=True)
+        print("KeyboardInterrupt", stopping.signals.received, flush=True)
 """
 
 
@@ -539,7 +539,7 @@ import signal
 import sys
 import threading
 
-from mission_runner import cli
+from mission_runner.cli import stopping
 
 
 def signaller():
@@ -557,11 +557,11 @@ async def fly():
 
 
 threading.Thread(target=signaller, daemon=True).start()
-with cli._terminate_as_interrupt():
+with stopping.terminate_as_interrupt():
     try:
-        cli._run_async(fly(), cli._RUN_STOPPING)
+        stopping.run_async(fly(), stopping.RUN_STOPPING)
     except KeyboardInterrupt:
-        print("KeyboardInterrupt", cli._signals.received, flush=True)
+        print("KeyboardInterrupt", stopping.signals.received, flush=True)
 """
 
 
@@ -693,7 +693,7 @@ def test_a_ground_station_without_truth_scores_only_what_it_saw(tmp_path):
     ends = {1: "done", 2: "done", 3: "done", 4: "taken_over"}
     statuses = {i: VehicleStatus(i, 10.0, state, 600, False) for i, state in ends.items()}
     with RunSummary(tmp_path, scenario, config_path=None) as record:
-        code = _score_without_truth(scenario, record, statuses)
+        code = score_without_truth(scenario, record, statuses)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert code == EXIT_EXPECTATION_FAILED
     assert summary["status"] == "failed"
@@ -704,7 +704,7 @@ def test_a_ground_station_without_truth_scores_only_what_it_saw(tmp_path):
 
     statuses[4] = VehicleStatus(4, 10.0, "done", 600, False)
     with RunSummary(tmp_path, scenario, config_path=None) as record:
-        code = _score_without_truth(scenario, record, statuses)
+        code = score_without_truth(scenario, record, statuses)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert code == EXIT_OK
     assert summary["status"] == "unchecked"  # never "passed" on what it could not see
@@ -805,10 +805,10 @@ def test_a_command_line_loads_the_emulator_only_for_the_commands_that_need_it():
     """A vehicle process on a companion computer never pays for the emulator's and the PX4
     launcher's imports; emulate and px4-sitl still get their full options."""
     script = (
-        "import sys; from mission_runner import cli; "
-        "p = cli._parser('vehicle'); p.parse_args(['vehicle', 'x.yaml', '--id', '1']); "
+        "import sys; from mission_runner.cli.parser import build_parser; "
+        "p = build_parser('vehicle'); p.parse_args(['vehicle', 'x.yaml', '--id', '1']); "
         "print('sitl' in sys.modules, 'mission_runner.px4sitl' in sys.modules); "
-        "p = cli._parser('emulate'); a = p.parse_args(['emulate', 'x.yaml', '--no-gcs']); "
+        "p = build_parser('emulate'); a = p.parse_args(['emulate', 'x.yaml', '--no-gcs']); "
         "print(a.no_gcs, 'sitl' in sys.modules)"
     )
     done = subprocess.run(
@@ -833,7 +833,7 @@ def test_steps_held_on_stale_data_are_in_the_verdict_and_can_be_bounded(tmp_path
     outcome = GroundOutcome("m1", 0.0, 1.0, statuses)
     assert outcome.lost == [] and outcome.stale_steps == 143
     with RunSummary(tmp_path, scenario, config_path=None) as record:
-        code = _score_without_truth(scenario, record, statuses, outcome.stale_steps)
+        code = score_without_truth(scenario, record, statuses, outcome.stale_steps)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert code == EXIT_EXPECTATION_FAILED
     assert summary["metrics"]["steps_on_stale_data"] == 143

@@ -60,7 +60,8 @@ from ..bus import (
     lost_vehicle_will,
     open_bus,
 )
-from ..bus.broker import OPERATOR_USER, USERNAME_ENV, flight_user, read_credentials
+from ..bus.broker import OPERATOR_USER, flight_user, read_credentials
+from ..environment import USERNAME_ENV
 from ..errors import error_reason
 from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
