@@ -25,6 +25,7 @@ from ..enclosing import (
     splay_spacing_error,
     track_target,
 )
+from ..enclosing.control import saturate
 from ..enclosing.separation import separation_guard
 from ..errors import ConfigError, SimulationError
 from ..scenario import shape_matrices, target_positions
@@ -365,8 +366,7 @@ def simulate(
         command = step.velocity_m_s
         if scenario.safety.min_separation_m is not None:
             command = _guarded(command, step, ranges, in_force, live, scenario)
-        norm = np.sqrt(np.sum(command * command, axis=-1, keepdims=True))
-        command = command * np.minimum(1.0, speed_limit / np.maximum(norm, 1e-300))
+        command = saturate(command, speed_limit)
         command = np.where(live[..., None] & ~holding[:, None, None], command, 0.0)
         in_force = np.where(live[..., None], command, np.nan)
         out["target_status"][:, k] = target_estimate.status
