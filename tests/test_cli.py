@@ -869,3 +869,39 @@ def test_a_flight_counts_the_steps_its_controllers_held_or_skipped():
     metrics = run_metrics(score_flight(scenario, samples, records, None))
     # Held on stale data or skipped: 3 a vehicle; the operator's hold and a lost target are not.
     assert metrics["steps_on_stale_data"][0] == 3 * n
+
+
+#: What building the command line must not load: the bus's MQTT clients, MAVSDK, the recording
+#: (Foxglove, MCAP), the figures and the emulator's MAVLink.
+HEAVY_MODULES = ("mavsdk", "aiomqtt", "paho", "foxglove", "mcap", "matplotlib", "pymavlink")
+HELP_IMPORTS = (
+    "import sys\n"
+    "from mission_runner.cli import main\n"
+    "try:\n"
+    "    main(sys.argv[1:])\n"
+    "except SystemExit:\n"
+    "    pass\n"
+    "print(' '.join(sorted({name.split('.')[0] for name in sys.modules})))\n"
+)
+
+
+def _commands():
+    from mission_runner.cli.parser import build_parser
+
+    return list(build_parser()._subparsers._group_actions[0].choices)
+
+
+@pytest.mark.parametrize("command", [None, *_commands()])
+def test_help_imports_no_bus_client_flight_stack_recording_or_figures(command):
+    """``--help`` is quick: building the parser of any command imports none of its work."""
+    arguments = ["--help"] if command is None else [command, "--help"]
+    done = subprocess.run(
+        [sys.executable, "-c", HELP_IMPORTS, *arguments],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60,
+    )
+    assert "usage: mission-runner" in done.stdout
+    loaded = set(done.stdout.splitlines()[-1].split())
+    assert not loaded & set(HEAVY_MODULES), sorted(loaded & set(HEAVY_MODULES))
