@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
-from collections.abc import Mapping
+from collections.abc import Coroutine, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from .. import argtypes
 from ..limits import MAX_WAIT_S
@@ -25,6 +24,7 @@ if TYPE_CHECKING:
     from ..bus import VehicleStatus
     from ..config import Scenario
     from ..outputs import RunSummary
+    from ..runner.process import GroundOutcome
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -54,38 +54,15 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 def command(arguments: argparse.Namespace) -> int:
     from ..bus.cli_options import with_bus_access  # noqa: PLC0415 - fast `--help`
     from ..config import load_scenario  # noqa: PLC0415 - fast `--help`
-    from ..outputs import (  # noqa: PLC0415
-        RUN_FILES,
-        RunSummary,
-        bus_security,
-        bus_security_line,
-        prepare_out_dir,
-    )
+    from ..outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from ..recording import LogCapture  # noqa: PLC0415 - fast `--help`
     from ..runner.process import run_ground, wait_and_merge  # noqa: PLC0415
     from ..runner.scoring import mission_records  # noqa: PLC0415
 
     scenario = with_bus_access(load_scenario(arguments.config, flying=True), arguments)
     mission_dir = prepare_out_dir(arguments.out or default_mission_dir(scenario), RUN_FILES)
-
-    last_state: dict[int, str] = {}
-    shown_to: dict[int, int] = {}  # the step from which a vehicle's progress is shown again
-
-    def show(status: VehicleStatus) -> None:
-        """A line at each change of state, else every 40 steps (the first status at or past
-        each multiple: statuses come on change and periodically, not every step)."""
-        vehicle = status.vehicle_id
-        changed = last_state.get(vehicle) != status.state
-        last_state[vehicle] = status.state
-        if changed or status.step >= shown_to.get(vehicle, 0):
-            shown_to[vehicle] = (status.step // 40 + 1) * 40
-            detail = f": {status.detail}" if status.detail else ""
-            print(
-                f"vehicle {status.vehicle_id}: {status.state} (step {status.step}){detail}",
-                flush=True,
-            )
-
     capture = LogCapture()
+    show = _StatusView()
 
     def on_status(status: VehicleStatus) -> None:
         capture.stamp(status.time_s)
@@ -94,7 +71,6 @@ def command(arguments: argparse.Namespace) -> int:
     with (
         RunSummary(mission_dir, scenario, config_path=arguments.config) as record,
         capture.attached(),
-        contextlib.ExitStack() as stack,
     ):
         ground = run_ground(
             scenario,
@@ -102,16 +78,63 @@ def command(arguments: argparse.Namespace) -> int:
             on_status=on_status,
             console=operator_console("ground"),
         )
-        server = live_server(arguments, scenario)
-        if server is None:
-            outcome = run_async(ground, GROUND_STOPPING)
-        else:
-            from ..live import LiveLog, alongside  # noqa: PLC0415
+        outcome = _fly(arguments, scenario, ground)
+        security = _report(scenario, outcome)
+        result = run_async(wait_and_merge(scenario, mission_dir, outcome))
+        if result is None:
+            print(
+                f"ground: no truth in {mission_dir}/truth/ (no simulator): tracking and estimate "
+                "errors unavailable; per-vehicle results in the vehicles' folders"
+            )
+            return score_without_truth(scenario, record, outcome.statuses, outcome.stale_steps)
+        document = record.write_results(
+            result,
+            figures=not arguments.no_figures,
+            vehicles=_vehicle_results(outcome),
+            records=mission_records(mission_dir, (v.id for v in scenario.vehicles)),
+            start_s=outcome.start_s or 0.0,
+            logs=capture.lines,
+            bus_security=security,
+        )
+    print(summary_text(document, mission_dir))
+    return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
 
-            stack.enter_context(server)
-            print(f"live: {server.url} (Foxglove: Open connection)", flush=True)
-            live_log = stack.enter_context(LiveLog(server.channels).attached())
-            outcome = run_async(
+
+class _StatusView:
+    """A line at each change of a vehicle's state, else every 40 steps (the first status at or
+    past each multiple: statuses come on change and periodically, not every step)."""
+
+    def __init__(self) -> None:
+        self._last_state: dict[int, str] = {}
+        self._shown_to: dict[int, int] = {}  # the step from which progress is shown again
+
+    def __call__(self, status: VehicleStatus) -> None:
+        vehicle = status.vehicle_id
+        changed = self._last_state.get(vehicle) != status.state
+        self._last_state[vehicle] = status.state
+        if changed or status.step >= self._shown_to.get(vehicle, 0):
+            self._shown_to[vehicle] = (status.step // 40 + 1) * 40
+            detail = f": {status.detail}" if status.detail else ""
+            print(
+                f"vehicle {status.vehicle_id}: {status.state} (step {status.step}){detail}",
+                flush=True,
+            )
+
+
+def _fly(
+    arguments: argparse.Namespace, scenario: Scenario, ground: Coroutine[Any, Any, GroundOutcome]
+) -> GroundOutcome:
+    """The mission of ``ground``, with ``--live`` the live view beside it until it ends (before
+    the merge)."""
+    server = live_server(arguments, scenario)
+    if server is None:
+        return run_async(ground, GROUND_STOPPING)
+    from ..live import LiveLog, alongside  # noqa: PLC0415
+
+    with server:
+        print(f"live: {server.url} (Foxglove: Open connection)", flush=True)
+        with LiveLog(server.channels).attached() as live_log:
+            return run_async(
                 alongside(
                     ground,
                     scenario,
@@ -121,55 +144,47 @@ def command(arguments: argparse.Namespace) -> int:
                 ),
                 GROUND_STOPPING,
             )
-            stack.close()  # the live view ends with the mission, before the merge
-        done = len(outcome.statuses) - len(outcome.lost)
-        lost = ", ".join(
-            f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
-        )
-        stale = outcome.stale_steps
+
+
+def _report(scenario: Scenario, outcome: GroundOutcome) -> dict[str, Any]:
+    """What the ground station saw of the mission, on stdout; its bus security figures."""
+    from ..outputs import bus_security, bus_security_line  # noqa: PLC0415
+
+    done = len(outcome.statuses) - len(outcome.lost)
+    lost = ", ".join(
+        f"{i} ({outcome.statuses[i].state}: {outcome.statuses[i].detail})" for i in outcome.lost
+    )
+    stale = outcome.stale_steps
+    print(
+        f"ground: mission {outcome.mission_id} over; {done} vehicle(s) done, lost: "
+        f"{lost or 'none'}; mission clock {outcome.clock_rate:.4f}x; steps held or skipped "
+        f"on stale or missing data: {'unknown' if stale is None else stale} of "
+        f"{scenario.timing.steps * len(scenario.vehicles)}",
+        flush=True,
+    )
+    if outcome.bus_drops:
+        drops = ", ".join(f"{i} ({n}x)" for i, n in sorted(outcome.bus_drops.items()))
         print(
-            f"ground: mission {outcome.mission_id} over; {done} vehicle(s) done, lost: "
-            f"{lost or 'none'}; mission clock {outcome.clock_rate:.4f}x; steps held or skipped "
-            f"on stale or missing data: {'unknown' if stale is None else stale} of "
-            f"{scenario.timing.steps * len(scenario.vehicles)}",
+            f"ground: dropped off the bus (last will) and heard again, so not lost: {drops}",
             flush=True,
         )
-        if outcome.bus_drops:
-            drops = ", ".join(f"{i} ({n}x)" for i, n in sorted(outcome.bus_drops.items()))
-            print(
-                f"ground: dropped off the bus (last will) and heard again, so not lost: {drops}",
-                flush=True,
-            )
-        security = bus_security(outcome.bus_messages, {})
-        line = bus_security_line({"bus_security": security})
-        if line:  # what each vehicle dropped is in its own summary
-            print(f"ground: {line}", flush=True)
-        result = run_async(wait_and_merge(scenario, mission_dir, outcome))
-        if result is None:
-            print(
-                f"ground: no truth in {mission_dir}/truth/ (no simulator): tracking and estimate "
-                "errors unavailable; per-vehicle results in the vehicles' folders"
-            )
-            return score_without_truth(scenario, record, outcome.statuses, stale)
-        document = record.write_results(
-            result,
-            figures=not arguments.no_figures,
-            vehicles={
-                i: {"state": status.state, "detail": status.detail}
-                | (
-                    {"bus": f"dropped off {outcome.bus_drops[i]}x (last will), heard again"}
-                    if i in outcome.bus_drops
-                    else {}
-                )
-                for i, status in outcome.statuses.items()
-            },
-            records=mission_records(mission_dir, (v.id for v in scenario.vehicles)),
-            start_s=outcome.start_s or 0.0,
-            logs=capture.lines,
-            bus_security=security,
+    security = bus_security(outcome.bus_messages, {})
+    line = bus_security_line({"bus_security": security})
+    if line:  # what each vehicle dropped is in its own summary
+        print(f"ground: {line}", flush=True)
+    return security
+
+
+def _vehicle_results(outcome: GroundOutcome) -> dict[int, dict[str, str]]:
+    return {
+        i: {"state": status.state, "detail": status.detail}
+        | (
+            {"bus": f"dropped off {outcome.bus_drops[i]}x (last will), heard again"}
+            if i in outcome.bus_drops
+            else {}
         )
-    print(summary_text(document, mission_dir))
-    return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
+        for i, status in outcome.statuses.items()
+    }
 
 
 def score_without_truth(

@@ -30,6 +30,27 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="sih: HIL_STATE_QUATERNION ground truth (PX4 SIH, or the emulator's truth stream) "
         "on UDP <truth-port-base> + id - 1; gps: GLOBAL_POSITION_INT through MAVSDK (--url)",
     )
+    _add_truth_options(ranges)
+    ranges.add_argument(
+        "--url",
+        action="append",
+        default=None,
+        help="with --source gps: MAVSDK URL(s) where every vehicle is heard, e.g. a GCS link "
+        "udpin://0.0.0.0:14550",
+    )
+    ranges.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="where the truth at every t_k is written, for scoring only "
+        "(default: out/<name>-mission/truth)",
+    )
+    add_bus_arguments(ranges)
+    ranges.set_defaults(handler=command)
+
+
+def _add_truth_options(ranges: argparse.ArgumentParser) -> None:
+    """``--source sih``: where the truth is, how often, and the vision odometry made of it."""
     ranges.add_argument(
         "--truth-port-base",
         type=argtypes.port,
@@ -60,22 +81,6 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar=("POSITION_M", "VELOCITY_M_S"),
         help="white noise (std) of the vision odometry's position and velocity (0.02 0.05)",
     )
-    ranges.add_argument(
-        "--url",
-        action="append",
-        default=None,
-        help="with --source gps: MAVSDK URL(s) where every vehicle is heard, e.g. a GCS link "
-        "udpin://0.0.0.0:14550",
-    )
-    ranges.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help="where the truth at every t_k is written, for scoring only "
-        "(default: out/<name>-mission/truth)",
-    )
-    add_bus_arguments(ranges)
-    ranges.set_defaults(handler=command)
 
 
 def command(arguments: argparse.Namespace) -> int:

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from .. import argtypes
 from ..limits import MAX_CLOCK_SPEED
@@ -16,8 +16,9 @@ from .output import FlightView, maybe_replay, ranging_text, summary_text
 from .stopping import RUN_STOPPING, run_async
 
 if TYPE_CHECKING:
+    from ..config import Scenario
     from ..runner.controller import StepRecord
-    from ..runner.mission import Progress
+    from ..runner.mission import FlightOutcome, Progress
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -46,22 +47,12 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def command(arguments: argparse.Namespace) -> int:
-    from ..bus.cli_options import with_bus_access  # noqa: PLC0415 - fast `--help`
-    from ..config import load_scenario, validate_scenario  # noqa: PLC0415
     from ..figure_process import FigureProcess  # noqa: PLC0415
     from ..outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415
     from ..recording import LogCapture  # noqa: PLC0415 - fast `--help`
     from ..runner.mission import fly  # noqa: PLC0415
-    from ..sim.simulator import check_memory  # noqa: PLC0415
 
-    scenario = load_scenario(arguments.config, flying=True)
-    if arguments.realtime or arguments.speed is not None:
-        data = scenario.model_dump(mode="json")
-        data["flight"]["clock"] = "realtime"
-        data["flight"]["speed"] = 1.0 if arguments.speed is None else arguments.speed
-        scenario = validate_scenario(data, str(arguments.config))
-    scenario = with_bus_access(scenario, arguments)
-    check_memory(scenario, 1, str(arguments.config))  # the flight's scored result
+    scenario = _scenario(arguments)
     out_dir = prepare_out_dir(arguments.out or Path("out") / f"{scenario.name}-run", RUN_FILES)
     tlogs = out_dir / "tlogs"
     tlogs.mkdir(exist_ok=True)
@@ -84,16 +75,7 @@ def command(arguments: argparse.Namespace) -> int:
         progress_callbacks: list[Callable[[Progress], None]] = [view] if view is not None else []
         with contextlib.ExitStack() as stack:
             stack.enter_context(capture.attached())
-            server = live_server(arguments, scenario)
-            if server is not None:
-                from ..live import FlightFeed, LiveLog  # noqa: PLC0415
-
-                stack.enter_context(server)
-                print(f"live: {server.url} (Foxglove: Open connection)", flush=True)
-                feed = FlightFeed(scenario, server.channels)
-                live_log = stack.enter_context(LiveLog(server.channels).attached())
-                step_callbacks += [feed.on_step, lambda _, step: live_log.stamp(step.time_s)]
-                progress_callbacks.append(feed.on_progress)
+            _attach_live(stack, arguments, scenario, step_callbacks, progress_callbacks)
             try:
                 outcome = run_async(
                     fly(
@@ -120,12 +102,58 @@ def command(arguments: argparse.Namespace) -> int:
             figure_process=None if arguments.no_figures else figure_process,
         )
     if not arguments.quiet:
-        print(summary_text(document, out_dir))
-        print(ranging_text(scenario))
-        mission_s = scenario.timing.steps * scenario.timing.step_s
-        print(
-            f"flown: {mission_s:g} s of mission in {outcome.mission_wall_time_s:.2f} s wall "
-            f"({mission_s / outcome.mission_wall_time_s:.1f}x real time); MAVLink logs in {tlogs}/"
-        )
+        _print_flight(scenario, document, outcome, out_dir)
     maybe_replay(arguments, out_dir)
     return EXIT_OK if document["expectations"]["passed"] else EXIT_EXPECTATION_FAILED
+
+
+def _scenario(arguments: argparse.Namespace) -> Scenario:
+    """The scenario to fly: ``--realtime`` and ``--speed`` applied, the bus options attached,
+    its scored result checked to fit in memory."""
+    from ..bus.cli_options import with_bus_access  # noqa: PLC0415 - fast `--help`
+    from ..config import load_scenario, validate_scenario  # noqa: PLC0415
+    from ..sim.simulator import check_memory  # noqa: PLC0415
+
+    scenario = load_scenario(arguments.config, flying=True)
+    if arguments.realtime or arguments.speed is not None:
+        data = scenario.model_dump(mode="json")
+        data["flight"]["clock"] = "realtime"
+        data["flight"]["speed"] = 1.0 if arguments.speed is None else arguments.speed
+        scenario = validate_scenario(data, str(arguments.config))
+    scenario = with_bus_access(scenario, arguments)
+    check_memory(scenario, 1, str(arguments.config))  # the flight's scored result
+    return scenario
+
+
+def _attach_live(
+    stack: contextlib.ExitStack,
+    arguments: argparse.Namespace,
+    scenario: Scenario,
+    step_callbacks: list[Callable[[int, StepRecord], None]],
+    progress_callbacks: list[Callable[[Progress], None]],
+) -> None:
+    """``--live``: the live view's server on ``stack``, fed by the flight's callbacks."""
+    server = live_server(arguments, scenario)
+    if server is None:
+        return
+    from ..live import FlightFeed, LiveLog  # noqa: PLC0415
+
+    stack.enter_context(server)
+    print(f"live: {server.url} (Foxglove: Open connection)", flush=True)
+    feed = FlightFeed(scenario, server.channels)
+    live_log = stack.enter_context(LiveLog(server.channels).attached())
+    step_callbacks += [feed.on_step, lambda _, step: live_log.stamp(step.time_s)]
+    progress_callbacks.append(feed.on_progress)
+
+
+def _print_flight(
+    scenario: Scenario, document: Mapping[str, Any], outcome: FlightOutcome, out_dir: Path
+) -> None:
+    print(summary_text(document, out_dir))
+    print(ranging_text(scenario))
+    mission_s = scenario.timing.steps * scenario.timing.step_s
+    print(
+        f"flown: {mission_s:g} s of mission in {outcome.mission_wall_time_s:.2f} s wall "
+        f"({mission_s / outcome.mission_wall_time_s:.1f}x real time); MAVLink logs in "
+        f"{out_dir / 'tlogs'}/"
+    )

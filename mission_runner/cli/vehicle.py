@@ -4,12 +4,16 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .. import argtypes
 from ..limits import MAX_MAVLINK_ID
 from .common import EXIT_OK, EXIT_RUNTIME_FAILURE, default_mission_dir
 from .options import add_bus_arguments
 from .stopping import run_async
+
+if TYPE_CHECKING:
+    from ..runner.process import VehicleRun
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -39,14 +43,7 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 def command(arguments: argparse.Namespace) -> int:
     from ..bus.cli_options import with_bus_access  # noqa: PLC0415 - fast `--help`
     from ..config import load_scenario  # noqa: PLC0415 - fast `--help`
-    from ..outputs import (  # noqa: PLC0415
-        VEHICLE_FILES,
-        Status,
-        bus_security,
-        bus_security_line,
-        prepare_out_dir,
-        write_vehicle_run,
-    )
+    from ..outputs import VEHICLE_FILES, Status, prepare_out_dir, write_vehicle_run  # noqa: PLC0415
     from ..recording import LogCapture  # noqa: PLC0415 - fast `--help`
     from ..runner.process import VehicleRun, run_vehicle  # noqa: PLC0415
 
@@ -82,9 +79,17 @@ def command(arguments: argparse.Namespace) -> int:
             scenario=scenario,
             logs=capture.lines,
         )
+    _report(run, out_dir)
+    return EXIT_OK if run.state == "done" else EXIT_RUNTIME_FAILURE
+
+
+def _report(run: VehicleRun, out_dir: Path) -> None:
+    """How the vehicle's mission went, on stdout; what its bus dropped, if anything."""
+    from ..outputs import bus_security, bus_security_line  # noqa: PLC0415
+
     following = sum(record.state == "following" for record in run.records)
     print(
-        f"vehicle {arguments.id}: {run.state}, {len(run.records)} steps, {following} following "
+        f"vehicle {run.vehicle_id}: {run.state}, {len(run.records)} steps, {following} following "
         f"the law, {run.skipped_steps} skipped; autopilot clock "
         f"{run.autopilot_clock_rate or 1:.4f}x, mission clock {run.clock_rate:.4f}x; "
         f"results in {out_dir}/" + (f"\n  {run.detail}" if run.detail else "")
@@ -98,5 +103,4 @@ def command(arguments: argparse.Namespace) -> int:
     }
     line = bus_security_line(security)
     if line:
-        print(f"vehicle {arguments.id}: {line}")
-    return EXIT_OK if run.state == "done" else EXIT_RUNTIME_FAILURE
+        print(f"vehicle {run.vehicle_id}: {line}")
