@@ -54,7 +54,7 @@ argument                meaning
                         at the end
 ======================  ===============================================================
 
-Wiring in ``cli.py``::
+Wiring in ``mission_runner/cli/px4_sitl.py``::
 
     px4 = commands.add_parser("px4-sitl", help="run real PX4 SITL (SIH), one per vehicle")
     px4sitl.add_arguments(px4)
