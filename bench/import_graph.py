@@ -51,6 +51,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "mission_runner.clock",
         "mission_runner.argtypes",
         "mission_runner.errors",
+        "mission_runner.limits",
+        "mission_runner.environment",
     ),
     ("mission_runner.enclosing",),
 )

@@ -35,6 +35,7 @@ from .config import (
 )
 from .errors import ConfigError
 from .expressions import compile_expression
+from .limits import MAX_MAVLINK_ID
 from .scenario import shape_matrices, signal_values, target_positions
 from .wiring import emulator_settings
 
@@ -120,10 +121,6 @@ def _read_bounded(file: Path, timeout_s: float) -> bytes | None:
         return b"".join(chunks)
     finally:
         os.close(descriptor)
-
-
-#: MAVLink system ids are one byte (0 is broadcast): a flying vehicle's id is its system id.
-MAX_MAVLINK_ID = 255
 
 
 def flight_problems(scenario: Scenario) -> list[Problem]:

@@ -27,6 +27,7 @@ from pydantic import (
 
 from .bus.settings import BusSettings
 from .expressions import ExpressionError, compile_expression
+from .limits import MAX_CLOCK_SPEED, MAX_NOISE_STD_M, MAX_WAIT_S
 
 if TYPE_CHECKING:
     pass
@@ -59,9 +60,6 @@ MIN_STEP_S, MAX_STEP_S = 1e-3, 60.0
 #: Durations of a run [s]: longer than the longest run (timing.steps <= 1e7 steps of <= 60 s);
 #: the bound keeps step counts derived from them integers (1e308 s overflowed).
 MAX_DURATION_S = 1e9
-#: What one wait of a flight may last [s] (timeouts, delays): an hour is beyond any of them, and
-#: the event loop's timers overflow long before 1e300.
-MAX_WAIT_S = 3600.0
 #: A radio crystal's offset [ppm]: UWB radios are trimmed to a few; 1000 is a broken one.
 MAX_CLOCK_OFFSET_PPM = 1000.0
 #: A ranging exchange's reply delay or airtime [s]: milliseconds; a second is no UWB radio.
@@ -71,13 +69,8 @@ MAX_RATE_RAD_S = 100.0
 #: Phases [rad]: every angle is within one turn; far larger numbers are typos and lose the
 #: precision of sin and cos.
 MAX_PHASE_RAD = 1000.0
-#: Noise figures (standard deviations) [m]: a ranging radio or an odometry worse than this
-#: measures nothing.
-MAX_NOISE_STD_M = 100.0
 #: Gains of the law and of the controllers [1/s, 1/s^2, dimensionless]: far beyond a stable one.
 MAX_GAIN = 1000.0
-#: Fastest speed factor of the bundled emulator's real-time clock (sitl.config).
-MAX_CLOCK_SPEED = 1000.0
 #: PX4 parameters are INT32 or REAL32 (MAVLink PARAM_SET): values beyond these do not fit.
 INT32_RANGE = (-(2**31), 2**31 - 1)
 REAL32_MAX = 3.4028234663852886e38

@@ -17,7 +17,6 @@ import logging
 import math
 import sys
 from collections.abc import AsyncIterator
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import yaml
@@ -78,21 +77,6 @@ async def _start_on_command(control: Subscription, world: World) -> None:
     start_s = math.ceil(start.time_s / world.step_s - 1e-9) * world.step_s
     logger.info("world: mission k = 0 at UNIX time %.3f", start_s)
     world.start(start_s)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The ``emulate`` command's arguments: the scenario, the emulator's own options (ports,
-    clock, PX4-SIH fidelity: as ``sitl``'s) and ``--start-after``; sets ``handler=command``."""
-    parser.add_argument(
-        "scenario", type=Path, metavar="CONFIG", help="scenario YAML file (bus.kind: mqtt)"
-    )
-    sitl_cli.add_emulator_options(parser)  # its --config: emulator settings over the scenario's
-    parser.add_argument(
-        "--start-after",
-        type=float,
-        help="k = 0 this many seconds after start (default: on the ground station's start)",
-    )
-    parser.set_defaults(handler=command)
 
 
 def command(arguments: argparse.Namespace) -> int:

@@ -54,7 +54,7 @@ argument                meaning
                         at the end
 ======================  ===============================================================
 
-Wiring in ``cli.py``::
+Wiring in ``mission_runner/cli/px4_sitl.py``::
 
     px4 = commands.add_parser("px4-sitl", help="run real PX4 SITL (SIH), one per vehicle")
     px4sitl.add_arguments(px4)
@@ -93,13 +93,15 @@ import tempfile
 import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from . import argtypes
-from .checks import load_scenario
-from .config import MAX_CLOCK_SPEED, Scenario
+from .limits import MAX_CLOCK_SPEED
 from .runner.errors import RunnerError, RunnerTimeoutError
 from .tasks import first_completed
+
+if TYPE_CHECKING:
+    from .config import Scenario
 
 logger = logging.getLogger(__name__)
 
@@ -951,6 +953,8 @@ async def _run_until_signal(arguments: argparse.Namespace, scenario: Scenario) -
 
 def command(arguments: argparse.Namespace) -> int:
     """``mission-runner px4-sitl``: run the instances until SIGINT/SIGTERM; 0 when stopped so."""
+    from .checks import load_scenario  # noqa: PLC0415 - `px4-sitl --help` without the model
+
     scenario = load_scenario(arguments.config, flying=True)
     asyncio.run(_run_until_signal(arguments, scenario))
     return 0

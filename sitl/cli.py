@@ -21,14 +21,14 @@ import logging
 import signal
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 from pydantic import ValidationError
 
-from sitl.config import EmulatorConfig
-from sitl.emulator import Emulator
-from sitl.errors import SitlError
+if TYPE_CHECKING:  # imported where used: the options alone (a parser's --help) load no MAVLink
+    from sitl.config import EmulatorConfig
+    from sitl.emulator import Emulator
 
 logger = logging.getLogger("sitl")
 
@@ -181,6 +181,8 @@ def add_emulator_options(parser: argparse.ArgumentParser) -> None:
 
 def load_config(args: argparse.Namespace) -> EmulatorConfig:
     """The configuration from ``--config`` plus command line overrides (ValidationError if bad)."""
+    from sitl.config import EmulatorConfig  # noqa: PLC0415 - `sitl --help` without the emulator
+
     data: dict[str, Any] = {}
     if args.config is not None:
         loaded = yaml.safe_load(args.config.read_text()) or {}
@@ -232,6 +234,8 @@ def load_config(args: argparse.Namespace) -> EmulatorConfig:
 def fidelity_overrides(config: EmulatorConfig, scenario_emulator: dict[str, Any]) -> dict[str, Any]:
     """What the options and ``--config`` set of the PX4-SIH fidelity sections, for a scenario's
     emulator settings: sections left at their defaults keep the scenario's, faults add up."""
+    from sitl.config import EmulatorConfig  # noqa: PLC0415 - `sitl --help` without the emulator
+
     defaults = EmulatorConfig()
     overrides: dict[str, Any] = {
         name: getattr(config, name).model_dump()
@@ -332,6 +336,8 @@ def describe_stop(emulator: Emulator) -> None:
 
 async def run(config: EmulatorConfig) -> None:
     """Run the emulator until SIGINT or SIGTERM."""
+    from sitl.emulator import Emulator  # noqa: PLC0415 - `sitl --help` without the emulator
+
     async with Emulator(config) as emulator:
         describe(emulator, config)
         await until_stopped()
@@ -340,6 +346,8 @@ async def run(config: EmulatorConfig) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from sitl.errors import SitlError  # noqa: PLC0415 - `sitl --help` without the emulator
+
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=getattr(logging, args.log_level),

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from hypothesis import settings
 
-from mission_runner.bus.auth import DEFAULT_KEY_ENV
+from mission_runner.environment import DEFAULT_KEY_ENV
 from tests.mosquitto import TEST_BUS_KEY, MosquittoBroker
 
 settings.register_profile("deterministic", derandomize=True, deadline=None, max_examples=60)

@@ -25,9 +25,9 @@ from mission_runner.cli import (
     EXIT_OK,
     EXIT_RUNTIME_FAILURE,
     EXIT_TERMINATED,
-    _score_without_truth,
     main,
 )
+from mission_runner.cli.ground import score_without_truth
 from mission_runner.outputs import RUN_FILES, RunSummary
 from tests.sitl.helpers import free_port_config
 
@@ -424,7 +424,7 @@ def test_a_signal_stops_simulate_with_its_exit_code_and_an_interrupted_summary(
 
 ASYNC_STOP = """
 import asyncio, signal, sys
-from mission_runner import cli
+from mission_runner.cli import stopping
 
 signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job: asyncio adds no handler then
 
@@ -438,9 +438,9 @@ async def fly():
         raise
 
 
-with cli._terminate_as_interrupt():
+with stopping.terminate_as_interrupt():
     try:
-        cli._run_async(fly())
+        stopping.run_async(fly())
     except KeyboardInterrupt:
         print("KeyboardInterrupt", flush=True)
 """
@@ -469,7 +469,7 @@ def test_sigterm_cancels_the_asyncio_main_task_even_where_sigint_is_ignored(tmp_
 
 SECOND_STOP = """
 import asyncio
-from mission_runner import cli
+from mission_runner.cli import stopping
 
 
 async def fly():
@@ -485,11 +485,11 @@ async def fly():
             raise
 
 
-with cli._terminate_as_interrupt():
+with stopping.terminate_as_interrupt():
     try:
-        cli._run_async(fly(), cli._RUN_STOPPING)
+        stopping.run_async(fly(), stopping.RUN_STOPPING)
     except KeyboardInterrupt:
-        print("KeyboardInterrupt", cli._signals.received, flush=True)
+        print("KeyboardInterrupt", stopping.signals.received, flush=True)
 """
 
 
@@ -540,7 +540,7 @@ import signal
 import sys
 import threading
 
-from mission_runner import cli
+from mission_runner.cli import stopping
 
 
 def signaller():
@@ -558,11 +558,11 @@ async def fly():
 
 
 threading.Thread(target=signaller, daemon=True).start()
-with cli._terminate_as_interrupt():
+with stopping.terminate_as_interrupt():
     try:
-        cli._run_async(fly(), cli._RUN_STOPPING)
+        stopping.run_async(fly(), stopping.RUN_STOPPING)
     except KeyboardInterrupt:
-        print("KeyboardInterrupt", cli._signals.received, flush=True)
+        print("KeyboardInterrupt", stopping.signals.received, flush=True)
 """
 
 
@@ -696,7 +696,7 @@ def test_a_ground_station_without_truth_scores_only_what_it_saw(tmp_path):
     ends = {1: "done", 2: "done", 3: "done", 4: "taken_over"}
     statuses = {i: VehicleStatus(i, 10.0, state, 600, False) for i, state in ends.items()}
     with RunSummary(tmp_path, scenario, config_path=None) as record:
-        code = _score_without_truth(scenario, record, statuses)
+        code = score_without_truth(scenario, record, statuses)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert code == EXIT_EXPECTATION_FAILED
     assert summary["status"] == "failed"
@@ -707,7 +707,7 @@ def test_a_ground_station_without_truth_scores_only_what_it_saw(tmp_path):
 
     statuses[4] = VehicleStatus(4, 10.0, "done", 600, False)
     with RunSummary(tmp_path, scenario, config_path=None) as record:
-        code = _score_without_truth(scenario, record, statuses)
+        code = score_without_truth(scenario, record, statuses)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert code == EXIT_OK
     assert summary["status"] == "unchecked"  # never "passed" on what it could not see
@@ -808,10 +808,10 @@ def test_a_command_line_loads_the_emulator_only_for_the_commands_that_need_it():
     """A vehicle process on a companion computer never pays for the emulator's and the PX4
     launcher's imports; emulate and px4-sitl still get their full options."""
     script = (
-        "import sys; from mission_runner import cli; "
-        "p = cli._parser('vehicle'); p.parse_args(['vehicle', 'x.yaml', '--id', '1']); "
+        "import sys; from mission_runner.cli.parser import build_parser; "
+        "p = build_parser('vehicle'); p.parse_args(['vehicle', 'x.yaml', '--id', '1']); "
         "print('sitl' in sys.modules, 'mission_runner.px4sitl' in sys.modules); "
-        "p = cli._parser('emulate'); a = p.parse_args(['emulate', 'x.yaml', '--no-gcs']); "
+        "p = build_parser('emulate'); a = p.parse_args(['emulate', 'x.yaml', '--no-gcs']); "
         "print(a.no_gcs, 'sitl' in sys.modules)"
     )
     done = subprocess.run(
@@ -836,7 +836,7 @@ def test_steps_held_on_stale_data_are_in_the_verdict_and_can_be_bounded(tmp_path
     outcome = GroundOutcome("m1", 0.0, 1.0, statuses)
     assert outcome.lost == [] and outcome.stale_steps == 143
     with RunSummary(tmp_path, scenario, config_path=None) as record:
-        code = _score_without_truth(scenario, record, statuses, outcome.stale_steps)
+        code = score_without_truth(scenario, record, statuses, outcome.stale_steps)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert code == EXIT_EXPECTATION_FAILED
     assert summary["metrics"]["steps_on_stale_data"] == 143
@@ -872,3 +872,39 @@ def test_a_flight_counts_the_steps_its_controllers_held_or_skipped():
     metrics = run_metrics(score_flight(scenario, samples, records, None))
     # Held on stale data or skipped: 3 a vehicle; the operator's hold and a lost target are not.
     assert metrics["steps_on_stale_data"][0] == 3 * n
+
+
+#: What building the command line must not load: the bus's MQTT clients, MAVSDK, the recording
+#: (Foxglove, MCAP), the figures and the emulator's MAVLink.
+HEAVY_MODULES = ("mavsdk", "aiomqtt", "paho", "foxglove", "mcap", "matplotlib", "pymavlink")
+HELP_IMPORTS = (
+    "import sys\n"
+    "from mission_runner.cli import main\n"
+    "try:\n"
+    "    main(sys.argv[1:])\n"
+    "except SystemExit:\n"
+    "    pass\n"
+    "print(' '.join(sorted({name.split('.')[0] for name in sys.modules})))\n"
+)
+
+
+def _commands():
+    from mission_runner.cli.parser import build_parser
+
+    return list(build_parser()._subparsers._group_actions[0].choices)
+
+
+@pytest.mark.parametrize("command", [None, *_commands()])
+def test_help_imports_no_bus_client_flight_stack_recording_or_figures(command):
+    """``--help`` is quick: building the parser of any command imports none of its work."""
+    arguments = ["--help"] if command is None else [command, "--help"]
+    done = subprocess.run(
+        [sys.executable, "-c", HELP_IMPORTS, *arguments],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60,
+    )
+    assert "usage: mission-runner" in done.stdout
+    loaded = set(done.stdout.splitlines()[-1].split())
+    assert not loaded & set(HEAVY_MODULES), sorted(loaded & set(HEAVY_MODULES))

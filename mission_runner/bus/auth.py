@@ -57,14 +57,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mission_runner.bus.errors import BusAuthError
+from mission_runner.environment import DEFAULT_KEY_ENV
 
 logger = logging.getLogger(__name__)
 
 MAGIC = b"MR1"
 #: Shortest key accepted: 32 characters (``openssl rand -hex 32`` makes 64).
 MIN_KEY_CHARS = 32
-#: Where a key comes from when neither ``--bus-key-file`` nor ``bus.auth.key_file`` names one.
-DEFAULT_KEY_ENV = "MISSION_BUS_KEY"
 #: What an insecure bus (``--insecure-bus``) signs with: public, so anyone can forge.
 INSECURE_KEY_TEXT = "mission-runner insecure bus: anyone can forge these messages"
 

@@ -45,9 +45,8 @@ from mission_runner.bus.auth import Sender
 from mission_runner.bus.errors import BusAuthError
 from mission_runner.bus.paho_reader import max_packet_bytes
 from mission_runner.bus.topics import Topics
+from mission_runner.environment import PASSWORD_ENV, USERNAME_ENV
 
-USERNAME_ENV = "MISSION_BUS_USERNAME"
-PASSWORD_ENV = "MISSION_BUS_PASSWORD"
 #: mosquitto 2's password hash: PBKDF2-SHA512 with this many iterations (mosquitto_passwd's
 #: default) and a 12-byte salt.
 MOSQUITTO_ITERATIONS = 101

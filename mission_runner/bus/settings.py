@@ -39,10 +39,11 @@ from pydantic import (
     model_validator,
 )
 
-from mission_runner.bus.auth import DEFAULT_KEY_ENV, AuthPolicy, BusKey, resolve_key
+from mission_runner.bus.auth import AuthPolicy, BusKey, resolve_key
 from mission_runner.bus.base import DEFAULT_QUEUE_SIZE
 from mission_runner.bus.inprocess import LinkModel
 from mission_runner.bus.topics import DEFAULT_PREFIX_ROOT, Topics
+from mission_runner.environment import DEFAULT_KEY_ENV
 
 #: As strict as the rest of a scenario: ``"0.01"``, ``true`` or ``1883.0`` where a number or a
 #: port is meant are errors, not guesses (``true`` read as a loss probability of 1.0), and so are

@@ -10,8 +10,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 
-def saturate(velocity_m_s: NDArray[np.float64], limit_m_s: float) -> NDArray[np.float64]:
-    """sat_U(u) = u U / max(U, |u|) over the last axis. ``velocity_m_s``: ``(..., 2)``."""
+def saturate(
+    velocity_m_s: NDArray[np.float64], limit_m_s: float | NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """sat_U(u) = u U / max(U, |u|) over the last axis. ``velocity_m_s``: ``(..., 2)``;
+    ``limit_m_s``: U > 0, or one per vehicle broadcast against ``(..., 1)``. The law's
+    saturation, and the speed limit of the simulator and of a flying controller alike."""
     norm = np.sqrt(np.sum(velocity_m_s * velocity_m_s, axis=-1, keepdims=True))
     return velocity_m_s * (limit_m_s / np.maximum(limit_m_s, norm))
 

@@ -71,13 +71,13 @@ class FilterSettings:
 
     range_noise_std_m: float
     displacement_noise_std_m: float
-    gate_chi2: float | None = 10.83
-    gate_patience: int = 10
-    initial_forgetting_factor: float = 0.7
-    handover_updates: int = 10
-    handover_std_m: float = 1.0
-    range_common_std_m: float = 0.0
-    gate_long_only: bool = False
+    gate_chi2: float | None
+    gate_patience: int
+    initial_forgetting_factor: float
+    handover_updates: int
+    handover_std_m: float
+    range_common_std_m: float
+    gate_long_only: bool
 
     def __post_init__(self) -> None:
         rules = [

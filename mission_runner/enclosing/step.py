@@ -64,11 +64,11 @@ class EnclosingParams:
     coupling_gain: float
     coupling_gain_last: float
     radius_m: float
-    initial_gain: float = 1.0
-    estimator: Literal["rlse", "ekf"] = "rlse"
-    filter: FilterSettings | None = None
-    shared_ranges: bool = False
-    bound_range_noise_std_m: float | None = None
+    initial_gain: float
+    estimator: Literal["rlse", "ekf"]
+    filter: FilterSettings | None
+    shared_ranges: bool
+    bound_range_noise_std_m: float | None
 
     def __post_init__(self) -> None:
         rules = [

@@ -60,6 +60,7 @@ from ..enclosing import (
     VehicleEnclosing,
     track_target,
 )
+from ..enclosing.control import saturate
 from ..enclosing.separation import separation_guard
 from ..enclosing.target import STATUS_NAMES
 from ..records import STALE_STATES, StepRecord
@@ -100,33 +101,35 @@ class ControllerSettings:
     """
 
     step_s: float
-    step_deadline_s: float = 0.04
-    wall_deadline_s: float = 0.5
+    step_deadline_s: float
+    wall_deadline_s: float
+    target_lost_after_s: float
+    target_on_lost: str
+    silence_timeout_s: float
+    member_timeout_steps: int
+    max_horizontal_speed_m_s: float
+    max_vertical_speed_m_s: float
+    velocity_lead_s: float
+    tracking_gain_1_s: float
+    tracking_integral_gain_1_s2: float
+    tracking_max_correction_m_s: float
+    min_separation_m: float | None
+    separation_gain_1_s: float
+    separation_margin_m: float | None
+    separation_braking_m_s2: float | None
+    separation_latency_s: float
+    separation_range_noise_std_m: float
+    range_limits: RangeLimits | None
+    #: The fastest any vehicle of the mission may fly [m/s]: a neighbour's step message saying
+    #: it flies faster loses its command (None: every command is taken as it comes).
+    fleet_speed_limit_m_s: float | None
+    # The controller's own tunings, which the scenario has no setting for (every other field
+    # comes from the scenario: wiring.controller_settings, defaults in the config model).
     release_s: float = 1.25 * ODOMETRY_PERIOD_S
     odometry_extrapolate_s: float = 2.0 * ODOMETRY_PERIOD_S
     odometry_timeout_s: float = 1.0
     lost_after_missed_steps: int = 3
-    target_lost_after_s: float = 10.0
-    target_on_lost: str = "hold"
-    silence_timeout_s: float = 1.0
-    member_timeout_steps: int = 8
-    max_horizontal_speed_m_s: float = 10.0
-    max_vertical_speed_m_s: float = 1.0
     altitude_gain_per_s: float = 1.0
-    velocity_lead_s: float = 0.0
-    tracking_gain_1_s: float = 0.0
-    tracking_integral_gain_1_s2: float = 0.0
-    tracking_max_correction_m_s: float = 2.0
-    min_separation_m: float | None = None
-    separation_gain_1_s: float = 4.0
-    separation_margin_m: float | None = None
-    separation_braking_m_s2: float | None = None
-    separation_latency_s: float = 0.0
-    separation_range_noise_std_m: float = 0.0
-    range_limits: RangeLimits | None = None
-    #: The fastest any vehicle of the mission may fly [m/s]: a neighbour's step message saying
-    #: it flies faster loses its command (None: every command is taken as it comes).
-    fleet_speed_limit_m_s: float | None = None
 
 
 def controller_settings(scenario: Scenario, vehicle: VehicleConfig) -> ControllerSettings:
@@ -764,10 +767,9 @@ class VehicleController:
         return correction * scale
 
     def _clamp(self, velocity: NDArray[np.float64]) -> tuple[float, float]:
-        limit = self.settings.max_horizontal_speed_m_s
-        speed = float(np.hypot(*velocity))
-        scale = 1.0 if speed <= limit else limit / speed
-        return (float(velocity[0] * scale), float(velocity[1] * scale))
+        limit_m_s = self.settings.max_horizontal_speed_m_s
+        clamped = saturate(np.asarray(velocity, dtype=float), limit_m_s)
+        return (float(clamped[0]), float(clamped[1]))
 
     def _altitude_hold(self, odometry: tuple[float, float, float] | None) -> float:
         if odometry is None:

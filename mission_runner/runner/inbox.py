@@ -55,7 +55,7 @@ class StepInbox:
         *,
         senses_target: bool,
         step_of: Callable[[float], int | None],
-        member_timeout_steps: int = 8,
+        member_timeout_steps: int,
         horizon_steps: int = 4,
     ) -> None:
         self.own_id = own_id

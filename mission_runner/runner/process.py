@@ -61,7 +61,8 @@ from ..bus import (
     lost_vehicle_will,
     open_bus,
 )
-from ..bus.broker import OPERATOR_USER, USERNAME_ENV, flight_user, read_credentials
+from ..bus.broker import OPERATOR_USER, flight_user, read_credentials
+from ..environment import USERNAME_ENV
 from ..errors import error_reason
 from ..records import StepRecord, VehicleRun
 from ..wiring import altitude_of, autopilot_params
@@ -444,6 +445,8 @@ class GroundOutcome:
     bus_drops: dict[int, int] = field(default_factory=dict)
     #: How often the mission clock changed its rate to follow the autopilots (ClockFollower).
     clock_changes: int = 0
+    #: Its rate at the end (after those changes).
+    clock_rate_at_end: float | None = None
 
     @property
     def lost(self) -> list[int]:
@@ -644,9 +647,16 @@ async def run_ground(
             with contextlib.suppress(BusError):
                 await bus.publish(topics.control(), b"", retain=True, timeout=2.0)
             counters = bus.auth_counters.as_dict()
-    changes = clock["follower"].changes if "follower" in clock else 0
+    follower = clock.get("follower")
     return GroundOutcome(
-        mission_id, started["at"], rate, latest, counters, dict(wills.drops), changes
+        mission_id,
+        started["at"],
+        rate,
+        latest,
+        counters,
+        dict(wills.drops),
+        0 if follower is None else follower.changes,
+        None if follower is None else follower.time.latest_rate,
     )
 
 

@@ -22,6 +22,7 @@ from ..enclosing import (
     TargetTrack,
     track_target,
 )
+from ..enclosing.control import saturate
 from ..enclosing.separation import separation_guard
 from ..errors import ConfigError, SimulationError
 from ..metrics import SimulationResult, closest_pair, edge_rms, score
@@ -316,8 +317,7 @@ def simulate(
         command = step.velocity_m_s
         if scenario.safety.min_separation_m is not None:
             command = _guarded(command, step, ranges, in_force, live, scenario)
-        norm = np.sqrt(np.sum(command * command, axis=-1, keepdims=True))
-        command = command * np.minimum(1.0, speed_limit / np.maximum(norm, 1e-300))
+        command = saturate(command, speed_limit)
         command = np.where(live[..., None] & ~holding[:, None, None], command, 0.0)
         in_force = np.where(live[..., None], command, np.nan)
         out["target_status"][:, k] = target_estimate.status

@@ -14,6 +14,11 @@ PAPER = EnclosingParams(
     coupling_gain=1.0,
     coupling_gain_last=-1.0,
     radius_m=4.0,
+    initial_gain=1.0,
+    estimator="rlse",
+    filter=None,
+    shared_ranges=False,
+    bound_range_noise_std_m=None,
 )
 
 

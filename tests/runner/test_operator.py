@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from mission_runner.bus import BusConnectionError, ControlCommand
-from mission_runner.cli import _parser
+from mission_runner.cli.parser import build_parser
 from mission_runner.runner.operator import (
     HELP,
     OPERATOR_COMMANDS,
@@ -65,7 +65,7 @@ def test_anything_else_is_one_line_saying_what_is_wrong(line, message):
 def test_control_takes_the_same_commands_as_typed_lines():
     choices = next(
         action.choices
-        for action in _parser()._subparsers._group_actions[0].choices["control"]._actions
+        for action in build_parser()._subparsers._group_actions[0].choices["control"]._actions
         if action.dest == "command"
     )
     assert list(choices) == [command.value for command in OPERATOR_COMMANDS]
