@@ -2,8 +2,8 @@
 
 Every topic lives under a per-mission prefix, `enclosing/<mission_id>` by default, so
 several missions can share one broker. `<id>` is a vehicle id (an integer >= 1, written
-without leading zeros); `<peer>` is another vehicle's id, or `0` for the target. Payloads
-are compact UTF-8 JSON objects (see `mission_runner.bus.messages`).
+without leading zeros). Payloads are compact UTF-8 JSON objects (see
+`mission_runner.bus.messages`).
 
 | Topic | Payload | Published by | Retained |
 |---|---|---|---|
