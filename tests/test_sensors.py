@@ -196,7 +196,7 @@ def test_airtime_bounds_what_the_model_reads():
 
 
 def test_the_emulated_world_publishes_one_number_for_both_ends_of_a_pair():
-    from mission_runner.bus import RangeMessage, Topics
+    from mission_runner.bus import RangeSet, Topics
 
     sensors = SensorConfig(**EVERYTHING)
     positions = np.random.default_rng(1).uniform(-5, 5, size=(4, 3))
@@ -218,7 +218,10 @@ def test_the_emulated_world_publishes_one_number_for_both_ends_of_a_pair():
             uwb=uwb,
         )
         ranges = {
-            (m.vehicle_id, m.peer_id): m.range_m for _, m in measured if isinstance(m, RangeMessage)
+            (m.vehicle_id, peer): range_m
+            for _, m in measured
+            if isinstance(m, RangeSet)
+            for peer, range_m in m.ranges_m
         }
         assert ranges
         assert all(ranges.get((j, i)) == value for (i, j), value in ranges.items())

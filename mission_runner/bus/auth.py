@@ -23,7 +23,7 @@ A receiver drops and counts (:class:`AuthCounters`, rate-limited warnings):
 - ``forged``: the MAC does not match (no key, another key, a changed byte);
 - ``unauthorised``: the sender's role may not publish on that topic (see :func:`allowed`):
   ``control`` is the ground station's, a vehicle's ``step`` and ``status`` its own, its
-  ``range`` and ``target`` its own or the range aid's;
+  ``ranges`` and ``target`` its own or the range aid's;
 - ``stale``: sent more than ``time_window_s`` ago or ahead of the receiver's clock (a retained
   message, delivered from the broker's store: up to ``retained_max_age_s`` old);
 - ``replayed``: a sequence number not above the last one accepted from that sender on that
@@ -135,20 +135,19 @@ class Sender:
         return self.role.value
 
 
+#: The last level of a vehicle's topics (``<prefix>/vehicle/<id>/<kind>``).
+_VEHICLE_TOPICS = frozenset({"step", "status", "target", "ranges"})
+
+
 def _owner(topic: str) -> tuple[str, int] | None:
     """``(kind, vehicle id)`` of a vehicle topic of the mission layout (kind: step, status,
-    target or range), ``("control", 0)`` for the control topic, None for anything else."""
+    target or ranges), ``("control", 0)`` for the control topic, None for anything else."""
     levels = topic.split("/")
     if levels[-1] == "control":
         return ("control", 0)
-    if len(levels) >= 3 and levels[-3] == "vehicle" and levels[-1] in ("step", "status", "target"):
-        number = levels[-2]
-        kind = levels[-1]
-    elif len(levels) >= 4 and levels[-4] == "vehicle" and levels[-2] == "range":
-        number = levels[-3]
-        kind = "range"
-    else:
+    if len(levels) < 3 or levels[-3] != "vehicle" or levels[-1] not in _VEHICLE_TOPICS:
         return None
+    number, kind = levels[-2], levels[-1]
     if not number.isascii() or not number.isdigit() or number.startswith("0"):
         return None
     return (kind, int(number))
@@ -158,7 +157,7 @@ def allowed(sender: Sender, topic: str) -> bool:
     """Whether ``sender`` may publish on ``topic``.
 
     ``<prefix>/control``: the ground station only. ``vehicle/<id>/step`` and ``status``:
-    vehicle ``<id>`` only. ``vehicle/<id>/range/<peer>`` and ``target``: vehicle ``<id>`` (its
+    vehicle ``<id>`` only. ``vehicle/<id>/ranges`` and ``target``: vehicle ``<id>`` (its
     own UWB and tracker) or the range aid. Topics outside the mission layout: any signer.
     """
     owner = _owner(topic)
@@ -169,7 +168,7 @@ def allowed(sender: Sender, topic: str) -> bool:
         return sender.role is Role.GROUND
     if sender.role is Role.VEHICLE:
         return sender.vehicle_id == vehicle_id
-    return kind in ("range", "target") and sender.role is Role.RANGES
+    return kind in ("ranges", "target") and sender.role is Role.RANGES
 
 
 @dataclass(frozen=True)

@@ -169,7 +169,7 @@ def acl_text(topics: Topics, vehicle_ids: Sequence[int]) -> str:
         f"topic read {topics.everything()}",
         "",
         "user ranges",
-        f"topic write {prefix}/vehicle/+/range/+",
+        f"topic write {prefix}/vehicle/+/ranges",
         f"topic write {prefix}/vehicle/+/target",
         f"topic read {topics.everything()}",
     ]
@@ -181,7 +181,7 @@ def acl_text(topics: Topics, vehicle_ids: Sequence[int]) -> str:
                 f"user {user}",
                 f"topic write {topics.step(vehicle_id)}",
                 f"topic write {topics.status(vehicle_id)}",
-                f"topic write {prefix}/vehicle/{vehicle_id}/range/+",
+                f"topic write {topics.ranges(vehicle_id)}",
                 f"topic write {topics.target(vehicle_id)}",
                 f"topic read {topics.everything()}",
             ]

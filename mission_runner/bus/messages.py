@@ -373,29 +373,43 @@ class StepMessage(Message):
                 _require(range_m >= 0.0, f"ranges_m: range to {peer} must be >= 0, got {range_m}")
 
 
-@dataclass(frozen=True, slots=True)
-class RangeMessage(Message):
-    """A range measured by vehicle ``vehicle_id`` to ``peer_id`` (0 = the target).
+#: At most this many ranges in one range set: far more peers than any swarm's radio ranges in one
+#: round, and a bound on what a hostile set can make a receiver check.
+MAX_RANGE_SET_ENTRIES = 1024
 
-    ``step`` is the algorithm step whose boundary the range was sampled at, when the
-    driver knows it; otherwise the consumer aligns by ``time_s``.
+
+@dataclass(frozen=True, slots=True)
+class RangeSet(Message):
+    """The ranges vehicle ``vehicle_id``'s UWB radio measured in one ranging round at ``time_s``:
+    ``ranges_m`` as ``(peer id, range [m])`` pairs (peer 0 = the target), 3-D as measured.
+
+    ``step`` is the algorithm step whose boundary the round was sampled at, when the driver knows
+    it; otherwise the consumer aligns by ``time_s``. A set is the whole round: a peer missing from
+    it was not ranged (dropped, out of range, not in this step's airtime), and an empty set says
+    that nothing was, so a receiver waits for no more ranges of that instant.
     """
 
     vehicle_id: int
-    peer_id: int
     time_s: float
-    range_m: float
+    ranges_m: tuple[tuple[int, float], ...] = ()
     step: int | None = None
 
     def _check(self) -> None:
         _require(self.vehicle_id >= 1, f"vehicle_id must be >= 1, got {self.vehicle_id}")
-        _require(
-            self.peer_id >= TARGET_PEER_ID,
-            f"peer_id must be >= {TARGET_PEER_ID} (0 = target), got {self.peer_id}",
-        )
-        _require(self.peer_id != self.vehicle_id, "peer_id must differ from vehicle_id")
-        _require(self.range_m >= 0.0, f"range_m must be >= 0, got {self.range_m}")
         _require(self.step is None or self.step >= 0, f"step must be >= 0, got {self.step}")
+        _require(
+            len(self.ranges_m) <= MAX_RANGE_SET_ENTRIES,
+            f"ranges_m has {len(self.ranges_m)} entries, at most {MAX_RANGE_SET_ENTRIES}",
+        )
+        peers = {peer for peer, _ in self.ranges_m}
+        _require(len(peers) == len(self.ranges_m), "ranges_m names a peer twice")
+        for peer, range_m in self.ranges_m:
+            _require(
+                peer >= TARGET_PEER_ID and peer != self.vehicle_id,
+                f"ranges_m: peer must be >= {TARGET_PEER_ID} (0 = target) and not the vehicle "
+                f"itself ({self.vehicle_id}), got {peer}",
+            )
+            _require(range_m >= 0.0, f"ranges_m: range to {peer} must be >= 0, got {range_m}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -521,7 +535,7 @@ class VehicleStatus(Message):
 
 MESSAGE_TYPES: Mapping[TopicKind, type[Message]] = {
     TopicKind.STEP: StepMessage,
-    TopicKind.RANGE: RangeMessage,
+    TopicKind.RANGES: RangeSet,
     TopicKind.TARGET: TargetObservation,
     TopicKind.CONTROL: MissionControl,
     TopicKind.STATUS: VehicleStatus,

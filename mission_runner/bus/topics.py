@@ -2,13 +2,13 @@
 
 Every topic lives under a per-mission prefix, `enclosing/<mission_id>` by default, so
 several missions can share one broker. `<id>` is a vehicle id (an integer >= 1, written
-without leading zeros); `<peer>` is another vehicle's id, or `0` for the target. Payloads
-are compact UTF-8 JSON objects (see `mission_runner.bus.messages`).
+without leading zeros). Payloads are compact UTF-8 JSON objects (see
+`mission_runner.bus.messages`).
 
 | Topic | Payload | Published by | Retained |
 |---|---|---|---|
 | `<prefix>/vehicle/<id>/step` | `StepMessage` | vehicle `<id>`, once per step k | no |
-| `<prefix>/vehicle/<id>/range/<peer>` | `RangeMessage` | UWB driver on `<id>` | no |
+| `<prefix>/vehicle/<id>/ranges` | `RangeSet` | UWB driver on `<id>`, once per ranging round | no |
 | `<prefix>/vehicle/<id>/target` | `TargetObservation` | target tracker on `<id>` | no |
 | `<prefix>/vehicle/<id>/status` | `VehicleStatus` | vehicle `<id>`; also its MQTT last will | yes |
 | `<prefix>/control` | `MissionControl` | ground station / operator | no |
@@ -18,7 +18,7 @@ Subscription patterns (MQTT wildcards: `+` is one level, `#` the rest):
 | Pattern | Receives |
 |---|---|
 | `<prefix>/vehicle/+/step` | every vehicle's step messages |
-| `<prefix>/vehicle/<id>/range/+` | all ranges measured by vehicle `<id>` |
+| `<prefix>/vehicle/+/ranges` | every vehicle's range sets |
 | `<prefix>/vehicle/+/target` | every target observation |
 | `<prefix>/vehicle/+/status` | every vehicle's status (progress views) |
 | `<prefix>/#` | everything in the mission (logging) |
@@ -119,7 +119,7 @@ class TopicKind(enum.StrEnum):
     """What a topic of the mission layout carries."""
 
     STEP = "step"
-    RANGE = "range"
+    RANGES = "ranges"
     TARGET = "target"
     STATUS = "status"
     CONTROL = "control"
@@ -129,13 +129,11 @@ class TopicKind(enum.StrEnum):
 class ParsedTopic:
     """A topic of the mission layout, taken apart.
 
-    ``vehicle_id`` is None for ``control``; ``peer_id`` is set for ``range`` only
-    (0 = the target).
+    ``vehicle_id`` is None for ``control``.
     """
 
     kind: TopicKind
     vehicle_id: int | None = None
-    peer_id: int | None = None
 
 
 def _check_level(text: str, what: str) -> str:
@@ -167,8 +165,8 @@ class Topics:
     >>> topics = Topics.for_mission("demo")
     >>> topics.step(2)
     'enclosing/demo/vehicle/2/step'
-    >>> topics.parse("enclosing/demo/vehicle/2/range/0")
-    ParsedTopic(kind=<TopicKind.RANGE: 'range'>, vehicle_id=2, peer_id=0)
+    >>> topics.parse("enclosing/demo/vehicle/2/ranges")
+    ParsedTopic(kind=<TopicKind.RANGES: 'ranges'>, vehicle_id=2)
     """
 
     def __init__(self, prefix: str) -> None:
@@ -192,11 +190,9 @@ class Topics:
         """Topic of vehicle ``vehicle_id``'s per-step broadcast."""
         return f"{self.prefix}/vehicle/{_check_vehicle_id(vehicle_id)}/step"
 
-    def range(self, vehicle_id: int, peer_id: int) -> str:
-        """Topic of ranges measured by ``vehicle_id`` to ``peer_id`` (0 = target)."""
-        _check_vehicle_id(vehicle_id)
-        _check_vehicle_id(peer_id, "peer id", minimum=TARGET_PEER_ID)
-        return f"{self.prefix}/vehicle/{vehicle_id}/range/{peer_id}"
+    def ranges(self, vehicle_id: int) -> str:
+        """Topic of the range sets measured by vehicle ``vehicle_id`` (one per ranging round)."""
+        return f"{self.prefix}/vehicle/{_check_vehicle_id(vehicle_id)}/ranges"
 
     def target(self, vehicle_id: int) -> str:
         """Topic of target observations made on vehicle ``vehicle_id``."""
@@ -215,10 +211,9 @@ class Topics:
         """Pattern matching every vehicle's step topic."""
         return f"{self.prefix}/vehicle/+/step"
 
-    def all_ranges(self, vehicle_id: int | None = None) -> str:
-        """Pattern matching ranges measured by ``vehicle_id`` (by every vehicle if None)."""
-        vehicle = "+" if vehicle_id is None else str(_check_vehicle_id(vehicle_id))
-        return f"{self.prefix}/vehicle/{vehicle}/range/+"
+    def all_ranges(self) -> str:
+        """Pattern matching every vehicle's range sets."""
+        return f"{self.prefix}/vehicle/+/ranges"
 
     def all_targets(self) -> str:
         """Pattern matching every vehicle's target observations."""
@@ -250,7 +245,6 @@ class Topics:
                 return ParsedTopic(TopicKind.TARGET, vehicle_id)
             if rest == ["status"]:
                 return ParsedTopic(TopicKind.STATUS, vehicle_id)
-            if len(rest) == 2 and rest[0] == "range":
-                peer_id = _parse_id(rest[1], topic, minimum=TARGET_PEER_ID)
-                return ParsedTopic(TopicKind.RANGE, vehicle_id, peer_id)
+            if rest == ["ranges"]:
+                return ParsedTopic(TopicKind.RANGES, vehicle_id)
         raise TopicError(f"topic {topic!r} does not fit the mission topic layout")

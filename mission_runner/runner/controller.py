@@ -42,7 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..bus import (
     BusError,
     Message,
-    RangeMessage,
+    RangeSet,
     StepMessage,
     TargetObservation,
     Topics,
@@ -289,7 +289,7 @@ class VehicleController:
         # ignored), and so would any stranger's.
         wanted: list[tuple[str, type[Message]]] = [
             *((self.topics.step(peer), StepMessage) for peer in self.inbox.others),
-            (self.topics.all_ranges(self.vehicle_id), RangeMessage),
+            (self.topics.ranges(self.vehicle_id), RangeSet),
             (self.topics.target(self.vehicle_id), TargetObservation),
         ]
         async with contextlib.AsyncExitStack() as stack:
@@ -334,7 +334,7 @@ class VehicleController:
         """Feed the inbox from the bus subscriptions (decode errors are dropped, not fatal)."""
         handlers: dict[type[Message], Callable[[Any], None]] = {
             StepMessage: self._add_step,
-            RangeMessage: self._add_range,
+            RangeSet: self._add_ranges,
             TargetObservation: self._add_target,
         }
 
@@ -360,9 +360,15 @@ class VehicleController:
         gate = self.command_gate
         self.inbox.add_step(message if gate is None else gate.checked(message))
 
-    def _add_range(self, message: RangeMessage) -> None:
-        if self._possible(message.vehicle_id, message.peer_id, message.range_m, message.time_s):
-            self.inbox.add_range(message)
+    def _add_ranges(self, message: RangeSet) -> None:
+        """The set goes on with its impossible ranges dropped (counted by the gate): what is left,
+        even nothing, is still this step's whole round."""
+        gate, time_s = self.range_gate, message.time_s
+        if gate is not None and message.vehicle_id == self.vehicle_id:
+            kept = tuple((p, r) for p, r in message.ranges_m if gate.accept(p, r, time_s))
+            if len(kept) != len(message.ranges_m):
+                message = dataclasses.replace(message, ranges_m=kept)
+        self.inbox.add_ranges(message)
 
     def _add_target(self, observation: TargetObservation) -> None:
         seen_range_m = observation.range_m

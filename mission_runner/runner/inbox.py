@@ -4,8 +4,9 @@ Every k-indexed input of the law must refer to the instant t_k = start + kT on e
 
 - a neighbour's phase and odometry come in its step-k :class:`StepMessage` (it samples its own
   odometry at t_k, see :mod:`.odometry`);
-- ranges are sampled by the UWB driver at t_k and published with ``step = k`` (or a timestamp
-  within a quarter step of t_k);
+- ranges are sampled by the UWB driver at t_k and published together, one :class:`RangeSet` per
+  ranging round, with ``step = k`` (or a timestamp within a quarter step of t_k): once it is in,
+  no more of this vehicle's step-k ranges are coming (one it lacks was dropped, and never comes);
 - the target observation likewise.
 
 The controller waits for step k's inputs until its deadline, then takes whatever arrived: a
@@ -24,17 +25,19 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from ..bus import RangeMessage, StepMessage, TargetObservation
+    from ..bus import RangeSet, StepMessage, TargetObservation
 
 
 @dataclass
 class StepData:
     """What arrived for one step: step messages by vehicle id, ranges by peer id (0 = target),
-    the target observation if any, and the member ids (including the vehicle itself)."""
+    whether this vehicle's range set came (``ranges_in``, even empty), the target observation if
+    any, and the member ids (including the vehicle itself)."""
 
     step: int
     neighbours: dict[int, StepMessage] = field(default_factory=dict)
     ranges_m: dict[int, float] = field(default_factory=dict)
+    ranges_in: bool = False
     target: TargetObservation | None = None
     members: frozenset[int] = frozenset()
 
@@ -104,14 +107,16 @@ class StepInbox:
             data.neighbours[message.vehicle_id] = message
             self._changed.set()
 
-    def add_range(self, message: RangeMessage) -> None:
-        """A RangeMessage measured by this vehicle."""
+    def add_ranges(self, message: RangeSet) -> None:
+        """A RangeSet measured by this vehicle: its ranges of that instant are all in, even when
+        the set is empty or lacks a member (that range dropped out, and never comes)."""
         if message.vehicle_id != self.own_id:
             return
         step = message.step if message.step is not None else self._step_of(message.time_s)
         data = None if step is None else self._slot(step)
         if data is not None:
-            data.ranges_m[message.peer_id] = message.range_m
+            data.ranges_m.update(message.ranges_m)
+            data.ranges_in = True
             self._changed.set()
 
     def add_target(self, observation: TargetObservation) -> None:
@@ -125,19 +130,21 @@ class StepInbox:
             self._changed.set()
 
     def complete(self, step: int) -> bool:
-        """Whether every member's message, range and (if sensed) the target are in for ``step``."""
+        """Whether every member's message, this vehicle's ranges and (if sensed) the target are
+        in for ``step``."""
         data = self._pending.get(step)
         if data is None:
             return False
         others = self.members() - {self.own_id}
-        if not others <= data.neighbours.keys() or not others <= data.ranges_m.keys():
+        if not others <= data.neighbours.keys() or not (data.ranges_in or not others):
             return False
         return data.target is not None or not self.senses_target
 
     def own_ranges_in(self, step: int) -> bool:
-        """Whether this vehicle's ranges to every other member are in for ``step``."""
+        """Whether this vehicle's range set is in for ``step`` (needed only with other members:
+        a vehicle alone has nobody to range)."""
         data = self._pending.get(step)
-        return data is not None and self.members() - {self.own_id} <= data.ranges_m.keys()
+        return data is not None and (data.ranges_in or not self.members() - {self.own_id})
 
     def pending_ranges(self, step: int) -> dict[int, float]:
         """This vehicle's ranges received for ``step`` so far, by peer id (0 = target)."""

@@ -49,7 +49,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from ..bus import (
     Bus,
     ControlCommand,
-    RangeMessage,
+    RangeSet,
     Sender,
     Subscription,
     Topics,
@@ -647,5 +647,5 @@ async def _publish_step(  # noqa: PLR0917
             stats.unsent += 1
             if stats.unsent == 1:
                 logger.warning("step %d: %s (dropped; counted in the last line)", k, error)
-        elif isinstance(message, RangeMessage):
-            stats.ranges += 1
+        elif isinstance(message, RangeSet):
+            stats.ranges += len(message.ranges_m)

@@ -3,10 +3,11 @@
 Published where real drivers on companion computers would publish them - on the project's bus
 (see :mod:`mission_runner.bus.topics`), never through ground truth:
 
-- ``vehicle/<id>/range/<peer>``: :class:`RangeMessage`, the 3-D distance between two live vehicles
-  sampled at every step boundary t_k = start + kT (``step = k``), as the scenario's ``sensors:``
-  describe the radios (:class:`mission_runner.sensors.UwbRanging`: one exchange per pair or per
-  direction, pair biases, multipath, NLOS bursts, dropouts, airtime, a maximum range);
+- ``vehicle/<id>/ranges``: :class:`RangeSet`, the 3-D distances from a live vehicle to the others
+  its radio ranged at step boundary t_k = start + kT (``step = k``), one set per vehicle and step
+  as a UWB tag reports a ranging round (empty when it ranged nothing), as the scenario's
+  ``sensors:`` describe the radios (:class:`mission_runner.sensors.UwbRanging`: one exchange per
+  pair or per direction, pair biases, multipath, NLOS bursts, dropouts, airtime, a maximum range);
 - ``vehicle/<id>/target``: :class:`TargetObservation` for vehicles that sense the target, its
   horizontal range and velocity (what a radar or vision tracker gives), at the same instants; or,
   when the tracker does not see it (beyond ``sensors.target_sensing_range_m``, a random miss, an
@@ -30,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Self
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..bus import BusError, RangeMessage, TargetObservation
+from ..bus import BusError, RangeSet, TargetObservation
 from ..errors import MissionRunnerError
 from ..records import TruthSample
 from ..scenario import target_positions
@@ -46,7 +47,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 #: One step's measurements as ``(topic, message)`` pairs.
-Measured = list[tuple[str, RangeMessage | TargetObservation]]
+Measured = list[tuple[str, RangeSet | TargetObservation]]
 
 
 class World:
@@ -310,7 +311,7 @@ class World:
                     logger.info("world: publishing again (%d dropped)", self._dropping)
                     self._dropping = 0
                 continue
-            # Once per outage: a warning per message (13 a step with four vehicles) filled
+            # Once per outage: a warning per message (several a step) filled
             # a pipe nobody read and stopped the emulator with it.
             if not self._dropping:
                 logger.warning("world: could not publish %s: %s (dropping)", topic, error)
@@ -326,7 +327,7 @@ async def publish_measurements(
     one before: the last (the target observation, then last) came ~10 ms after the first on an
     idle machine and 35-65 ms on a loaded one, past the step's deadline."""
 
-    async def publish(topic: str, message: RangeMessage | TargetObservation) -> BusError | None:
+    async def publish(topic: str, message: RangeSet | TargetObservation) -> BusError | None:
         try:
             await bus.publish_message(topic, message, timeout=timeout_s)
         except BusError as error:
@@ -355,9 +356,11 @@ def step_measurements(
     """What the UWB radios and target trackers report for step ``k`` (time ``t_k``), as
     ``(topic, message)`` pairs: a :class:`TargetObservation` per tracking vehicle (the target's
     horizontal range and velocity where its tracker sees it, "not seen" where not), then a
-    :class:`RangeMessage` per ranged ordered pair. Observations first: a sensing vehicle's step
-    message waits for its own, and its neighbours' steps for that message, the longest chain of
-    a step.
+    :class:`RangeSet` per vehicle whose radio works (``ranging``), of the ranges it read: empty
+    when every one dropped out or the airtime schedule gave it no exchange this step, so that its
+    controller knows no range of step k is coming (a vehicle whose radio is down sends nothing).
+    Observations first: a sensing vehicle's step message waits for its own, and its neighbours'
+    steps for that message, the longest chain of a step.
 
     positions_m: ``(n, 3)`` true NED positions [m] (NaN rows: unknown); ranging ``(n,)`` bool:
     radios that work; tracking ``(n,)`` bool: vehicles with a tracker that reports;
@@ -371,12 +374,19 @@ def step_measurements(
     gaps = positions_m[:, None, :] - positions_m[None, :, :]
     distances = np.sqrt(np.sum(gaps * gaps, axis=-1))
     ranges = uwb.read(distances, rng, k=k, measured=ranging[:, None] & ranging[None, :])
-    range_messages: Measured = [
+    read = np.isfinite(ranges)
+    range_sets: Measured = [
         (
-            topics.range(ids[i], ids[j]),
-            RangeMessage(ids[i], ids[j], t_k, float(ranges[i, j]), step=k),
+            topics.ranges(ids[i]),
+            RangeSet(
+                ids[i],
+                t_k,
+                tuple((ids[j], float(ranges[i, j])) for j in np.flatnonzero(read[i]).tolist()),
+                step=k,
+            ),
         )
-        for i, j in zip(*(index.tolist() for index in np.nonzero(np.isfinite(ranges))), strict=True)
+        for i in range(len(ids))
+        if ranging[i] or read[i].any()
     ]
     tracking = np.asarray(tracking, dtype=bool)
     hidden = np.zeros_like(tracking) if target_hidden is None else np.asarray(target_hidden, bool)
@@ -397,4 +407,4 @@ def step_measurements(
         )
         for i, r, visible in zip(sensing.tolist(), horizontal, seen.tolist(), strict=True)
     ]
-    return observations + range_messages
+    return observations + range_sets

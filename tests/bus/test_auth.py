@@ -197,11 +197,11 @@ def test_a_last_will_is_accepted_whenever_the_broker_publishes_it_but_only_once(
         (Sender.ranges(), TOPICS.step(2), False),
         (Sender.vehicle(2), TOPICS.status(2), True),
         (Sender.ranges(), TOPICS.status(2), False),
-        (Sender.ranges(), TOPICS.range(2, 0), True),
+        (Sender.ranges(), TOPICS.ranges(2), True),
         (Sender.ranges(), TOPICS.target(3), True),
-        (Sender.vehicle(2), TOPICS.range(2, 1), True),
-        (Sender.vehicle(1), TOPICS.range(2, 1), False),
-        (Sender.ground(), TOPICS.range(2, 1), False),
+        (Sender.vehicle(2), TOPICS.ranges(2), True),
+        (Sender.vehicle(1), TOPICS.ranges(2), False),
+        (Sender.ground(), TOPICS.ranges(2), False),
         (Sender.vehicle(1), "somewhere/else", True),
     ],
 )
@@ -224,7 +224,7 @@ def test_sender_names_round_trip_and_odd_ones_are_refused() -> None:
     for text in ("vehicle-0", "vehicle-01", "vehicle-", "vehicle-x", "pilot", "vehicle-+1"):
         with pytest.raises(ValueError):
             Sender.parse(text)
-    assert Sender.for_topic(TOPICS.range(4, 0)) == Sender.vehicle(4)
+    assert Sender.for_topic(TOPICS.ranges(4)) == Sender.vehicle(4)
     assert Sender.for_topic(TOPICS.control()) == Sender.ground()
 
 

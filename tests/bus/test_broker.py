@@ -22,7 +22,7 @@ from mission_runner.bus import (
     MessageAuth,
     MissionControl,
     MqttBus,
-    RangeMessage,
+    RangeSet,
     Sender,
     StepMessage,
     Topics,
@@ -111,6 +111,9 @@ def test_the_files_written(tmp_path: Path) -> None:
     # The controller's own connection logs in as its own user, with the vehicle's rights.
     assert "user vehicle-3-flight\ntopic write enclosing/acl-test/vehicle/3/step\n" in acl
     assert acl.count("topic write enclosing/acl-test/control") == 2
+    assert "user ranges\ntopic write enclosing/acl-test/vehicle/+/ranges\n" in acl
+    assert acl.count("topic write enclosing/acl-test/vehicle/3/ranges\n") == 2  # both logins
+    assert "/range/" not in acl
 
 
 @pytest.fixture
@@ -211,11 +214,11 @@ async def test_the_range_aid_publishes_ranges_only_and_the_ground_commands(
             step = StepMessage(2, 0, 0, 0, 0, 0)
             await ranges_as_vehicle.publish_message(TOPICS.step(2), step, timeout=5)
         async with client(server, files, "ranges") as ranges:
-            range_m = RangeMessage(1, 2, 0.0, 4.0)
-            await ranges.publish_message(TOPICS.range(1, 2), range_m, timeout=5)
+            range_set = RangeSet(1, 0.0, ((2, 4.0),))
+            await ranges.publish_message(TOPICS.ranges(1), range_set, timeout=5)
         await ground.publish_message(TOPICS.control(), hold, timeout=5.0)
         received = [(await everything.receive(timeout=5.0))[0] for _ in range(2)]
-    assert sorted(received) == sorted([TOPICS.range(1, 2), TOPICS.control()])
+    assert sorted(received) == sorted([TOPICS.ranges(1), TOPICS.control()])
 
 
 @pytest_asyncio.fixture
@@ -238,14 +241,14 @@ async def test_forged_replayed_oversized_and_malformed_ranges_are_dropped_and_co
     """Everything comes through the broker (the login may publish ranges); the vehicle's bus
     drops all but the genuine messages, and counts each kind."""
     server, files = broker
-    topic = TOPICS.range(1, 2)
-    forty = RangeMessage(1, 2, 0.0, 40.0).to_payload()
+    topic = TOPICS.ranges(1)
+    forty = RangeSet(1, 0.0, ((2, 40.0),)).to_payload()
     genuine = MessageAuth(bus_test_key())  # what the real range aid signs
-    first = genuine.seal(Sender.ranges(), topic, RangeMessage(1, 2, 0.0, 4.0).to_payload())
+    first = genuine.seal(Sender.ranges(), topic, RangeSet(1, 0.0, ((2, 4.0),)).to_payload())
     wrong_key = MessageAuth(BusKey.from_text("x" * 64, "attacker"))
     async with (
         client(server, files, "vehicle-1") as vehicle_1,
-        vehicle_1.subscribe(TOPICS.all_ranges(1)) as ranges,
+        vehicle_1.subscribe(TOPICS.ranges(1)) as ranges,
     ):
         for payload in [
             forty,  # the issue's forged ranges: unsigned
@@ -254,12 +257,12 @@ async def test_forged_replayed_oversized_and_malformed_ranges_are_dropped_and_co
             first,  # replayed
             b"\x00\xff garbage",  # malformed
             b"",  # empty: MQTT's "clear the retained value", no message
-            genuine.seal(Sender.ranges(), topic, RangeMessage(1, 2, 0.125, 4.1).to_payload()),
+            genuine.seal(Sender.ranges(), topic, RangeSet(1, 0.125, ((2, 4.1),)).to_payload()),
         ]:
             await attacker.publish(topic, payload)
-        got = [(await ranges.receive_message(RangeMessage, timeout=5.0))[1] for _ in range(2)]
+        got = [(await ranges.receive_message(RangeSet, timeout=5.0))[1] for _ in range(2)]
         counters = vehicle_1.auth_counters.as_dict()
-    assert [message.range_m for message in got] == [4.0, 4.1]
+    assert [message.ranges_m for message in got] == [((2, 4.0),), ((2, 4.1),)]
     assert counters == {
         "accepted": 2,
         "oversized": 0,  # the broker forwards none (see the next test)
@@ -312,10 +315,10 @@ async def test_the_broker_forwards_nothing_longer_than_a_message(
     broker disconnects whoever sends it before reading it (64 MiB, the issue's attack), and
     drops one just over the limit in a shorter packet."""
     server, files = broker
-    topic = TOPICS.range(1, 2)
+    topic = TOPICS.ranges(1)
     async with (
         client(server, files, "vehicle-1") as vehicle_1,
-        vehicle_1.subscribe(TOPICS.all_ranges(1)) as ranges,
+        vehicle_1.subscribe(TOPICS.ranges(1)) as ranges,
         # The attacker holds the range aid's login (one connection a login): vehicle 1's
         # controller connection publishes the genuine range.
         client(server, files, "vehicle-1-flight", sender=Sender.vehicle(1)) as range_aid,
@@ -324,9 +327,9 @@ async def test_the_broker_forwards_nothing_longer_than_a_message(
         # Disconnected unread: the acknowledgement never comes.
         with pytest.raises(aiomqtt.MqttError):
             await attacker.publish(topic, b"x" * (64 * 1024 * 1024), qos=1, timeout=5)
-        await range_aid.publish_message(topic, RangeMessage(1, 2, 0.0, 4.0), timeout=5)
-        _, got = await ranges.receive_message(RangeMessage, timeout=5.0)
+        await range_aid.publish_message(topic, RangeSet(1, 0.0, ((2, 4.0),)), timeout=5)
+        _, got = await ranges.receive_message(RangeSet, timeout=5.0)
         counters = vehicle_1.auth_counters.as_dict()
-    assert got.range_m == 4.0
+    assert got.ranges_m == ((2, 4.0),)
     assert counters["oversized"] == 0 and counters["malformed"] == 0
     assert counters["accepted"] == 1

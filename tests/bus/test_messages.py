@@ -17,7 +17,7 @@ from mission_runner.bus import (
     MessageDecodeError,
     MessageValueError,
     MissionControl,
-    RangeMessage,
+    RangeSet,
     StepMessage,
     TargetObservation,
     TopicKind,
@@ -64,12 +64,13 @@ shared_ranges = st.builds(
         lambda ranges: tuple(sorted(ranges.items()))
     ),
 )
-range_messages = st.builds(
-    RangeMessage,
+range_sets = st.builds(
+    RangeSet,
     vehicle_id=st.just(1),
-    peer_id=st.integers(2, 64) | st.just(0),
     time_s=finite,
-    range_m=non_negative,
+    ranges_m=st.dictionaries(st.integers(2, 1024) | st.just(0), non_negative, max_size=64).map(
+        lambda ranges: tuple(ranges.items())
+    ),
     step=st.none() | st.integers(0, 10**9),
 )
 target_observations = st.builds(
@@ -98,7 +99,7 @@ vehicle_statuses = st.builds(
 any_message = (
     step_messages
     | shared_ranges
-    | range_messages
+    | range_sets
     | target_observations
     | mission_controls
     | (vehicle_statuses)
@@ -206,9 +207,19 @@ def test_every_topic_kind_has_a_message_type() -> None:
             ),
             "at most 4096",
         ),
-        (lambda: RangeMessage(1, 1, 0.0, 1.0), "peer_id must differ"),
-        (lambda: RangeMessage(1, -1, 0.0, 1.0), "peer_id must be >= 0"),
-        (lambda: RangeMessage(1, 0, 0.0, -0.1), "range_m must be >= 0"),
+        (lambda: RangeSet(1, 0.0, ((1, 1.0),)), r"not the vehicle itself \(1\), got 1"),
+        (lambda: RangeSet(1, 0.0, ((-1, 1.0),)), "peer must be >= 0"),
+        (lambda: RangeSet(1, 0.0, ((0, -0.1),)), "range to 0 must be >= 0"),
+        (lambda: RangeSet(1, 0.0, ((2, 1.0), (3, 2.0), (2, 1.5))), "names a peer twice"),
+        (lambda: RangeSet(1, 0.0, ((2, math.nan),)), r"ranges_m\[0\]\[1\] must be finite"),
+        (lambda: RangeSet(1, 0.0, ((2, 1.0, 3.0),)), r"ranges_m\[0\] must have 2 entries"),
+        (lambda: RangeSet(1, 0.0, ((2.5, 1.0),)), "must be an integer"),
+        (lambda: RangeSet(1, 0.0, step=-1), "step must be >= 0"),
+        (lambda: RangeSet(0, 0.0), "vehicle_id must be >= 1"),
+        (
+            lambda: RangeSet(1, 0.0, tuple((p, 1.0) for p in range(2, 1027))),
+            "1025 entries, at most 1024",
+        ),
         (lambda: MissionControl("takeoff", 0.0), "command must be one of"),
         (lambda: MissionControl("land", 0.0, reason="x" * 1001), "at most 1000 characters"),
         (lambda: VehicleStatus(1, 0.0, "", 0, True), "state must not be empty"),
@@ -259,7 +270,7 @@ def test_payload_of_one_type_does_not_decode_as_another() -> None:
     with pytest.raises(MessageDecodeError):
         StepMessage.from_payload(status.to_payload())
     with pytest.raises(MessageDecodeError):
-        RangeMessage.from_payload(STEP.to_payload())
+        RangeSet.from_payload(STEP.to_payload())
 
 
 @given(st.binary(max_size=200))
@@ -286,3 +297,32 @@ def test_control_command_decodes_to_the_enum() -> None:
     decoded = MissionControl.from_payload(b'{"command":"land","time_s":3,"reason":"battery"}')
     assert decoded == MissionControl(ControlCommand.LAND, 3.0, "battery")
     assert decoded.command is ControlCommand.LAND
+
+
+@pytest.mark.parametrize(
+    ("payload", "problem"),
+    [
+        (b'{"vehicle_id":1,"time_s":0.5,"ranges_m":[[2,4.0],[2,5.0]]}', "names a peer twice"),
+        (b'{"vehicle_id":1,"time_s":0.5,"ranges_m":[[1,4.0]]}', "not the vehicle itself"),
+        (b'{"vehicle_id":1,"time_s":0.5,"ranges_m":[[2,-4.0]]}', "must be >= 0"),
+        (b'{"vehicle_id":1,"time_s":0.5,"ranges_m":[[2,NaN]]}', "non-finite"),
+        (b'{"vehicle_id":1,"time_s":0.5,"ranges_m":{"2":4.0}}', "must be an array"),
+        (b'{"vehicle_id":1,"time_s":0.5,"ranges_m":[[true,4.0]]}', "must be an integer"),
+        (b'{"vehicle_id":1,"time_s":0.5}', "missing field"),
+        (
+            b'{"vehicle_id":1,"time_s":0.5,"ranges_m":[%s]}'
+            % b",".join(b"[%d,1.0]" % p for p in range(2, 1100)),
+            "at most 1024",
+        ),
+    ],
+)
+def test_hostile_range_sets_raise_decode_errors(payload: bytes, problem: str) -> None:
+    with pytest.raises(MessageDecodeError, match=problem):
+        RangeSet.from_payload(payload)
+
+
+def test_an_empty_range_set_is_a_message() -> None:
+    """Every range of a round dropped out: the set still says the round is over."""
+    empty = RangeSet(3, 1.25, step=10)
+    assert RangeSet.from_payload(empty.to_payload()) == empty
+    assert json.loads(empty.to_payload())["ranges_m"] == []

@@ -28,8 +28,8 @@ class TestLayout:
         ("topic", "parsed"),
         [
             (TOPICS.step(3), ParsedTopic(TopicKind.STEP, 3)),
-            (TOPICS.range(2, 0), ParsedTopic(TopicKind.RANGE, 2, 0)),
-            (TOPICS.range(2, 14), ParsedTopic(TopicKind.RANGE, 2, 14)),
+            (TOPICS.ranges(2), ParsedTopic(TopicKind.RANGES, 2)),
+            (TOPICS.ranges(14), ParsedTopic(TopicKind.RANGES, 14)),
             (TOPICS.target(1), ParsedTopic(TopicKind.TARGET, 1)),
             (TOPICS.status(16), ParsedTopic(TopicKind.STATUS, 16)),
             (TOPICS.control(), ParsedTopic(TopicKind.CONTROL)),
@@ -40,7 +40,7 @@ class TestLayout:
 
     def test_topic_strings_are_documented_layout(self) -> None:
         assert TOPICS.step(3) == "enclosing/demo/vehicle/3/step"
-        assert TOPICS.range(2, 0) == "enclosing/demo/vehicle/2/range/0"
+        assert TOPICS.ranges(2) == "enclosing/demo/vehicle/2/ranges"
         assert TOPICS.target(1) == "enclosing/demo/vehicle/1/target"
         assert TOPICS.status(4) == "enclosing/demo/vehicle/4/status"
         assert TOPICS.control() == "enclosing/demo/control"
@@ -49,8 +49,8 @@ class TestLayout:
         ("pattern", "matching", "not_matching"),
         [
             (TOPICS.all_steps(), TOPICS.step(7), TOPICS.status(7)),
-            (TOPICS.all_ranges(2), TOPICS.range(2, 0), TOPICS.range(3, 0)),
-            (TOPICS.all_ranges(), TOPICS.range(3, 1), TOPICS.step(3)),
+            (TOPICS.ranges(2), TOPICS.ranges(2), TOPICS.ranges(3)),
+            (TOPICS.all_ranges(), TOPICS.ranges(3), TOPICS.step(3)),
             (TOPICS.all_targets(), TOPICS.target(5), TOPICS.step(5)),
             (TOPICS.all_status(), TOPICS.status(5), TOPICS.control()),
             (TOPICS.everything(), TOPICS.control(), "enclosing/other/control"),
@@ -63,11 +63,9 @@ class TestLayout:
         assert topic_matches(pattern, matching)
         assert not topic_matches(pattern, not_matching)
 
-    @given(st.integers(1, 10_000), st.integers(0, 10_000))
-    def test_any_ids_round_trip(self, vehicle_id: int, peer_id: int) -> None:
-        assert TOPICS.parse(TOPICS.range(vehicle_id, peer_id)) == ParsedTopic(
-            TopicKind.RANGE, vehicle_id, peer_id
-        )
+    @given(st.integers(1, 10_000))
+    def test_any_ids_round_trip(self, vehicle_id: int) -> None:
+        assert TOPICS.parse(TOPICS.ranges(vehicle_id)) == ParsedTopic(TopicKind.RANGES, vehicle_id)
         assert TOPICS.parse(TOPICS.step(vehicle_id)).vehicle_id == vehicle_id
 
     @pytest.mark.parametrize(
@@ -80,7 +78,8 @@ class TestLayout:
             "enclosing/demo/vehicle/x/step",
             "enclosing/demo/vehicle/1/speed",
             "enclosing/demo/vehicle/1/range",
-            "enclosing/demo/vehicle/1/range/",
+            "enclosing/demo/vehicle/1/range/2",  # one topic per pair: no longer the layout
+            "enclosing/demo/vehicle/1/ranges/2",
             "enclosing/demo/vehicle/1/step/extra",
             "enclosing/demo/control/now",
             "enclosing/demo",

@@ -15,7 +15,7 @@ import pytest
 import yaml
 from pymavlink import mavutil
 
-from mission_runner.bus import ControlCommand, MissionControl, RangeMessage, Sender
+from mission_runner.bus import ControlCommand, MissionControl, RangeSet, Sender
 from mission_runner.bus.auth import BusKey, MessageAuth
 from mission_runner.checks import load_scenario
 
@@ -49,10 +49,8 @@ def forge(broker, topics):
         (topics.control(), MissionControl(ControlCommand.LAND, now, reason="forged")),
         (topics.control(), MissionControl(ControlCommand.START, now + 1000.0)),
         *(
-            (topics.range(vehicle, peer), RangeMessage(vehicle, peer, now, 40.0))
-            for vehicle in (1, 2)
-            for peer in (1, 2, 3)
-            if peer != vehicle
+            (topics.ranges(vehicle), RangeSet(vehicle, now, ((peer, 40.0), (4, 40.0))))
+            for vehicle, peer in ((1, 2), (2, 3))
         ),
     ]
     messages = []

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from mission_runner.bus import (
-    RangeMessage,
+    RangeSet,
     StepMessage,
     TargetObservation,
     VehicleStatus,
@@ -185,6 +185,7 @@ class Neighbours:
         self.silent = set()  # steps at which neither is heard
         self.late = {}  # step -> peers whose step-k message and range come at t_(k+1)
         self.lost = {}  # step -> peers whose step-k message and range never come
+        self.dropped = {}  # step -> peers whose message comes, but not vehicle 2's range to it
         self.heights = True  # step messages carry odometry_down_m
         self.ranges_3d = True  # ranges as UWB measures them (else already horizontal)
         self.on_time = {}  # step -> {peer: Delivered}
@@ -228,7 +229,7 @@ class Neighbours:
             else ((OWN, shared_range(measured + self.shared[peer])),),
             **relay,
         )
-        return message, RangeMessage(OWN, peer, t_(k), measured, step=k), horizontal
+        return message, measured, horizontal
 
     async def at(self, time_s):
         """The clock woke vehicle 2 for t_k: what was held back arrives, then step k's inputs."""
@@ -242,17 +243,26 @@ class Neighbours:
                 await self.bus.publish_message(self.topics.target(OWN), observation, timeout=1.0)
         if k in self.silent:
             return
+        # Vehicle 2's ranges of the step come in one set: the on-time peers', and in a second
+        # set held back with their messages, the late peers' (a lost peer's are not in either).
+        on_time, late = [], []
         for peer in PEERS:
             if peer in self.lost.get(k, ()):
                 continue
-            step, ranged, horizontal = self.inputs(k, peer)
-            outgoing = [(self.topics.step(peer), step), (self.topics.range(OWN, peer), ranged)]
+            step, measured_m, horizontal = self.inputs(k, peer)
             if peer in self.late.get(k, ()):
-                self._held_back.extend(outgoing)
+                self._held_back.append((self.topics.step(peer), step))
+                late.append((peer, measured_m))
                 continue
             self.on_time.setdefault(k, {})[peer] = Delivered(step, horizontal)
-            for topic, message in outgoing:
-                await self.bus.publish_message(topic, message, timeout=1.0)
+            await self.bus.publish_message(self.topics.step(peer), step, timeout=1.0)
+            if peer not in self.dropped.get(k, ()):
+                on_time.append((peer, measured_m))
+        ranges = self.topics.ranges(OWN)
+        if late:
+            self._held_back.append((ranges, RangeSet(OWN, t_(k), tuple(late), step=k)))
+        own = RangeSet(OWN, t_(k), tuple(on_time), step=k)
+        await self.bus.publish_message(ranges, own, timeout=1.0)
 
 
 @dataclasses.dataclass
@@ -797,15 +807,12 @@ async def test_impossible_ranges_never_reach_the_estimator_and_are_counted():
         async def with_forgeries(time_s):
             await honest(time_s)
             k = round((time_s - START_S) / T)
-            for peer in PEERS:
-                forged = RangeMessage(OWN, peer, t_(k), 40.0, step=k)
+            forged = RangeSet(OWN, t_(k), tuple((peer, 40.0) for peer in PEERS), step=k)
+            beyond = RangeSet(OWN, t_(k), ((1, 5000.0),), step=k)
+            for hostile in (forged, beyond):
                 await flight.neighbours.bus.publish_message(
-                    flight.neighbours.topics.range(OWN, peer), forged, timeout=1.0
+                    flight.neighbours.topics.ranges(OWN), hostile, timeout=1.0
                 )
-            beyond = RangeMessage(OWN, 1, t_(k), 5000.0, step=k)
-            await flight.neighbours.bus.publish_message(
-                flight.neighbours.topics.range(OWN, 1), beyond, timeout=1.0
-            )
 
         flight.clock.on_wake = with_forgeries
         records = await flight.fly(steps)
@@ -944,6 +951,26 @@ async def test_vehicle_1_lost_hands_the_target_over_to_vehicle_2_which_sees_it_b
         [TARGET_VELOCITY[0] * (k - 3) * T for k in range(3, steps)],
         atol=1e-12,
     )
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("shared", [False, True])
+async def test_in_lockstep_a_dropped_range_is_not_waited_for(shared):
+    """Vehicle 2's radio drops its range to vehicle 3 at step 2 and both at step 4: the step's
+    range set says so, and the controller waits for nothing more (an hour's wall deadline:
+    waiting for a range that never comes would hang)."""
+    scenario = make_scenario(shared_ranges=shared)
+    async with rig(scenario, wall_deadline_s=3600.0) as flight:
+        flight.clock.lockstep = True
+        flight.neighbours.dropped = {2: {3}, 4: {1, 3}}
+        async with asyncio.timeout(60):
+            records = await flight.fly(6)
+        published = flight.published_steps()
+    ranged = [tuple(sorted(peer for peer in r.ranges_m if peer != 0)) for r in records]
+    assert ranged == [PEERS, PEERS, (1,), PEERS, (), PEERS]
+    assert [r.neighbours_used for r in records] == [PEERS] * 6
+    if shared:
+        assert [tuple(peer for peer, _ in m.ranges_m or ()) for m in published] == ranged
 
 
 @pytest.mark.asyncio

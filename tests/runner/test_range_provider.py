@@ -5,6 +5,7 @@ mosquitto once the ground station's start arrives."""
 import asyncio
 import math
 import time
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from mission_runner.bus import (
     ControlCommand,
     MissionControl,
     MqttBus,
-    RangeMessage,
+    RangeSet,
     TargetObservation,
 )
 from mission_runner.checks import validate_scenario
@@ -108,22 +109,45 @@ async def fly_aid(
             seen(emulator)
         await bus.publish(topics.control(), b"", retain=True, timeout=5.0)
         # The aid returns once it has published; the broker may still be delivering the last.
-        measured = [
-            (await ranges.receive_message(RangeMessage, timeout=5.0))[1]
-            for _ in range(stats.ranges)
-        ]
+        sets, measured = [], []
+        while len(measured) < stats.ranges:
+            sets.append((await ranges.receive_message(RangeSet, timeout=5.0))[1])
+            measured += Ranged.all_of(sets[-1])
+        sets += [m for _, m in ranges.drain_messages(RangeSet)]  # empty ones, if any
         observed = [m for _, m in targets.drain_messages(TargetObservation)]
-    return start_s, stats, measured, observed
+    return start_s, stats, measured, observed, sets
+
+
+class Ranged(NamedTuple):
+    """One range of a received set."""
+
+    vehicle_id: int
+    peer_id: int
+    time_s: float
+    range_m: float
+    step: int | None
+
+    @classmethod
+    def all_of(cls, ranges: RangeSet) -> list["Ranged"]:
+        return [
+            cls(ranges.vehicle_id, peer, ranges.time_s, range_m, ranges.step)
+            for peer, range_m in ranges.ranges_m
+        ]
 
 
 @pytest.mark.timeout(60)
 @pytest.mark.parametrize("source", ["gps", "sih"])
 async def test_ranges_match_the_true_distances_on_the_step_grid(mosquitto, source):
-    start_s, stats, measured, observed = await fly_aid(
+    start_s, stats, measured, observed, sets = await fly_aid(
         mosquitto, source=source, truth=source == "sih"
     )
     assert stats.steps == 8
     assert stats.ranges == len(measured) == 6 * (8 - stats.skipped)
+    # One set per vehicle and step, each the vehicle's ranges to both others.
+    assert sorted((m.vehicle_id, m.step) for m in sets) == sorted(
+        {(m.vehicle_id, m.step) for m in measured}
+    )
+    assert all(len(m.ranges_m) == 2 for m in sets)
     assert stats.missing_vehicles == 0
     assert {m.step for m in measured} == set(range(8))
     for message in measured:
@@ -152,7 +176,7 @@ async def test_the_aid_asks_the_simulator_for_ground_truth_fast_enough(
     ranges wait for the first sample after t_k, so the aid asks for more (SET_MESSAGE_INTERVAL
     on the truth link) unless told not to. (The emulator streams at most at its physics rate,
     50 Hz here.)"""
-    _, stats, measured, _ = await fly_aid(
+    _, stats, measured, _, _ = await fly_aid(
         mosquitto, source="sih", truth=True, truth_rate_hz=asked_hz
     )
     assert stats.ranges == len(measured) == 6 * (8 - stats.skipped)
@@ -166,7 +190,7 @@ async def test_the_truth_rate_asked_is_per_second_of_host_time(mosquitto):
     """On a mission clock at 2x (PX4's speed factor 2, the emulator at speed 2 like it) the aid
     asks for half the rate in the autopilot's time, so that it parses what it asked for per
     second of the host's, not twice that."""
-    _, stats, measured, _ = await fly_aid(
+    _, stats, measured, _, _ = await fly_aid(
         mosquitto, source="sih", truth=True, truth_rate_hz=40.0, clock_rate=2.0
     )
     assert stats.ranges == len(measured) == 6 * (8 - stats.skipped)
@@ -179,7 +203,7 @@ async def test_steps_past_their_deadline_are_skipped_so_the_aid_catches_up(mosqu
     """An aid behind (here: started a second after k = 0) measures the steps whose deadline
     has passed for the truth and publishes none of them, then every step from the first it
     can still make on."""
-    _, stats, measured, _ = await fly_aid(mosquitto, source="gps", start_in_s=-1.0, steps=40)
+    _, stats, measured, _, _ = await fly_aid(mosquitto, source="gps", start_in_s=-1.0, steps=40)
     assert 8 <= stats.skipped < 40
     # Steps 0-7 were past their deadline before the aid started; from then on it keeps up (a
     # step may still be skipped, or lack a vehicle's GPS fix, on a busy machine).
@@ -202,7 +226,7 @@ async def test_the_aid_feeds_each_instance_a_vision_odometry_from_its_truth(mosq
             autopilot = emulator.autopilot(index)
             received[index + 1] = (autopilot.external_vision_received, autopilot.external_vision)
 
-    _, stats, measured, _ = await fly_aid(
+    _, stats, measured, _, _ = await fly_aid(
         mosquitto, source="sih", truth=True, vision=settings, seen=seen
     )
     assert stats.ranges == len(measured) == 6 * (8 - stats.skipped)
@@ -251,7 +275,7 @@ async def test_a_message_not_handed_over_in_time_is_dropped_and_counted():
 
     class SlowOnce:
         async def publish_message(self, topic, message, *, timeout):
-            if topic == topics.range(1, 2):
+            if topic == topics.ranges(1):
                 raise BusTimeoutError(f"publish to {topic}", timeout)
             sent.append(topic)
 
@@ -260,8 +284,9 @@ async def test_a_message_not_handed_over_in_time_is_dropped_and_counted():
     noise = (np.random.default_rng(0), UwbRanging(mission.sensors, len(positions), 0.1))
     await _publish_step(SlowOnce(), topics, mission, positions, 0, 10.0, 10.0, noise, stats)
     assert stats.unsent == 1
-    assert stats.ranges == 5 and len(sent) == 6  # five ranges and the target observation
-    assert topics.range(1, 2) not in sent
+    # Vehicle 1's set (two ranges) is lost; the others' sets and the target observation go out.
+    assert stats.ranges == 4 and len(sent) == 3
+    assert topics.ranges(1) not in sent
 
 
 async def test_just_past_its_newest_truth_a_vehicle_is_taken_at_that_velocity_at_once():
@@ -299,7 +324,7 @@ async def test_a_vehicle_whose_truth_stops_costs_no_step_more_than_its_deadline(
     heard. The aid used to wait 0.25 s for it at every step, longer than a step, and fell
     further behind at each (seconds behind on four SIH at speed factor 2, every vehicle waiting
     on it); it now waits no longer than the step's deadline and publishes the others."""
-    _, stats, measured, _ = await fly_aid(
+    _, stats, measured, _, _ = await fly_aid(
         mosquitto, source="sih", truth=True, kill_after_start_s=2.5 * STEP_S
     )
     assert stats.missing_vehicles >= 4  # vehicle 3 had no position in its last steps

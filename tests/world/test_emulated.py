@@ -15,7 +15,7 @@ import yaml
 from mission_runner.bus import (
     MissionControl,
     MqttBus,
-    RangeMessage,
+    RangeSet,
     TargetObservation,
     Topics,
 )
@@ -75,7 +75,7 @@ async def test_world_process_publishes_ranges_on_the_unix_step_grid_after_start(
             assert b"world on the mqtt bus" in line, line
             start_s = math.ceil((time.time() + 1.0) / STEP_S) * STEP_S
             await bus.publish_message(topics.control(), MissionControl("start", start_s), timeout=5)
-            _, first = await ranges.receive_message(RangeMessage, timeout=10)
+            _, first = await ranges.receive_message(RangeSet, timeout=10)
             _, target = await targets.receive_message(TargetObservation, timeout=10)
     finally:
         process.send_signal(signal.SIGINT)

@@ -3,6 +3,7 @@
 import asyncio
 import logging
 import math
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ import pytest
 from mission_runner.bus import (
     BusConnectionError,
     InProcessBus,
-    RangeMessage,
+    RangeSet,
     TargetObservation,
     Topics,
 )
@@ -26,6 +27,24 @@ STEP_S = 0.125
 TOPICS = Topics("enclosing/world-test")
 
 
+class Ranged(NamedTuple):
+    """One range of a published set."""
+
+    vehicle_id: int
+    peer_id: int
+    time_s: float
+    range_m: float
+    step: int | None
+
+
+def each_range(sets):
+    return [
+        Ranged(m.vehicle_id, peer, m.time_s, range_m, m.step)
+        for m in sets
+        for peer, range_m in m.ranges_m
+    ]
+
+
 def emulator_config(n=3):
     return EmulatorConfig(
         vehicles=n,
@@ -37,8 +56,9 @@ def emulator_config(n=3):
 
 
 async def collect(sensors, *, seconds, senses=(True, False, False), faults=(), wrap=None):
-    """Run the world for ``seconds`` and return every range and target message published.
-    ``wrap(bus)``: what the world publishes through instead of the bus itself."""
+    """Run the world for ``seconds`` and return every range (of every set) and target message
+    published, the world, and the range sets. ``wrap(bus)``: what the world publishes through
+    instead of the bus itself."""
     path = CirclePath(kind="circle", center_m=[0.0, 10.0], radius_m=2.0, period_s=20.0)
     async with (
         Emulator(emulator_config()) as emulator,
@@ -68,15 +88,17 @@ async def collect(sensors, *, seconds, senses=(True, False, False), faults=(), w
         await emulator.run_for(seconds + STEP_S)
         async with asyncio.timeout(10):
             await world.drained()
+        sets = [m for _, m in ranges.drain_messages(RangeSet)]
         return (
-            [m for _, m in ranges.drain_messages(RangeMessage)],
+            each_range(sets),
             [m for _, m in targets.drain_messages(TargetObservation)],
             world,
+            sets,
         )
 
 
 async def test_ranges_are_sampled_at_step_boundaries_with_the_configured_noise():
-    ranges, _, world = await collect(SensorConfig(range_noise_std_m=0.1), seconds=40)
+    ranges, _, world, _ = await collect(SensorConfig(range_noise_std_m=0.1), seconds=40)
     start = world.start_s
     steps = {m.step for m in ranges}
     assert len(steps) >= 300
@@ -91,7 +113,7 @@ async def test_ranges_are_sampled_at_step_boundaries_with_the_configured_noise()
 async def test_both_ends_of_a_pair_read_one_exchange_and_its_errors_last():
     """One exchange per pair on the emulator's clock: vehicle i's range of j at step k is j's of
     i, bit for bit; a pair's bias stays; NLOS comes in bursts; the airtime ranges two of the
-    three pairs a step."""
+    three pairs a step, and each vehicle's ranges of a step go out in one set."""
     sensors = SensorConfig(
         range_noise_std_m=0.05,
         range_bias_std_m=0.1,
@@ -99,11 +121,14 @@ async def test_both_ends_of_a_pair_read_one_exchange_and_its_errors_last():
         range_nlos_duration_s=2.0,
         range_exchange_s=STEP_S / 2,
     )
-    ranges, _, world = await collect(sensors, seconds=30)
+    ranges, _, world, sets = await collect(sensors, seconds=30)
     read = {(m.step, m.vehicle_id, m.peer_id): m.range_m for m in ranges}
     assert all(read.get((k, j, i)) == value for (k, i, j), value in read.items())
     steps = len(world.samples)
     assert len(read) == 4 * steps  # two exchanges a step, each read at both ends
+    assert sorted((m.step, m.vehicle_id) for m in sets) == [
+        (k, i) for k in range(steps) for i in (1, 2, 3)
+    ]
     error = {key: value - 4.0 * abs(key[1] - key[2]) for key, value in read.items()}
     long = [key for key, value in error.items() if value > 0.3 + 0.25]  # in a burst
     assert long
@@ -114,15 +139,21 @@ async def test_both_ends_of_a_pair_read_one_exchange_and_its_errors_last():
 
 async def test_dropouts_and_maximum_range():
     sensors = SensorConfig(range_dropout_probability=0.2, range_max_m=6.0)
-    ranges, _, world = await collect(sensors, seconds=30)
+    ranges, _, world, sets = await collect(sensors, seconds=30)
     pairs_per_step = 4  # 1-2, 2-1, 2-3, 3-2 are within 6 m; 1-3, 3-1 (8 m) never are
     steps = len(world.samples)
     assert {(m.vehicle_id, m.peer_id) for m in ranges} == {(1, 2), (2, 1), (2, 3), (3, 2)}
     assert len(ranges) / (steps * pairs_per_step) == pytest.approx(0.8, abs=0.04)
+    # Every vehicle's set goes out every step, empty when its only range dropped out: its
+    # controller then knows none is coming.
+    assert len(sets) == 3 * steps
+    empty = [m.vehicle_id for m in sets if not m.ranges_m]
+    assert empty.count(1) / steps == pytest.approx(0.2, abs=0.04)  # its one range dropped
+    assert empty.count(2) < empty.count(1)  # both of its ranges dropped
 
 
 async def test_target_observations_only_for_sensing_vehicles():
-    _, targets, world = await collect(SensorConfig(), seconds=5, senses=(False, True, False))
+    _, targets, world, _ = await collect(SensorConfig(), seconds=5, senses=(False, True, False))
     assert targets and {t.vehicle_id for t in targets} == {2}
     first = targets[0]
     expected = np.hypot(
@@ -157,12 +188,12 @@ async def test_a_steps_measurements_go_out_at_once_target_observations_first():
     """The sensing vehicle's step waits for its observation, its neighbours' for its message:
     one after the other, the observation (last) came 35-65 ms after t_k on a loaded machine."""
     wrapped = []
-    ranges, targets, _ = await collect(
+    ranges, targets, _, sets = await collect(
         SensorConfig(), seconds=3, wrap=lambda bus: wrapped.append(InFlight(bus)) or wrapped[0]
     )
     (bus,) = wrapped
-    per_step = 1 + 6  # vehicle 1's observation and the three vehicles' ranges to each other
-    assert len(targets) >= 20 and len(ranges) == 6 * len(targets)
+    per_step = 1 + 3  # vehicle 1's observation and the three vehicles' range sets
+    assert len(targets) >= 20 and len(ranges) == 6 * len(targets) == 2 * len(sets)
     assert bus.most == per_step
     firsts = [bus.order[i] for i in range(0, len(bus.order), per_step)]
     assert all(isinstance(m, TargetObservation) for m in firsts)
@@ -182,17 +213,18 @@ class Outage:
 
 
 async def test_a_bus_outage_is_one_warning_and_a_count_not_a_line_per_message(caplog):
-    """13 lines a step with four vehicles filled the stderr pipe of an ``emulate`` process
-    nobody read until the end, and its event loop (the emulator with it) stopped."""
+    """A line per message (13 a step with four vehicles, a message a range) filled the stderr
+    pipe of an ``emulate`` process nobody read until the end, and its event loop (the emulator
+    with it) stopped."""
     caplog.set_level(logging.INFO, logger="mission_runner.world.world")
     wrapped = []
-    ranges, targets, world = await collect(
+    _, targets, world, sets = await collect(
         SensorConfig(), seconds=3, wrap=lambda bus: wrapped.append(Outage(bus, 8)) or wrapped[0]
     )
-    assert world.dropped == 8 * 7 and world.published == len(ranges) + len(targets) > 0
+    assert world.dropped == 8 * 4 and world.published == len(sets) + len(targets) > 0
     lines = [r for r in caplog.records if r.name == "mission_runner.world.world"]
     assert [r.levelname for r in lines] == ["WARNING", "INFO"]
-    assert "publishing again (56 dropped)" in lines[1].getMessage()
+    assert "publishing again (32 dropped)" in lines[1].getMessage()
 
 
 class SlowAcknowledgement:
@@ -221,19 +253,20 @@ async def test_a_step_slow_to_be_acknowledged_does_not_hold_the_next_steps_back(
     step's acknowledgement delayed every later step's measurements past the vehicles'
     deadlines (and this step, waited for in vain, was counted as dropped)."""
     wrapped = []
-    ranges, targets, world = await collect(
+    _, targets, world, sets = await collect(
         SensorConfig(),
         seconds=2,
         wrap=lambda bus: wrapped.append(SlowAcknowledgement(bus)) or wrapped[0],
     )
     assert wrapped[0].later.is_set()
-    assert world.dropped == 0 and world.published == len(ranges) + len(targets) == 7 * 16
+    assert world.dropped == 0 and world.published == len(sets) + len(targets) == 4 * 16
 
 
 async def test_a_failed_uwb_stops_every_range_from_and_to_it():
     faults = [(1, "uwb", 0.0, None)]  # vehicle index 1 (id 2) from the start
-    ranges, _, _ = await collect(SensorConfig(), seconds=3, faults=faults)
+    ranges, _, _, sets = await collect(SensorConfig(), seconds=3, faults=faults)
     assert ranges and all(2 not in (m.vehicle_id, m.peer_id) for m in ranges)
+    assert {m.vehicle_id for m in sets} == {1, 3}  # its radio down: no set at all
 
 
 async def test_trackers_say_not_seen_beyond_range_when_hidden_and_at_a_miss():
@@ -273,6 +306,45 @@ async def test_trackers_say_not_seen_beyond_range_when_hidden_and_at_a_miss():
     # Random misses: every tracker misses when the probability is (almost) 1.
     missed = observations(SensorConfig(target_dropout_probability=0.999999))
     assert not any(o.seen for o in missed.values()) and len(missed) == 4
+
+
+async def test_a_set_per_ranging_vehicle_empty_when_the_airtime_left_it_out():
+    """One exchange a step: at step k one pair ranges, and the two other working radios say
+    they ranged nothing (an empty set); a radio that is down sends no set."""
+    from mission_runner.sensors import UwbRanging, range_schedule
+    from mission_runner.world import step_measurements
+
+    sensors = SensorConfig(range_exchange_s=0.5)
+    positions = np.array([[4.0 * i, 0.0, -5.0] for i in range(4)])
+    uwb = UwbRanging(sensors, 4, 0.5)
+    ranging = np.array([True, True, True, False])
+    empty = 0
+    for k in range(6):
+        measured = step_measurements(
+            k,
+            0.5 * k,
+            ids=[1, 2, 3, 4],
+            topics=TOPICS,
+            positions_m=positions,
+            ranging=ranging,
+            tracking=np.zeros(4, dtype=bool),
+            target_m=[0.0, 0.0],
+            target_velocity_m_s=[0.0, 0.0],
+            sensors=sensors,
+            rng=np.random.default_rng(k),
+            uwb=uwb,
+        )
+        sets = {m.vehicle_id: m for _, m in measured}
+        assert [topic for topic, _ in measured] == [TOPICS.ranges(i) for i in (1, 2, 3)]
+        carried = range_schedule(4, sensors, 0.5, k) & ranging[:, None] & ranging[None, :]
+        for i in (1, 2, 3):
+            peers = [j + 1 for j in np.flatnonzero(carried[i - 1])]
+            assert [peer for peer, _ in sets[i].ranges_m] == peers
+            assert sets[i].step == k and sets[i].time_s == 0.5 * k
+        empty += sum(not m.ranges_m for m in sets.values())
+    # Six steps, one pair each: a working radio outside the step's pair has an empty set, and
+    # the three pairs with vehicle 4 (down) left even their other end with nothing.
+    assert empty == 3 * 1 + 3 * 3
 
 
 async def test_the_scenarios_events_happen_at_their_step_on_the_emulators_clock():
