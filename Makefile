@@ -22,8 +22,9 @@ test: install
 	$(PYTHON) -m mypy
 	$(PYTHON) -m pytest
 
-## The fast lane while developing (< 1 min): lint, types and every test that flies nothing and
-## needs no broker. `make test` (what CI runs) adds the flights, MAVSDK and mosquitto.
+## The fast lane while developing: lint, types and every test that flies nothing, needs no broker
+## and is not marked slow. `make test` (what CI runs) adds those. Measured: 1077 tests, 72 s CPU
+## (user+sys), 108 s wall on 2 cores shared at load 1.5-3 (`/usr/bin/time make -o install check`).
 check: install
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m ruff format --check .
