@@ -18,12 +18,14 @@ test: install
 	      (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto) >/dev/null; \
 	    else echo "mosquitto missing: install it (e.g. sudo apt-get install mosquitto)"; exit 1; fi; }
 	$(PYTHON) -m ruff check .
+	$(PYTHON) -m ruff format --check .
 	$(PYTHON) -m mypy
 	lint-imports
 	$(PYTHON) -m pytest
 
-## The fast lane while developing (< 1 min): lint, types and every test that flies nothing and
-## needs no broker. `make test` (what CI runs) adds the flights, MAVSDK and mosquitto.
+## The fast lane while developing: lint, types and every test that flies nothing, needs no broker
+## and is not marked slow. `make test` (what CI runs) adds those. Measured: 1077 tests, 72 s CPU
+## (user+sys), 108 s wall on 2 cores shared at load 1.5-3 (`/usr/bin/time make -o install check`).
 check: install
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m ruff format --check .

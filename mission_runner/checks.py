@@ -183,7 +183,7 @@ class _BoundedLoader(yaml.SafeLoader):
 
     def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
         if self.check_event(yaml.AliasEvent):
-            anchored = self.anchors.get(self.peek_event().anchor)
+            anchored = self.anchors.get(self.peek_event().anchor)  # type: ignore[no-untyped-call]
             if anchored is not None and id(anchored) not in self._sizes:
                 raise _StructureError(self._where(), "an alias refers to a value containing it")
             node = super().compose_node(parent, index)

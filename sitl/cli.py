@@ -254,8 +254,9 @@ def _apply_sih_options(args: argparse.Namespace, data: dict[str, Any]) -> None:
     """The PX4-SIH fidelity options, on top of the file and ``--sih-like``."""
 
     def section(name: str) -> dict[str, Any]:
-        data[name] = dict(data.get(name) or {})
-        return data[name]
+        part: dict[str, Any] = dict(data.get(name) or {})
+        data[name] = part
+        return part
 
     if args.host_unix_time:
         section("clock")["unix_time"] = "host"

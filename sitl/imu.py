@@ -79,4 +79,5 @@ def earth_field_ned_gauss(latitude_deg: float) -> Vector3:
 def static_pressure_hpa(altitude_amsl_m: float) -> float:
     """International Standard Atmosphere pressure at ``altitude_amsl_m`` (troposphere), hPa."""
     ratio = 1.0 - _TEMPERATURE_LAPSE_K_M * altitude_amsl_m / _SEA_LEVEL_TEMPERATURE_K
-    return _SEA_LEVEL_PRESSURE_HPA * max(ratio, 0.0) ** _BAROMETRIC_EXPONENT
+    pressure_hpa: float = _SEA_LEVEL_PRESSURE_HPA * max(ratio, 0.0) ** _BAROMETRIC_EXPONENT
+    return pressure_hpa

@@ -575,12 +575,14 @@ _INDEX: Mapping[str, int] = {name: i for i, name in enumerate(PARAM_NAMES)}
 
 def int32_to_wire_float(value: int) -> float:
     """Encode an int32 byte-wise into a float32, as PX4 does in PARAM_VALUE/PARAM_SET."""
-    return struct.unpack("<f", struct.pack("<i", int(value)))[0]
+    (encoded,) = struct.unpack("<f", struct.pack("<i", int(value)))
+    return float(encoded)
 
 
 def wire_float_to_int32(value: float) -> int:
     """Decode a byte-wise encoded int32 from the float field of PARAM_SET/PARAM_VALUE."""
-    return struct.unpack("<i", struct.pack("<f", value))[0]
+    (decoded,) = struct.unpack("<i", struct.pack("<f", value))
+    return int(decoded)
 
 
 def validate_overrides(overrides: Mapping[str, float]) -> dict[str, float]:

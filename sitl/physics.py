@@ -116,7 +116,7 @@ class MulticopterPhysics:
         if pos.ndim != 2 or pos.shape[1] != 3:
             raise ValueError(f"initial positions must have shape (n, 3), got {pos.shape}")
         n = pos.shape[0]
-        self.n = n
+        self.n: int = n
         self.position_ned_m: FloatArray = pos
         self.velocity_ned_m_s: FloatArray = np.zeros((n, 3))
         self.acceleration_ned_m_s2: FloatArray = np.zeros((n, 3))

@@ -17,8 +17,8 @@ from .stopping import RUN_STOPPING, run_async
 
 if TYPE_CHECKING:
     from ..config import Scenario
-    from ..records import StepRecord
-    from ..runner.mission import FlightOutcome, Progress
+    from ..records import Progress, StepRecord
+    from ..runner.mission import FlightOutcome
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -59,7 +59,8 @@ def command(arguments: argparse.Namespace) -> int:
 
     from ..checks import load_scenario  # noqa: PLC0415 - fast `--help`
     from ..config import METRICS  # noqa: PLC0415 - fast `--help`
-    from ..outputs import prepare_out_dir, write_atomic  # noqa: PLC0415 - fast `--help`
+    from ..outputs import prepare_out_dir  # noqa: PLC0415 - fast `--help`
+    from ..paths import write_atomic  # noqa: PLC0415 - fast `--help`
     from ..sim.sweep import sweep, sweep_csv  # noqa: PLC0415 - fast `--help`
 
     if arguments.metric not in METRICS:

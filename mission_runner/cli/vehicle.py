@@ -13,7 +13,7 @@ from .options import add_bus_arguments
 from .stopping import run_async
 
 if TYPE_CHECKING:
-    from ..runner.process import VehicleRun
+    from ..records import VehicleRun
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -45,7 +45,8 @@ def command(arguments: argparse.Namespace) -> int:
     from ..checks import load_scenario  # noqa: PLC0415 - fast `--help`
     from ..outputs import VEHICLE_FILES, Status, prepare_out_dir, write_vehicle_run  # noqa: PLC0415 - fast `--help`
     from ..recording import LogCapture  # noqa: PLC0415 - fast `--help`
-    from ..runner.process import VehicleRun, run_vehicle  # noqa: PLC0415 - fast `--help`
+    from ..records import VehicleRun  # noqa: PLC0415 - fast `--help`
+    from ..runner.process import run_vehicle  # noqa: PLC0415 - fast `--help`
 
     scenario = with_bus_access(load_scenario(arguments.config, flying=True), arguments)
     # No summary.json until the end: the ground station takes one as "this vehicle is done".

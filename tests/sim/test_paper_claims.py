@@ -136,6 +136,8 @@ def simulable():
     return names
 
 
+# Every shipped scenario in full (about 0.5 s each): what CI checks; the fast lane has the claims.
+@pytest.mark.slow
 @pytest.mark.parametrize("name", simulable())
 def test_every_scenario_meets_its_expectations(name):
     scenario = load_scenario(CONFIGS / f"{name}.yaml")

@@ -19,6 +19,7 @@ def batch(guard_m):
     return run_metrics(simulate(validate_scenario(data, "separation"), runs=RUNS))
 
 
+@pytest.mark.slow  # two batches of 200 runs: a statistical claim, not plumbing
 def test_the_guard_keeps_random_starts_apart_and_the_formation_still_tracks():
     free, guarded = batch(None), batch(1.0)
     assert np.mean(free["min_separation_m"] < 0.9) > 0.5  # without it, most runs come close
@@ -38,6 +39,7 @@ def test_a_separation_the_circle_cannot_hold_is_refused_at_its_path():
         validate_scenario(data, "separation")
 
 
+@pytest.mark.slow  # a batch of 200 runs
 def test_the_guard_keeps_its_distance_under_the_flights_range_noise():
     # 5 cm (1 sigma) range noise, as sensor_noise_flight.yaml models UWB. Before the guard took
     # its margin and its trust in directions from the noise, 18 of these 200 starts came closer

@@ -130,6 +130,7 @@ def test_reported_positions_carry_the_error_and_the_truth_does_not() -> None:
         assert ap.true_global_position() != ap.global_position()
 
 
+@pytest.mark.slow  # 200 s of 8 vehicles for error statistics
 @pytest.mark.asyncio
 async def test_emulated_vehicles_pairwise_range_errors_match_the_configured_model() -> None:
     """SIH-like numbers: 8 vehicles 20 m apart on the ground for 200 s, reported positions

@@ -97,6 +97,7 @@ async def collect(sensors, *, seconds, senses=(True, False, False), faults=(), w
         )
 
 
+@pytest.mark.slow  # 40 s of ranges for a noise statistic
 async def test_ranges_are_sampled_at_step_boundaries_with_the_configured_noise():
     ranges, _, world, _ = await collect(SensorConfig(range_noise_std_m=0.1), seconds=40)
     start = world.start_s
