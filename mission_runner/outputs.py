@@ -472,6 +472,7 @@ def write_vehicle_run(
         "start_s": run.start_s,
         "mission_clock_rate": run.clock_rate,
         "autopilot_clock_rate": run.autopilot_clock_rate,
+        "setpoints_scale_bounded": run.setpoints_scale_bounded,
         "autopilot_clock_residual_s": run.clock_residual_s,
         "setpoint_lateness_s": after_t_k(lambda r: r.setpoint_sent_s),
         # Where that lateness comes from, in the order a step goes: the own odometry at t_k in,

@@ -90,6 +90,8 @@ class VehicleRun:
     ranges_rejected: dict[str, int] = field(default_factory=dict)
     #: Neighbours' setpoints in force dropped as impossible (``CommandGate.rejected``).
     commands_rejected: int = 0
+    #: Setpoints whose mission-to-autopilot scale was bounded (``MavsdkVehicle.velocity_scale``).
+    setpoints_scale_bounded: int = 0
 
 
 @dataclass(frozen=True)

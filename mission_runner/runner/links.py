@@ -281,6 +281,8 @@ class MavsdkVehicle:
         self.clock_mapping: ClockMapping | None = None
         self._mission_time: MissionTime | None = None
         self._scale_bounded = False  # warned once that the clocks are too far apart
+        #: Setpoints whose scale was bounded (clocks too far apart to fly what the law asked).
+        self.scale_bounded_setpoints = 0
         self.status_texts: collections.deque[tuple[float, str, str]] = collections.deque(
             maxlen=50
         )  # (monotonic s, severity, text)
@@ -512,6 +514,8 @@ class MavsdkVehicle:
             return 1.0
         scale = mission_time.rate * mapping.fit.rate
         bounded = min(max(scale, 1.0 / MAX_VELOCITY_SCALE), MAX_VELOCITY_SCALE)
+        if bounded != scale:
+            self.scale_bounded_setpoints += 1
         if bounded != scale and not self._scale_bounded:
             self._scale_bounded = True
             logger.warning(

@@ -235,6 +235,7 @@ async def run_vehicle(
             if controller.command_gate is not None:
                 run.commands_rejected = controller.command_gate.rejected["command_speed"]
             run.autopilot_clock_rate = mapping.fit.boot_rate
+            run.setpoints_scale_bounded = vehicle.scale_bounded_setpoints
             run.clock_residual_s = mapping.fit.residual_s
     return run
 

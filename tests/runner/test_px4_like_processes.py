@@ -215,8 +215,9 @@ def test_the_mission_clock_follows_autopilots_that_change_pace(tmp_path, mosquit
     for number, output in enumerate(outputs, start=1):
         summary = json.loads((mission / f"vehicle_{number}" / "summary.json").read_text())
         assert summary["steps_by_state"] == {"following": STEPS}, output
-        # Never asked to fly faster than its autopilot's clock allows (the bound's warning).
-        assert "velocity setpoints are scaled by" not in output, output
+        # Asked to fly faster than its autopilot's clock allows (the setpoint scale bounded) only
+        # while the ground made sure the change lasted: seconds, not the rest of the mission.
+        assert summary["setpoints_scale_bounded"] <= 80, output
 
 
 @pytest.mark.timeout(240)
