@@ -478,7 +478,7 @@ def instance_scheduling(nice: int, realtime: bool) -> None:
     process on the machine, the mission's own controllers and range aid among them, whenever
     they wake. Refused here by a real-time priority limit of 0 and, where the parent may drop
     it (root), no ``CAP_SYS_NICE`` in the bounding set (so none after exec). Measured with four
-    SIH instances at speed factor 2 on two cores: see the README's speed-factor row.
+    SIH instances at speed factor 2 on two cores: see docs/benchmarks.md.
 
     ``nice`` > 0: add it to the niceness, and give the session's scheduling autogroup the
     same (Linux; where there is no autogroup file, or it cannot be written, the niceness alone

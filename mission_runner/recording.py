@@ -15,7 +15,7 @@ Frames: ``world`` is east-north-up (x east, y north, z up; metres from the scena
 so Foxglove's top-down view matches ``xy.png``. The formation is planar: z is 0. Each vehicle has
 a frame ``vehicle_<id>`` whose parent is ``world`` where the truth is known and, in a vehicle
 process's own recording, its odometry frame ``odom_<id>``; its estimates of the others are
-drawn in it. Topics and what each carries: README, "Seeing a mission".
+drawn in it. Topics and what each carries: docs/seeing.md.
 """
 
 from __future__ import annotations

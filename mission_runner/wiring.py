@@ -69,7 +69,7 @@ GATE_PATIENCE = 10
 def gate_patience(scenario: Scenario) -> int:
     """How many rejected ranges in a row mean an edge has lost track: with NLOS bursts of mean
     duration D, 5 D of steps (a burst lasts longer with probability e^-5 < 1 %), since an
-    edge that restarts on a burst's biased ranges starts from the bias (README, "Relative
+    edge that restarts on a burst's biased ranges starts from the bias (docs/algorithm.md, "Relative
     localization with noise": 0.43 m per edge at 10 with 2 s bursts in 0.1 s steps)."""
     sensors = scenario.sensors
     if sensors.range_outlier_probability == 0 or sensors.range_nlos_duration_s == 0:

@@ -203,7 +203,7 @@ async def _discovery_ticks() -> AsyncIterator[None]:
     """Yield at once, then every DISCOVERY_POLL_S. (MAVSDK's new-system stream is an async
     generator: a timeout around its ``anext`` ends it for good, and discovery died with
     StopAsyncIteration whenever the vehicle was not up within the first wait - a vehicle
-    process started with PX4, as the README's block does.)"""
+    process started with PX4, as docs/real-px4.md's block does.)"""
     while True:
         yield
         await asyncio.sleep(DISCOVERY_POLL_S)
