@@ -312,6 +312,11 @@ class Emulator:
             self.clock.start()
             self._wall_start_s = time.monotonic()
             self._epoch_start_us = int(time.time() * 1e6)
+            # Simulated time 0 is now, not when the autopilots were built: binding every
+            # vehicle's sockets took long enough on a loaded machine that their UNIX clocks (and
+            # a world on them) ran that far behind the host's, past the step's deadlines.
+            for ap in self._autopilots:
+                ap.unix_epoch_start_us = self._epoch_start_us
             task_group = await stack.enter_async_context(asyncio.TaskGroup())
             self._run_task = task_group.create_task(self._run(), name="sitl-physics")
             stack.callback(self._run_task.cancel)  # the physics loop runs until cancelled
@@ -419,7 +424,6 @@ class Emulator:
                 param_overrides=config.params,
                 preflight_ready_after_s=config.preflight_ready_after_s,
                 battery_drain_percent_per_min=config.battery_drain_percent_per_min,
-                unix_epoch_start_us=int(time.time() * 1e6),
                 unix_time_us=unix_time_us,
                 boot_offset_s=float(self._boot_offsets_s[i]),
                 ftp_ardupilot_extensions=config.ftp.ardupilot_extensions,

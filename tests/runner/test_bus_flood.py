@@ -115,8 +115,11 @@ def test_a_flood_on_the_control_topic_costs_the_formation_nothing(tmp_path, open
     for number, (vehicle, output) in enumerate(zip(flying.vehicles, outputs, strict=True), 1):
         assert vehicle.returncode == 0, output
         following = re.search(rf"vehicle {number}: done, {STEPS} steps, (\d+) following", output)
-        assert following and int(following.group(1)) >= STEPS - 10, output
         summary = json.loads((tmp_path / f"vehicle_{number}" / "summary.json").read_text())
+        # What the other steps were (a target never observed is lost after 10 s: 81 following).
+        assert following and int(following.group(1)) >= STEPS - 10, (
+            f"{summary['steps_by_state']}\n{output}\n{ground_out}\n{flying.world_output}"
+        )
         messages = summary["bus_security"]["messages"]
         if kind == "big":
             assert messages["oversized"] == 0, messages  # refused by the broker, unread

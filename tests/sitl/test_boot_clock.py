@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+import types
 
 import numpy as np
 import pytest
@@ -169,3 +170,31 @@ async def test_system_time_follows_the_host_clock_while_simulated_time_runs_at_i
     assert boot_s >= 3.0
     assert boot_s / unix_s == pytest.approx(speed, rel=0.15)
     assert first.time_boot_ms >= 4_000  # on the vehicle's own boot clock
+
+
+@pytest.mark.asyncio
+async def test_unix_time_zero_is_when_simulated_time_starts_however_long_the_setup(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Every autopilot's SYSTEM_TIME UNIX epoch is the instant the clock starts, not when the
+    vehicles were built: on a loaded machine binding the sockets took 0.06-0.16 s for four
+    vehicles here (longer elsewhere), and a world publishing on the autopilots' UNIX time ran
+    that far behind the host's clock, past the controllers' deadlines."""
+    reads: list[float] = []
+
+    def host_time() -> float:  # a host clock 1 s on at every read
+        reads.append(1_800_000_000.0 + len(reads))
+        return reads[-1]
+
+    monkeypatch.setattr(  # the emulator's reads only
+        "sitl.emulator.time", types.SimpleNamespace(time=host_time, monotonic=time.monotonic)
+    )
+    cfg = EmulatorConfig(
+        vehicles=3, ports=free_port_config(3, gcs=False), clock=ClockConfig(mode="lockstep")
+    )
+    clock = Clock("lockstep")
+    clock.register("test")
+    async with Emulator(cfg, clock=clock) as emulator:
+        epochs = {emulator.autopilot(i).unix_time_us(0.0) for i in range(3)}
+    # One epoch for every vehicle: the host's time when the clock started, its last read.
+    assert epochs == {int(reads[-1] * 1e6)}
