@@ -6,13 +6,15 @@
 
 1. ``demo``: the command ``make demo`` runs (``mission-runner run
    configs/paper_tracking_flyable.yaml``): wall time of the whole command and of its mission
-   phase, CPU of the command and its children (the MAVSDK server). ``--against DIR`` runs the
+   phase, CPU of the command and its children. ``--against DIR`` runs the
    same command from another checkout interleaved with this one, so both are measured in the
    same sitting on the same machine.
 2. ``processes``: the mission as it flies for real, on emulated vehicles: ``emulate`` +
    ``ground`` + four ``vehicle`` processes over a private mosquitto, in real time. CPU of each
-   process over its whole life (start, take-off, mission, landing), its MAVSDK server included
-   (the process's reaped children), as a share of one core.
+   process over its whole life (start, take-off, mission, landing), MAVSDK's threads included
+   (MAVSDK 4 runs in the process), as a share of one core. The project's bytecode is compiled
+   first, as after an install or a first run: with PYTHONDONTWRITEBYTECODE set and no cache,
+   every process compiled its sources again (0.25-0.4 CPU s of a vehicle's 2-4).
 3. ``realtime``: the tracking mission at 1x in one process: setpoint time - t_k over every
    vehicle-step (``bench/flight_bench.py``).
 4. ``swarm``: the largest swarm one process holds in real time at T = 0.125 s
@@ -125,7 +127,7 @@ def _broker(folder: Path) -> Iterator[object]:
 
 
 def _wait_rusage(process: subprocess.Popen[bytes]) -> float:
-    """Wait for ``process``; CPU seconds of it and of every child it reaped (its MAVSDK server)."""
+    """Wait for ``process``; CPU seconds of it and of every child it reaped."""
     _, status, usage = os.wait4(process.pid, 0)
     process.returncode = os.waitstatus_to_exitcode(status)
     return usage.ru_utime + usage.ru_stime
@@ -136,6 +138,11 @@ def bench_processes(steps: int) -> dict[str, object]:
     from tests.sitl.helpers import free_port_config  # noqa: PLC0415
 
     print(f"\n2. one process per vehicle over mosquitto, real time, {steps} steps")
+    packages = [str(ROOT / "mission_runner"), str(ROOT / "sitl")]
+    subprocess.run(  # what an install does: the processes below read bytecode, not compile
+        [sys.executable, "-m", "compileall", "-q", *packages], check=True,
+        stdout=subprocess.DEVNULL, env={**os.environ, "PYTHONDONTWRITEBYTECODE": ""},
+    )  # fmt: skip
     with (
         tempfile.TemporaryDirectory(prefix="bench-processes-") as name,
         _broker(Path(name)) as broker,
@@ -194,7 +201,7 @@ def bench_processes(steps: int) -> dict[str, object]:
         print(f"   {name:30s} {cpu_s:7.2f}  {wall_s:7.1f}   {shares[name]:6.2f} %")
     vehicle_shares = [v for k, v in shares.items() if k.startswith("vehicle")]
     print(
-        f"   a vehicle process (its MAVSDK server included): {min(vehicle_shares):.2f}-"
+        f"   a vehicle process (MAVSDK's threads included): {min(vehicle_shares):.2f}-"
         f"{max(vehicle_shares):.2f} % of a core"
     )
     return {"vehicle_cpu_percent_max": max(vehicle_shares), "processes": shares}
