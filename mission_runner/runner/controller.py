@@ -63,7 +63,7 @@ from ..enclosing import (
 from ..enclosing.control import saturate
 from ..enclosing.separation import separation_guard
 from ..enclosing.target import STATUS_NAMES
-from ..records import STALE_STATES, StepRecord
+from ..records import STALE_STATES, ControllerState, StepRecord
 from ..scenario import ShapeSchedule, omega_of, shape_schedule
 from ..tasks import first_completed
 from ..wiring import (
@@ -197,7 +197,7 @@ class VehicleController:
         self.shape = shape
         self.altitude_m = altitude_m
         self.on_step = on_step
-        self.state = "waiting"
+        self.state = ControllerState.WAITING
         self.start_s: float | None = None
         self.inbox = StepInbox(
             vehicle_id,
@@ -267,7 +267,7 @@ class VehicleController:
         entered meanwhile, and releases the clock step by step (lockstep)."""
         step_s = self.settings.step_s
         t = math.ceil(self.clock.now_s() / step_s) * step_s
-        self.state = "hovering"
+        self.state = ControllerState.HOVERING
         while not (start.done() and t >= start.result()):
             self.clock.release(t + self.settings.release_s)
             await self.clock.sleep_until(t)
@@ -312,7 +312,7 @@ class VehicleController:
                 # A pilot, another ground station or a failsafe has the vehicle: it is no longer
                 # driven (no setpoint, no step message: the others re-balance without it), and
                 # the runner does not take it back.
-                self.state = "taken_over"
+                self.state = ControllerState.TAKEN_OVER
                 logger.warning(
                     "vehicle %s: taken over at step %d: %s",
                     self.vehicle_id,
@@ -325,7 +325,7 @@ class VehicleController:
             if self._missed_odometry >= self.settings.lost_after_missed_steps:
                 # Dead vehicle or dead link: stop driving it; PX4's offboard-loss failsafe holds
                 # or lands it, and the others re-balance without it.
-                self.state = "lost"
+                self.state = ControllerState.LOST
                 logger.warning("vehicle %s: lost at step %d", self.vehicle_id, k)
                 await self._publish_status(k, start_s + k * self.settings.step_s)
                 return
@@ -441,11 +441,11 @@ class VehicleController:
         if odometry is None or holding or self.operator_hold or hold_for_target:
             velocity = (0.0, 0.0)
             if self.operator_hold and not holding:
-                self.state = "held"
+                self.state = ControllerState.HELD
             elif odometry is None or holding:
-                self.state = "holding"
+                self.state = ControllerState.HOLDING
             else:
-                self.state = "target_lost"
+                self.state = ControllerState.TARGET_LOST
             # The vehicle holds: when it resumes, track afresh from where it is, and lead from
             # nothing (a command change over the whole hold is not a rate to lead).
             self._reference = None
@@ -454,7 +454,7 @@ class VehicleController:
             used, estimates, consensus, ranges = (), {}, (0.0, 0.0), {}
             self._turn_oscillator(k)
         else:
-            self.state = "target_lost" if target_lost else "following"
+            self.state = ControllerState.TARGET_LOST if target_lost else ControllerState.FOLLOWING
             ranges = self._horizontal_ranges(data, odometry)
             command = self.law.step(
                 own_odometry_m=odometry[:2],
@@ -487,19 +487,19 @@ class VehicleController:
         self.command_in_force = velocity
         sent_s = self.clock.now_s()
         record = StepRecord(
-            k,
-            t_k,
-            self.state,
-            (*velocity, vertical),
-            consensus,
-            phase,
-            used,
-            estimates,
-            sent_s,
-            (math.nan, math.nan, math.nan) if odometry is None else odometry,
-            gated,
-            ranges,
-            STATUS_NAMES[int(target.status)],
+            step=k,
+            time_s=t_k,
+            state=self.state,
+            velocity_ned_m_s=(*velocity, vertical),
+            consensus_m_s=consensus,
+            phase_rad=phase,
+            neighbours_used=used,
+            estimates_m=estimates,
+            setpoint_sent_s=sent_s,
+            odometry_m=(math.nan, math.nan, math.nan) if odometry is None else odometry,
+            gated=gated,
+            ranges_m=ranges,
+            target=STATUS_NAMES[int(target.status)],
             odometry_ready_s=odometry_ready_s if odometry is not None else math.nan,
             message_sent_s=message_sent_s,
             inputs_ready_s=inputs_ready_s,
@@ -571,7 +571,16 @@ class VehicleController:
             k,
             self.clock.now_s() - t_k,
         )
-        record = StepRecord(k, t_k, "skipped", (0.0, 0.0, 0.0), (0.0, 0.0), phase, (), {})
+        record = StepRecord(
+            step=k,
+            time_s=t_k,
+            state=ControllerState.SKIPPED,
+            velocity_ned_m_s=(0.0, 0.0, 0.0),
+            consensus_m_s=(0.0, 0.0),
+            phase_rad=phase,
+            neighbours_used=(),
+            estimates_m={},
+        )
         self.records.append(record)
         if self.on_step is not None:
             self.on_step(self.vehicle_id, record)
@@ -793,7 +802,7 @@ class VehicleController:
 
     async def _publish_status(self, k: int, t_k: float) -> None:
         detail = self.link.control_lost or ""
-        if self.state == "target_lost":
+        if self.state == ControllerState.TARGET_LOST:
             unseen_s = (k - float(self.target_track.observed_step)) * self.settings.step_s
             detail = (
                 f"target not seen for {unseen_s:.2f} s"
@@ -809,7 +818,7 @@ class VehicleController:
             t_k,
             self.state,
             k,
-            self.state == "following",
+            self.state == ControllerState.FOLLOWING,
             detail,
             mission_id=self.mission_id,
             clock_rate=None if self.autopilot_clock_rate is None else self.autopilot_clock_rate(),
