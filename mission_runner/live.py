@@ -40,7 +40,7 @@ from .recording import (
     finite_or_none,
     view_of_record,
 )
-from .records import FORMATION_STATES
+from .records import FORMATION_STATES, ControllerState
 from .scenario import shape_schedule
 
 if TYPE_CHECKING:
@@ -265,7 +265,7 @@ async def alongside(
 
 
 def _publish_step(channels: MissionChannels, state: _BusState, message: StepMessage) -> None:
-    current = state.states.get(message.vehicle_id, "following")
+    current = state.states.get(message.vehicle_id, ControllerState.FOLLOWING)
     down = message.odometry_down_m
     view = VehicleView(
         vehicle_id=message.vehicle_id,

@@ -65,7 +65,7 @@ from numpy.typing import NDArray
 
 from .enclosing.shape import desired_offsets
 from .enclosing.target import LOST, STATUS_NAMES
-from .records import FORMATION_STATES
+from .records import FORMATION_STATES, ControllerState
 from .scenario import shape_schedule
 
 if TYPE_CHECKING:
@@ -479,7 +479,7 @@ class MissionChannels:
             self.log_event(
                 view.time_s,
                 f"vehicle {view.vehicle_id}: {before} -> {view.state} at step {view.step}",
-                logging.INFO if view.state == "following" else logging.WARNING,
+                logging.INFO if view.state == ControllerState.FOLLOWING else logging.WARNING,
             )
         self._last_state[view.vehicle_id] = view.state
         stamp = _timestamp(view.time_s)
@@ -766,13 +766,21 @@ def _vehicle_view(
         vehicle_id=vehicle_id,
         step=k,
         time_s=time_s,
-        state=("target_lost" if target == LOST else "following") if live else "absent",
+        state=_view_state(live, target),
         target=STATUS_NAMES[target] if live else None,
         live=live,
         phase_rad=float(result.phases_rad[0, k, index]),
         command_ned_m_s=(float(command[0]), float(command[1]), 0.0),
         estimates_m=estimates,
     )
+
+
+def _view_state(live: bool, target: int) -> ControllerState:
+    """A simulated vehicle's state at a step: in the formation (the target tracked or lost), or
+    absent."""
+    if not live:
+        return ControllerState.ABSENT
+    return ControllerState.TARGET_LOST if target == LOST else ControllerState.FOLLOWING
 
 
 def _metrics_document(result: SimulationResult, k: int, time_s: float) -> dict[str, Any]:

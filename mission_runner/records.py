@@ -5,20 +5,47 @@ read them without the runner."""
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
+
+class ControllerState(enum.StrEnum):
+    """What a vehicle is doing, as its step records, its status (:attr:`VehicleStatus.state`) and
+    the outputs name it. A :class:`enum.StrEnum`: each member is its string, so what is written
+    (CSV, JSON, MCAP, bus messages) is the bare name, and names read back compare equal."""
+
+    # The vehicle process, around the flight.
+    CONNECTING = "connecting"  # to its vehicle, the bus
+    WAITING = "waiting"  # for the ground station's prepare (a controller: not started)
+    READY = "ready"  # prepared: armed, in the air, streaming setpoints
+    FAILED = "failed"  # could not get ready
+    ABORTED = "aborted"  # stopped by the ground station
+    DONE = "done"  # flew every step
+    # The controller, step by step.
+    HOVERING = "hovering"  # holding on the step grid until the mission's k = 0
+    FOLLOWING = "following"  # the law on fresh data, the target observed or predicted
+    TARGET_LOST = "target_lost"  # the law's formation with no target estimate left
+    HOLDING = "holding"  # no fresh data (neighbours, own odometry) or not in OFFBOARD
+    HELD = "held"  # the operator's hold
+    SKIPPED = "skipped"  # the step's instant had passed before it could run
+    TAKEN_OVER = "taken_over"  # someone else flies the vehicle: no longer driven
+    LOST = "lost"  # its odometry or its bus connection stopped: no longer driven
+    # Views only: a vehicle of which a frame has nothing.
+    ABSENT = "absent"
+
+
 #: Controller states (:attr:`VehicleStatus.state`) in which a vehicle flies the law on fresh data
 #: as part of the formation: ``following`` the target (observed, or predicted while hidden), or
 #: ``target_lost`` (no estimate of the target left: it holds or orbits the last estimate).
-FORMATION_STATES = frozenset({"following", "target_lost"})
+FORMATION_STATES = frozenset({ControllerState.FOLLOWING, ControllerState.TARGET_LOST})
 #: Controller states of a step not flown by the law for want of fresh data: held (no fresh
 #: neighbour message within the silence timeout, no own odometry, or not in OFFBOARD) or skipped
 #: (its instant had passed before it could run).
-STALE_STATES = frozenset({"holding", "skipped"})
+STALE_STATES = frozenset({ControllerState.HOLDING, ControllerState.SKIPPED})
 
 
 @dataclass(frozen=True)
@@ -50,7 +77,7 @@ class StepRecord:
 
     step: int
     time_s: float
-    state: str
+    state: ControllerState
     velocity_ned_m_s: tuple[float, float, float]
     consensus_m_s: tuple[float, float]
     phase_rad: float
@@ -75,7 +102,7 @@ class VehicleRun:
 
     vehicle_id: int
     mission_id: str | None = None
-    state: str = "connecting"
+    state: ControllerState = ControllerState.CONNECTING
     detail: str = ""
     records: list[StepRecord] = field(default_factory=list)
     start_s: float | None = None

@@ -862,7 +862,7 @@ def test_a_flight_counts_the_steps_its_controllers_held_or_skipped():
     import numpy as np
 
     from mission_runner.metrics import run_metrics
-    from mission_runner.records import StepRecord, TruthSample
+    from mission_runner.records import ControllerState, StepRecord, TruthSample
     from mission_runner.runner.scoring import score_flight
 
     scenario = load_scenario(CONFIGS / "paper_tracking_flyable.yaml")
@@ -878,7 +878,16 @@ def test_a_flight_counts_the_steps_its_controllers_held_or_skipped():
     states = ["following", "holding", "skipped", "held", "target_lost", "holding"]
 
     def record(k, state):
-        return StepRecord(k, k * 0.125, state, (0.0, 0.0, 0.0), (0.0, 0.0), 0.0, (), {})
+        return StepRecord(
+            step=k,
+            time_s=k * 0.125,
+            state=ControllerState(state),
+            velocity_ned_m_s=(0.0, 0.0, 0.0),
+            consensus_m_s=(0.0, 0.0),
+            phase_rad=0.0,
+            neighbours_used=(),
+            estimates_m={},
+        )
 
     records = {v.id: [record(k, s) for k, s in enumerate(states)] for v in scenario.vehicles}
     metrics = run_metrics(score_flight(scenario, samples, records, None))

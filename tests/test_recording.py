@@ -17,7 +17,7 @@ from mission_runner.checks import load_scenario, validate_scenario
 from mission_runner.cli import EXIT_OK, main
 from mission_runner.outputs import write_results, write_vehicle_run
 from mission_runner.recording import RECORDING, LogCapture, read_recording
-from mission_runner.records import StepRecord, VehicleRun
+from mission_runner.records import ControllerState, StepRecord, VehicleRun
 from mission_runner.sim.simulator import simulate
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -133,14 +133,14 @@ def flight_records(result, *, start_s, holding=None):
             estimates = {peer: row[slot] for slot, peer in enumerate([0, *ids])}
             records[vehicle_id].append(
                 StepRecord(
-                    k,
-                    time_s,
-                    "holding" if held else "following",
-                    (*map(float, result.commands_m_s[0, k, index]), 0.0),
-                    (0.1, -0.1),
-                    float(result.phases_rad[0, k, index]),
-                    tuple(i for i in ids if i != vehicle_id),
-                    {p: e for p, e in estimates.items() if np.all(np.isfinite(e))},
+                    step=k,
+                    time_s=time_s,
+                    state=ControllerState.HOLDING if held else ControllerState.FOLLOWING,
+                    velocity_ned_m_s=(*map(float, result.commands_m_s[0, k, index]), 0.0),
+                    consensus_m_s=(0.1, -0.1),
+                    phase_rad=float(result.phases_rad[0, k, index]),
+                    neighbours_used=tuple(i for i in ids if i != vehicle_id),
+                    estimates_m={p: e for p, e in estimates.items() if np.all(np.isfinite(e))},
                     setpoint_sent_s=time_s + 0.001 * (k % 7),
                     odometry_m=(0.0, 0.0, -5.0),
                     gated=(1,) if k == 3 else (),

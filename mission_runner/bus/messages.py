@@ -500,9 +500,10 @@ class MissionControl(Message):
 class VehicleStatus(Message):
     """A vehicle's progress report (retained, and its last will), for progress views.
 
-    ``state`` is the controller's state name (e.g. ``"following"``, ``"target_lost"``,
-    ``"holding"``, ``"lost"``); ``tracking_ok`` whether it currently follows the target with
-    the algorithm on fresh data (not while the target is lost).
+    ``state`` is the vehicle's state name (a :class:`mission_runner.records.ControllerState`,
+    e.g. ``"following"``, ``"target_lost"``, ``"holding"``, ``"lost"``); ``tracking_ok``
+    whether it currently follows the target with the algorithm on fresh data (not while the
+    target is lost).
     ``mission_id`` is the mission it reports for (see :class:`MissionControl`);
     ``clock_rate`` its autopilot's boot-clock seconds per UNIX second, as measured;
     ``stale_steps`` (in its final report) how many steps it held or skipped for want of fresh

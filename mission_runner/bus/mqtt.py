@@ -71,6 +71,7 @@ from mission_runner.bus.paho_reader import guard_reader, max_packet_bytes
 from mission_runner.bus.settings import TlsSettings
 from mission_runner.bus.topics import Topics, topic_matches, validate_pattern, validate_topic
 from mission_runner.clock import Clock, MonotonicClock
+from mission_runner.records import ControllerState
 
 _T = TypeVar("_T")
 logger = logging.getLogger(__name__)
@@ -106,7 +107,7 @@ def lost_vehicle_will(topics: Topics, vehicle_id: int, *, time_s: float) -> Last
     status = VehicleStatus(
         vehicle_id=vehicle_id,
         time_s=time_s,
-        state="lost",
+        state=ControllerState.LOST,
         step=0,
         tracking_ok=False,
         detail="connection to the bus lost (last will)",

@@ -205,8 +205,10 @@ def score_without_truth(
     Expectations that need the truth are listed as not checked, and the status says so:
     ``unchecked``, never ``passed``."""
     from ..metrics import check_expectations  # noqa: PLC0415 - fast `--help`
+    from ..records import ControllerState  # noqa: PLC0415 - fast `--help`
 
-    observed = {"vehicles_in_formation_at_end": sum(s.state == "done" for s in statuses.values())}
+    done = sum(s.state == ControllerState.DONE for s in statuses.values())
+    observed = {"vehicles_in_formation_at_end": done}
     if stale_steps is not None:
         observed["steps_on_stale_data"] = stale_steps
     checkable = {name: bound for name, bound in scenario.expect.items() if name in observed}

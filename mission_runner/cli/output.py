@@ -93,6 +93,8 @@ class ProgressBar:
 
 
 def summary_text(document: Mapping[str, Any], out_dir: Path) -> str:
+    from ..records import ControllerState  # noqa: PLC0415 - fast `--help`
+
     metrics = document["metrics"]
     lines = [
         f"scenario {document['scenario']}: {document['steps']} steps of {document['step_s']} s"
@@ -115,7 +117,8 @@ def summary_text(document: Mapping[str, Any], out_dir: Path) -> str:
         lines.append(
             f"    runs passing expectations: {document['batch']['runs_passing_expectations']}"
         )
-    ended = {i: v for i, v in document.get("vehicles", {}).items() if v["state"] != "done"}
+    vehicles = document.get("vehicles", {})
+    ended = {i: v for i, v in vehicles.items() if v["state"] != ControllerState.DONE}
     if "vehicles" in document:
         lines.append(
             "vehicles: "

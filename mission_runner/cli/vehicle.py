@@ -45,7 +45,7 @@ def command(arguments: argparse.Namespace) -> int:
     from ..checks import load_scenario  # noqa: PLC0415 - fast `--help`
     from ..outputs import VEHICLE_FILES, Status, prepare_out_dir, write_vehicle_run  # noqa: PLC0415 - fast `--help`
     from ..recording import LogCapture  # noqa: PLC0415 - fast `--help`
-    from ..records import VehicleRun  # noqa: PLC0415 - fast `--help`
+    from ..records import ControllerState, VehicleRun  # noqa: PLC0415 - fast `--help`
     from ..runner.process import run_vehicle  # noqa: PLC0415 - fast `--help`
 
     scenario = with_bus_access(load_scenario(arguments.config, flying=True), arguments)
@@ -67,7 +67,7 @@ def command(arguments: argparse.Namespace) -> int:
                     on_step=lambda _, record: capture.stamp(record.time_s),
                 )
             )
-        status = "passed" if run.state == "done" else "error"
+        status = "passed" if run.state == ControllerState.DONE else "error"
     except KeyboardInterrupt:
         status = "interrupted"
         raise
@@ -81,14 +81,15 @@ def command(arguments: argparse.Namespace) -> int:
             logs=capture.lines,
         )
     _report(run, out_dir)
-    return EXIT_OK if run.state == "done" else EXIT_RUNTIME_FAILURE
+    return EXIT_OK if run.state == ControllerState.DONE else EXIT_RUNTIME_FAILURE
 
 
 def _report(run: VehicleRun, out_dir: Path) -> None:
     """How the vehicle's mission went, on stdout; what its bus dropped, if anything."""
     from ..outputs import bus_security, bus_security_line  # noqa: PLC0415 - fast `--help`
+    from ..records import ControllerState  # noqa: PLC0415 - fast `--help`
 
-    following = sum(record.state == "following" for record in run.records)
+    following = sum(record.state == ControllerState.FOLLOWING for record in run.records)
     print(
         f"vehicle {run.vehicle_id}: {run.state}, {len(run.records)} steps, {following} following "
         f"the law, {run.skipped_steps} skipped; autopilot clock "

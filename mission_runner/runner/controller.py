@@ -15,9 +15,11 @@ Each step k (t_k = start + kT on the mission clock):
    deadline passes; a neighbour that is late or lost drops out of this step only;
 4. track the target from the freshest observation heard (:mod:`mission_runner.enclosing.target`:
    observed, predicted at constant velocity, or lost after ``target_lost_after_s``);
-5. run the law (:class:`mission_runner.enclosing.VehicleEnclosing`), clamp the velocity to the
-   vehicle's limits, add the altitude-hold term and send the setpoint; with the target lost,
-   hold (or orbit its last estimate: ``target_on_lost``) in state ``target_lost``.
+5. decide what the step does (:func:`.pipeline.decide`: follow, or hold on stale data, for the
+   operator or for a lost target), run the law (:class:`mission_runner.enclosing.VehicleEnclosing`),
+   shape its command (:mod:`.pipeline`: lead, displacement tracking, separation guard, the
+   vehicle's speed limit), add the altitude-hold term and send the setpoint; with the target
+   lost, hold (or orbit its last estimate: ``target_on_lost``) in state ``target_lost``.
 
 Ranges and target observations that cannot be (:mod:`.plausibility`) are dropped and counted
 where they come in, before the inbox and the estimator see them.
@@ -37,7 +39,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from ..bus import (
     BusError,
@@ -51,7 +53,6 @@ from ..bus import (
 )
 from ..config import Scenario, VehicleConfig
 from ..enclosing import (
-    LOST,
     NeighbourReport,
     TargetEstimate,
     TargetReport,
@@ -60,10 +61,8 @@ from ..enclosing import (
     VehicleEnclosing,
     track_target,
 )
-from ..enclosing.control import saturate
-from ..enclosing.separation import separation_guard
 from ..enclosing.target import STATUS_NAMES
-from ..records import STALE_STATES, StepRecord
+from ..records import STALE_STATES, ControllerState, StepRecord
 from ..scenario import ShapeSchedule, omega_of, shape_schedule
 from ..tasks import first_completed
 from ..wiring import (
@@ -72,6 +71,16 @@ from ..wiring import (
 )
 from .inbox import StepData, StepInbox
 from .odometry import ODOMETRY_PERIOD_S
+from .pipeline import (
+    CommandShaper,
+    SeparationSettings,
+    StepCommand,
+    StepDecision,
+    altitude_hold_m_s,
+    clamp_horizontal,
+    decide,
+    separated,
+)
 from .plausibility import CommandGate, RangeGate, RangeLimits, range_limits
 from .ports import ControllerBus, ControllerClock, ControllerLink, MessageSource
 
@@ -160,6 +169,73 @@ def controller_settings(scenario: Scenario, vehicle: VehicleConfig) -> Controlle
     )
 
 
+def command_shaper(settings: ControllerSettings) -> CommandShaper:
+    """The lead and displacement tracking of a controller with ``settings``."""
+    return CommandShaper(
+        step_s=settings.step_s,
+        lead_s=settings.velocity_lead_s,
+        gain_1_s=settings.tracking_gain_1_s,
+        integral_gain_1_s2=settings.tracking_integral_gain_1_s2,
+        max_correction_m_s=settings.tracking_max_correction_m_s,
+    )
+
+
+def separation_settings(settings: ControllerSettings) -> SeparationSettings | None:
+    """The separation guard's settings (None: no guard, no minimum separation set)."""
+    if settings.min_separation_m is None:
+        return None
+    return SeparationSettings(
+        min_separation_m=settings.min_separation_m,
+        gain_1_s=settings.separation_gain_1_s,
+        step_s=settings.step_s,
+        margin_m=settings.separation_margin_m,
+        braking_m_s2=settings.separation_braking_m_s2,
+        latency_s=settings.separation_latency_s,
+        range_noise_std_m=settings.separation_range_noise_std_m,
+    )
+
+
+def _gates(
+    settings: ControllerSettings, vehicle_id: int
+) -> tuple[RangeGate | None, CommandGate | None]:
+    """The plausibility gates of the own ranges and the neighbours' commands (None: everything
+    is taken as it comes, as a unit test's fake sensors want)."""
+    limits, speed_m_s = settings.range_limits, settings.fleet_speed_limit_m_s
+    return (
+        None if limits is None else RangeGate(limits, vehicle_id),
+        None if speed_m_s is None else CommandGate(speed_m_s, vehicle_id),
+    )
+
+
+@dataclass
+class _OwnTargetOdometry:
+    """The target's odometry from the own observations only: their velocities integrated,
+    trapezoid over the time between them, so a gap in observations is bridged, not lost."""
+
+    odometry_m: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.zeros(2))
+    #: The last observation's (time [s], velocity ``(2,)`` [m/s]); None before the first.
+    last: tuple[float, NDArray[np.float64]] | None = None
+
+    def integrate(self, time_s: float, velocity_m_s: NDArray[np.float64]) -> tuple[float, float]:
+        """The odometry at ``time_s`` with the target's velocity then."""
+        if self.last is not None:
+            last_time_s, last_velocity = self.last
+            elapsed = time_s - last_time_s
+            self.odometry_m = self.odometry_m + 0.5 * (last_velocity + velocity_m_s) * elapsed
+        self.last = (time_s, velocity_m_s)
+        return (float(self.odometry_m[0]), float(self.odometry_m[1]))
+
+
+@dataclass
+class _StepTimes:
+    """Where a step's time went (mission clock), as its record keeps it (NaN: not reached)."""
+
+    odometry_ready_s: float = math.nan
+    message_sent_s: float = math.nan
+    inputs_ready_s: float = math.nan
+    setpoint_sent_s: float = math.nan
+
+
 class VehicleController:
     """The enclosing loop of vehicle ``vehicle_id``.
 
@@ -169,6 +245,21 @@ class VehicleController:
     altitude_m: the altitude this vehicle holds (up, metres above home). on_step(vehicle_id,
     record) sees every step's record.
     """
+
+    #: The horizontal setpoint this vehicle flies (the last one sent by the law's steps; None
+    #: before the first): its step messages carry it for the neighbours' guards.
+    command_in_force: tuple[float, float] | None = None
+    #: The operator's hold (ground station ``hold`` until ``resume``): hover in place, keep the
+    #: oscillator on the grid, publish nothing of the law.
+    operator_hold = False
+    #: The last step whose command was chosen (where ``operator_hold`` is read): a change of the
+    #: hold is first seen by the step after it.
+    decided_step = -1
+    #: The mission it flies, carried by every status (vehicle processes set it).
+    mission_id: str | None = None
+    #: Its autopilot's recent boot-clock rate, carried by every status so the ground's mission
+    #: clock can follow it (vehicle processes set it; None: its clock is the mission's).
+    autopilot_clock_rate: Callable[[], float] | None = None
 
     def __init__(
         self,
@@ -186,18 +277,11 @@ class VehicleController:
         altitude_m: float,
         on_step: Callable[[int, StepRecord], None] | None = None,
     ) -> None:
-        self.vehicle_id = vehicle_id
-        self.law = law
-        self.senses_target = senses_target
-        self.link = link
-        self.bus = bus
-        self.topics = topics
-        self.clock = clock
-        self.settings = settings
-        self.shape = shape
-        self.altitude_m = altitude_m
+        self.vehicle_id, self.law, self.senses_target = vehicle_id, law, senses_target
+        self.link, self.bus, self.topics, self.clock = link, bus, topics, clock
+        self.settings, self.shape, self.altitude_m = settings, shape, altitude_m
         self.on_step = on_step
-        self.state = "waiting"
+        self.state = ControllerState.WAITING
         self.start_s: float | None = None
         self.inbox = StepInbox(
             vehicle_id,
@@ -206,40 +290,13 @@ class VehicleController:
             step_of=self._step_of,
             member_timeout_steps=settings.member_timeout_steps,
         )
-        self._target_odometry = np.zeros(2)  # own observations only, integrated
-        self._last_target: tuple[float, NDArray[np.float64]] | None = None
         self.target_track = TargetTrack.initial()
+        self._own_target = _OwnTargetOdometry()
         self._last_fresh_s = -math.inf  # nothing heard yet; run() starts the silence at k = 0
-        self._previous_command: NDArray[np.float64] | None = None
-        # Where the law's commands so far would have taken the vehicle.
-        self._reference: NDArray[np.float64] | None = None
-        self._tracking_integral = np.zeros(2)
-        #: The horizontal setpoint this vehicle flies (the last one sent by the law's steps;
-        #: None before the first): its step messages carry it for the neighbours' guards.
-        self.command_in_force: tuple[float, float] | None = None
-        #: The operator's hold (ground station ``hold`` until ``resume``): hover in place, keep
-        #: the oscillator on the grid, publish nothing of the law.
-        self.operator_hold = False
-        #: The last step whose command was chosen (where ``operator_hold`` is read): a change
-        #: of the hold is first seen by the step after it.
-        self.decided_step = -1
+        self.shaper = command_shaper(settings)
         self._missed_odometry = 0
         self.skipped_steps = 0
-        #: None: every range is taken as it comes (a unit test's fake sensors).
-        self.range_gate = (
-            RangeGate(settings.range_limits, vehicle_id)
-            if settings.range_limits is not None
-            else None
-        )
-        self.command_gate = (
-            CommandGate(settings.fleet_speed_limit_m_s, vehicle_id)
-            if settings.fleet_speed_limit_m_s is not None
-            else None
-        )
-        self.mission_id: str | None = None  # carried by every status (vehicle processes set it)
-        #: Its autopilot's recent boot-clock rate, carried by every status so the ground's mission
-        #: clock can follow it (vehicle processes set it; None: its clock is the mission's).
-        self.autopilot_clock_rate: Callable[[], float] | None = None
+        self.range_gate, self.command_gate = _gates(settings, vehicle_id)
         self.records: list[StepRecord] = []
         self._stale_count = (0, 0)  # (records counted, of them held or skipped)
         self._status_said: tuple[str, str] | None = None  # the last status's (state, detail)
@@ -267,7 +324,7 @@ class VehicleController:
         entered meanwhile, and releases the clock step by step (lockstep)."""
         step_s = self.settings.step_s
         t = math.ceil(self.clock.now_s() / step_s) * step_s
-        self.state = "hovering"
+        self.state = ControllerState.HOVERING
         while not (start.done() and t >= start.result()):
             self.clock.release(t + self.settings.release_s)
             await self.clock.sleep_until(t)
@@ -312,7 +369,7 @@ class VehicleController:
                 # A pilot, another ground station or a failsafe has the vehicle: it is no longer
                 # driven (no setpoint, no step message: the others re-balance without it), and
                 # the runner does not take it back.
-                self.state = "taken_over"
+                self.state = ControllerState.TAKEN_OVER
                 logger.warning(
                     "vehicle %s: taken over at step %d: %s",
                     self.vehicle_id,
@@ -325,7 +382,7 @@ class VehicleController:
             if self._missed_odometry >= self.settings.lost_after_missed_steps:
                 # Dead vehicle or dead link: stop driving it; PX4's offboard-loss failsafe holds
                 # or lands it, and the others re-balance without it.
-                self.state = "lost"
+                self.state = ControllerState.LOST
                 logger.warning("vehicle %s: lost at step %d", self.vehicle_id, k)
                 await self._publish_status(k, start_s + k * self.settings.step_s)
                 return
@@ -378,173 +435,204 @@ class VehicleController:
             self.inbox.add_target(observation)
 
     async def _step(self, k: int, t_k: float) -> None:
-        settings = self.settings
-        if not self.clock.lockstep and self.clock.now_s() >= t_k + settings.step_s:
+        """Step k (the module's 1-5): the I/O around :func:`.pipeline.decide` and the law's
+        command chain (:meth:`_fly`)."""
+        if not self.clock.lockstep and self.clock.now_s() >= t_k + self.settings.step_s:
             # Step k's instant is a whole step in the past (a stall, a slow machine): its
             # inputs are stale and a command for it would be late. Skip it, keeping the
             # oscillator on the grid, so the controller is back on the current step at once
             # instead of falling further behind every step.
             self._skip(k, t_k)
             return
-        self.clock.release(t_k + settings.release_s)
+        self.clock.release(t_k + self.settings.release_s)
         await self.clock.sleep_until(t_k)
+        times = _StepTimes()
         odometry = await self._odometry_at(t_k)
-        odometry_ready_s = self.clock.now_s()
-        message_sent_s = math.nan
         phase = self.law.phase_rad
-        observation = None
-        if odometry is not None:
-            self._missed_odometry = 0
-            # The target observation (and, to share, the ranges) of step k are usually in by
-            # now; wait briefly if not. An observation that says "not seen" is as good as one
-            # that saw: nothing more is coming.
-            observation, shared = await self._own_measurements(k, t_k)
-            in_force = self.command_in_force
-            if observation is not None and not observation.seen:
-                observation = None
-            message = self._with_target(
-                StepMessage(
-                    self.vehicle_id,
-                    k,
-                    t_k,
-                    phase,
-                    odometry[0],
-                    odometry[1],
-                    odometry_down_m=float(odometry[2]),
-                    ranges_m=shared,
-                    command_north_m_s=None if in_force is None else in_force[0],
-                    command_east_m_s=None if in_force is None else in_force[1],
-                ),
-                observation,
-            )
-            await self._publish(self.topics.step(self.vehicle_id), message)
-            message_sent_s = self.clock.now_s()
-        else:
-            self._missed_odometry += 1
+        observation = await self._publish_step(k, t_k, phase, odometry, times)
         await self._wait_inputs(k, t_k)
-        inputs_ready_s = self.clock.now_s()
+        times.inputs_ready_s = self.clock.now_s()
         data = self.inbox.take(k)
         target = self._track_target(k, data, observation)
-        now = self.clock.now_s()
-        if data.neighbours:
-            self._last_fresh_s = now
-        used: tuple[int, ...]
-        gated: tuple[int, ...] = ()
-        estimates: dict[int, NDArray[np.float64]]
-        consensus: tuple[float, float]
-        # Hold on stale data, and while the vehicle is not seen armed in OFFBOARD.
-        stale_s = now - self._last_fresh_s
-        holding = stale_s > settings.silence_timeout_s or not self.link.in_control
-        self.decided_step = k
-        target_lost = int(target.status) == LOST
-        hold_for_target = target_lost and settings.target_on_lost == "hold"
-        if odometry is None or holding or self.operator_hold or hold_for_target:
-            velocity = (0.0, 0.0)
-            if self.operator_hold and not holding:
-                self.state = "held"
-            elif odometry is None or holding:
-                self.state = "holding"
-            else:
-                self.state = "target_lost"
-            # The vehicle holds: when it resumes, track afresh from where it is, and lead from
-            # nothing (a command change over the whole hold is not a rate to lead).
-            self._reference = None
-            self._previous_command = None
-            self._tracking_integral = np.zeros(2)
-            used, estimates, consensus, ranges = (), {}, (0.0, 0.0), {}
-            self._turn_oscillator(k)
+        decision = self._decide(k, data, target, odometry)
+        self.state = decision.state
+        if decision.flies and odometry is not None:
+            command = self._fly(k, data, target, odometry)
         else:
-            self.state = "target_lost" if target_lost else "following"
-            ranges = self._horizontal_ranges(data, odometry)
-            command = self.law.step(
-                own_odometry_m=odometry[:2],
-                neighbours={
-                    peer: NeighbourReport(m.phase_rad, (m.odometry_north_m, m.odometry_east_m))
-                    for peer, m in data.neighbours.items()
-                },
-                ranges_m=ranges,
-                target=TargetReport(
-                    (float(target.odometry_m[0]), float(target.odometry_m[1])),
-                    (float(target.velocity_m_s[0]), float(target.velocity_m_s[1])),
-                ),
-                members=data.members,
-                shape_now=self.shape(k),
-                shape_next=self.shape(k + 1),
-                peer_ranges_m=self._peer_ranges(data, odometry) if self._sharing else None,
-            )
-            wanted = self._lead(command.velocity_m_s) + self._tracking(
-                command.velocity_m_s, odometry
-            )
-            if settings.min_separation_m is not None:
-                wanted = self._separated(wanted, command, data, ranges)
-            velocity = self._clamp(wanted)
-            used, estimates, gated = command.neighbours_used, command.estimates_m, command.gated
-            consensus = (float(command.consensus_m_s[0]), float(command.consensus_m_s[1]))
+            command = self._hold(k)
         vertical = self._altitude_hold(odometry)
         if self.link.control_lost is None:  # taken over during the step: never stream to it
-            async with self.clock.commanding(t_k + settings.release_s):
-                await self.link.set_velocity_ned(velocity[0], velocity[1], vertical)
-        self.command_in_force = velocity
-        sent_s = self.clock.now_s()
-        record = StepRecord(
+            async with self.clock.commanding(t_k + self.settings.release_s):
+                await self.link.set_velocity_ned(*command.velocity_m_s, vertical)
+        self.command_in_force = command.velocity_m_s
+        times.setpoint_sent_s = self.clock.now_s()
+        record = self._record(
+            k, t_k, command, vertical, phase=phase, odometry=odometry, target=target, times=times
+        )
+        await self._recorded(k, t_k, record)
+
+    def _record(
+        self,
+        k: int,
+        t_k: float,
+        command: StepCommand,
+        vertical_m_s: float,
+        *,
+        phase: float,
+        odometry: tuple[float, float, float] | None,
+        target: TargetEstimate,
+        times: _StepTimes,
+    ) -> StepRecord:
+        """Step k's record: what it commanded (``vertical_m_s``: the altitude hold's), from
+        what (the phase and own odometry at t_k, the target's track), and when."""
+        return StepRecord(
+            step=k,
+            time_s=t_k,
+            state=self.state,
+            velocity_ned_m_s=(*command.velocity_m_s, vertical_m_s),
+            consensus_m_s=command.consensus_m_s,
+            phase_rad=phase,
+            neighbours_used=command.neighbours_used,
+            estimates_m=command.estimates_m,
+            odometry_m=(math.nan, math.nan, math.nan) if odometry is None else odometry,
+            gated=command.gated,
+            ranges_m=command.ranges_m,
+            target=STATUS_NAMES[int(target.status)],
+            setpoint_sent_s=times.setpoint_sent_s,
+            odometry_ready_s=times.odometry_ready_s,
+            message_sent_s=times.message_sent_s,
+            inputs_ready_s=times.inputs_ready_s,
+        )
+
+    async def _publish_step(
+        self,
+        k: int,
+        t_k: float,
+        phase: float,
+        odometry: tuple[float, float, float] | None,
+        times: _StepTimes,
+    ) -> TargetObservation | None:
+        """Publish the step-k message (none without own odometry, a step missed); returns the
+        own target observation if it saw it. The observation (and, to share, the ranges) of
+        step k are usually in by now; they are awaited briefly if not. One that says "not seen"
+        is as good as one that saw: nothing more is coming."""
+        if odometry is None:
+            self._missed_odometry += 1
+            return None
+        times.odometry_ready_s = self.clock.now_s()
+        self._missed_odometry = 0
+        observation, shared = await self._own_measurements(k, t_k)
+        in_force = self.command_in_force
+        if observation is not None and not observation.seen:
+            observation = None
+        message = StepMessage(
+            self.vehicle_id,
             k,
             t_k,
-            self.state,
-            (*velocity, vertical),
-            consensus,
             phase,
-            used,
-            estimates,
-            sent_s,
-            (math.nan, math.nan, math.nan) if odometry is None else odometry,
-            gated,
-            ranges,
-            STATUS_NAMES[int(target.status)],
-            odometry_ready_s=odometry_ready_s if odometry is not None else math.nan,
-            message_sent_s=message_sent_s,
-            inputs_ready_s=inputs_ready_s,
+            odometry[0],
+            odometry[1],
+            odometry_down_m=float(odometry[2]),
+            ranges_m=shared,
+            command_north_m_s=None if in_force is None else in_force[0],
+            command_east_m_s=None if in_force is None else in_force[1],
         )
+        await self._publish(
+            self.topics.step(self.vehicle_id), self._with_target(message, observation)
+        )
+        times.message_sent_s = self.clock.now_s()
+        return observation
+
+    def _decide(
+        self,
+        k: int,
+        data: StepData,
+        target: TargetEstimate,
+        odometry: tuple[float, float, float] | None,
+    ) -> StepDecision:
+        """What step k does (:func:`.pipeline.decide`), a neighbour's message heard this step
+        being fresh data."""
+        now_s = self.clock.now_s()
+        if data.neighbours:
+            self._last_fresh_s = now_s
+        self.decided_step = k
+        return decide(
+            has_odometry=odometry is not None,
+            stale_s=now_s - self._last_fresh_s,
+            silence_timeout_s=self.settings.silence_timeout_s,
+            in_control=self.link.in_control,
+            operator_hold=self.operator_hold,
+            target_status=int(target.status),
+            target_on_lost=self.settings.target_on_lost,
+        )
+
+    def _hold(self, k: int) -> StepCommand:
+        """Hold (zero horizontal velocity), the oscillator turning on the grid."""
+        self.shaper.hold()
+        self._turn_oscillator(k)
+        return StepCommand()
+
+    def _fly(
+        self, k: int, data: StepData, target: TargetEstimate, odometry: tuple[float, float, float]
+    ) -> StepCommand:
+        """The law's command made flyable: law, lead + tracking, separation, clamp."""
+        ranges = self._horizontal_ranges(data, odometry)
+        command = self._law_step(k, data, target, odometry, ranges)
+        wanted = self.shaper.lead(command.velocity_m_s) + self.shaper.tracking(
+            command.velocity_m_s, odometry[:2]
+        )
+        separation = separation_settings(self.settings)
+        if separation is not None:
+            in_force = {peer: m.command_m_s for peer, m in data.neighbours.items()}
+            wanted = separated(
+                wanted,
+                command,
+                ranges,
+                own_in_force_m_s=self.command_in_force,
+                in_force_m_s=in_force,
+                settings=separation,
+            )
+        return StepCommand(
+            velocity_m_s=clamp_horizontal(wanted, self.settings.max_horizontal_speed_m_s),
+            consensus_m_s=(float(command.consensus_m_s[0]), float(command.consensus_m_s[1])),
+            neighbours_used=command.neighbours_used,
+            estimates_m=command.estimates_m,
+            gated=command.gated,
+            ranges_m=ranges,
+        )
+
+    def _law_step(
+        self,
+        k: int,
+        data: StepData,
+        target: TargetEstimate,
+        odometry: tuple[float, float, float],
+        ranges: dict[int, float],
+    ) -> VehicleCommand:
+        """The law's step k on what arrived (the horizontal ``ranges`` by peer id)."""
+        return self.law.step(
+            own_odometry_m=odometry[:2],
+            neighbours={
+                peer: NeighbourReport(m.phase_rad, (m.odometry_north_m, m.odometry_east_m))
+                for peer, m in data.neighbours.items()
+            },
+            ranges_m=ranges,
+            target=TargetReport(
+                (float(target.odometry_m[0]), float(target.odometry_m[1])),
+                (float(target.velocity_m_s[0]), float(target.velocity_m_s[1])),
+            ),
+            members=data.members,
+            shape_now=self.shape(k),
+            shape_next=self.shape(k + 1),
+            peer_ranges_m=self._peer_ranges(data, odometry) if self._sharing else None,
+        )
+
+    async def _recorded(self, k: int, t_k: float, record: StepRecord) -> None:
+        """Keep step k's record, report the status, and hand the record on."""
         self.records.append(record)
         await self._publish_status(k, t_k)
         if self.on_step is not None:
             self.on_step(self.vehicle_id, record)
-
-    def _separated(
-        self,
-        velocity: NDArray[np.float64],
-        command: VehicleCommand,
-        data: StepData,
-        ranges: dict[int, float],
-    ) -> NDArray[np.float64]:
-        """The command through the separation guard: directions from this step's estimates,
-        distances from the measured (horizontal) ranges, the pair's motion from the setpoints in
-        force (the own, and the neighbours' from their step messages; never truth)."""
-        estimates_m, bearing_std = command.estimates_m, command.bearing_std_rad
-        peers = [peer for peer in estimates_m if peer != 0]
-        if not peers:
-            return velocity
-
-        def in_force(peer: int) -> tuple[float, float]:
-            message = data.neighbours.get(peer)
-            command = None if message is None else message.command_m_s
-            return (math.nan, math.nan) if command is None else command
-
-        settings = self.settings
-        return separation_guard(
-            np.asarray(velocity, dtype=float),
-            np.array([estimates_m[peer] for peer in peers], dtype=float),
-            np.array([ranges.get(peer, math.nan) for peer in peers], dtype=float),
-            np.array(self.command_in_force or (math.nan, math.nan), dtype=float),
-            np.array([in_force(peer) for peer in peers], dtype=float),
-            min_separation_m=settings.min_separation_m or 0.0,
-            gain_1_s=settings.separation_gain_1_s,
-            step_s=settings.step_s,
-            margin_m=settings.separation_margin_m,
-            braking_m_s2=settings.separation_braking_m_s2,
-            latency_s=settings.separation_latency_s,
-            range_noise_std_m=settings.separation_range_noise_std_m,
-            bearing_std_rad=np.array([bearing_std.get(peer, math.nan) for peer in peers]),
-        )
 
     def _turn_oscillator(self, k: int) -> None:
         """Advance the law through step k with no data: the oscillator keeps turning so the
@@ -563,7 +651,7 @@ class VehicleController:
         phase = self.law.phase_rad
         self._turn_oscillator(k)
         self.inbox.take(k)
-        self._reference = None
+        self.shaper.skip()
         self.skipped_steps += 1
         logger.warning(
             "vehicle %s: step %d skipped (%.3f s late)",
@@ -571,7 +659,16 @@ class VehicleController:
             k,
             self.clock.now_s() - t_k,
         )
-        record = StepRecord(k, t_k, "skipped", (0.0, 0.0, 0.0), (0.0, 0.0), phase, (), {})
+        record = StepRecord(
+            step=k,
+            time_s=t_k,
+            state=ControllerState.SKIPPED,
+            velocity_ned_m_s=(0.0, 0.0, 0.0),
+            consensus_m_s=(0.0, 0.0),
+            phase_rad=phase,
+            neighbours_used=(),
+            estimates_m={},
+        )
         self.records.append(record)
         if self.on_step is not None:
             self.on_step(self.vehicle_id, record)
@@ -640,14 +737,7 @@ class VehicleController:
         observed_step: int | None = None
         if observation is not None:
             velocity = np.array([observation.velocity_north_m_s, observation.velocity_east_m_s])
-            if self._last_target is not None:
-                last_time_s, last_velocity = self._last_target
-                elapsed = observation.time_s - last_time_s
-                self._target_odometry = (
-                    self._target_odometry + 0.5 * (last_velocity + velocity) * elapsed
-                )
-            self._last_target = (observation.time_s, velocity)
-            odometry = (float(self._target_odometry[0]), float(self._target_odometry[1]))
+            odometry = self._own_target.integrate(observation.time_s, velocity)
         elif np.isfinite(self.target_track.observed_step):
             velocity = self.target_track.velocity_m_s
             observed_step = int(self.target_track.observed_step)
@@ -724,7 +814,9 @@ class VehicleController:
             heard.append((k, (north, east)))
         relays = [relay for relay in heard if relay is not None]
         observed_step, velocity = max(relays, key=lambda relay: relay[0], default=(None, None))
-        own_odometry = self._target_odometry if observation is not None else (math.nan, math.nan)
+        own_odometry = (
+            self._own_target.odometry_m if observation is not None else (math.nan, math.nan)
+        )
         self.target_track, estimate = track_target(
             self.target_track,
             k,
@@ -736,53 +828,13 @@ class VehicleController:
         )
         return estimate
 
-    def _lead(self, velocity: ArrayLike) -> NDArray[np.float64]:
-        """u + lead * du/dt: offsets the vehicle's velocity-loop lag and the command delay, so
-        the displacement over the step is the one the law asked for."""
-        velocity = np.asarray(velocity, dtype=float)
-        previous, self._previous_command = self._previous_command, velocity
-        if previous is None or self.settings.velocity_lead_s == 0:
-            return velocity
-        return (
-            velocity + self.settings.velocity_lead_s * (velocity - previous) / self.settings.step_s
-        )
-
-    def _tracking(
-        self, velocity: ArrayLike, odometry: tuple[float, float, float]
-    ) -> NDArray[np.float64]:
-        """Displacement tracking: a PI correction towards where the law's commands would have
-        taken a vehicle that realised them exactly (the paper's p(k+1) = p(k) + T u(k)), from the
-        own odometry. A real multicopter's velocity loop lags and loses to drag (PX4 SIH: ~30 %
-        of a 3 m/s command on a circle); the law's saturated consensus cannot make that up, the
-        formation then trails the target. Off when both gains are 0 (the paper's pure command)."""
-        settings = self.settings
-        if settings.tracking_gain_1_s == 0 and settings.tracking_integral_gain_1_s2 == 0:
-            return np.zeros(2)
-        here = np.asarray(odometry[:2], dtype=float)
-        if self._reference is None:
-            self._reference = here.copy()
-        error = self._reference - here
-        limit = settings.tracking_max_correction_m_s
-        correction = settings.tracking_gain_1_s * error + self._tracking_integral
-        if np.hypot(*correction) < limit:  # no wind-up while saturated
-            self._tracking_integral = self._tracking_integral + (
-                settings.tracking_integral_gain_1_s2 * error * settings.step_s
-            )
-        scale = min(1.0, limit / max(float(np.hypot(*correction)), 1e-12))
-        self._reference = self._reference + settings.step_s * np.asarray(velocity, dtype=float)
-        return correction * scale
-
-    def _clamp(self, velocity: NDArray[np.float64]) -> tuple[float, float]:
-        limit_m_s = self.settings.max_horizontal_speed_m_s
-        clamped = saturate(np.asarray(velocity, dtype=float), limit_m_s)
-        return (float(clamped[0]), float(clamped[1]))
-
     def _altitude_hold(self, odometry: tuple[float, float, float] | None) -> float:
-        if odometry is None:
-            return 0.0
-        error = -self.altitude_m - odometry[2]  # NED: down is positive
-        limit = self.settings.max_vertical_speed_m_s
-        return float(np.clip(self.settings.altitude_gain_per_s * error, -limit, limit))
+        return altitude_hold_m_s(
+            None if odometry is None else odometry[2],
+            altitude_m=self.altitude_m,
+            gain_1_s=self.settings.altitude_gain_per_s,
+            limit_m_s=self.settings.max_vertical_speed_m_s,
+        )
 
     async def _publish(self, topic: str, message: Message) -> None:
 
@@ -793,7 +845,7 @@ class VehicleController:
 
     async def _publish_status(self, k: int, t_k: float) -> None:
         detail = self.link.control_lost or ""
-        if self.state == "target_lost":
+        if self.state == ControllerState.TARGET_LOST:
             unseen_s = (k - float(self.target_track.observed_step)) * self.settings.step_s
             detail = (
                 f"target not seen for {unseen_s:.2f} s"
@@ -809,7 +861,7 @@ class VehicleController:
             t_k,
             self.state,
             k,
-            self.state == "following",
+            self.state == ControllerState.FOLLOWING,
             detail,
             mission_id=self.mission_id,
             clock_rate=None if self.autopilot_clock_rate is None else self.autopilot_clock_rate(),

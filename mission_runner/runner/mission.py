@@ -44,7 +44,7 @@ from ..bus import (
 )
 from ..metrics import tracking_error
 from ..outputs import bus_security
-from ..records import Progress, StepRecord
+from ..records import ControllerState, Progress, StepRecord
 from ..scenario import shape_schedule
 from ..wiring import altitude_of, autopilot_params, emulator_config
 from ..world import World
@@ -283,7 +283,7 @@ async def fly(
                     aggregator.leave(controller.vehicle_id)
                 if ending is not None:
                     await _end_vehicle(emulator.clock, vehicle, ENDING_ACTIONS[ending.command])
-                elif controller.state == "lost":
+                elif controller.state == ControllerState.LOST:
                     # Its setpoint stream ends with it (MAVSDK would re-send the last one for
                     # ever), and it is put where a vehicle process puts a lost one.
                     await _end_vehicle(emulator.clock, vehicle, flight.on_lost)
@@ -320,7 +320,10 @@ async def fly(
             mission_wall = time.perf_counter() - mission_started
             async with _paced(emulator.clock), asyncio.TaskGroup() as group:
                 for vehicle, controller in zip(vehicles, controllers, strict=True):
-                    if controller.state in ("lost", "taken_over"):  # leave those be
+                    if controller.state in (
+                        ControllerState.LOST,
+                        ControllerState.TAKEN_OVER,
+                    ):  # leave be
                         continue
                     if endings[controller.vehicle_id] is not None:  # the operator's already
                         continue
@@ -362,14 +365,14 @@ async def fly(
         for controller, vehicle in zip(controllers, vehicles, strict=True)
     }
     return FlightOutcome(
-        result,
-        records,
-        start_s,
-        time.perf_counter() - started,
-        mission_wall,
-        stats,
-        ended,
-        security,
+        result=result,
+        records=records,
+        start_s=start_s,
+        wall_time_s=time.perf_counter() - started,
+        mission_wall_time_s=mission_wall,
+        emulator_stats=stats,
+        vehicles=ended,
+        bus_security=security,
     )
 
 
@@ -381,11 +384,11 @@ def _how_it_ended(
     if ending is not None:
         reason = f" ({ending.reason})" if ending.reason else ""
         detail = f"{ending.command.value} by the operator{reason}"
-        return {"state": "aborted", "detail": f"{detail}; {seen}"}
-    if controller.state in ("lost", "taken_over"):
+        return {"state": ControllerState.ABORTED, "detail": f"{detail}; {seen}"}
+    if controller.state in (ControllerState.LOST, ControllerState.TAKEN_OVER):
         why = vehicle.control_lost or "own odometry stopped"
         return {"state": controller.state, "detail": f"{why}; seen last: {seen}"}
-    return {"state": "done", "detail": seen}
+    return {"state": ControllerState.DONE, "detail": seen}
 
 
 @contextlib.asynccontextmanager
@@ -432,7 +435,11 @@ async def _land_everyone(
     """Land every vehicle seen armed that is still the runner's (not taken over, not lost),
     each at most :data:`SAFE_STATE_TIMEOUT_S`. A cancellation while they land ends this at once:
     the vehicles are left to PX4's offboard-loss failsafe."""
-    gone = {c.vehicle_id for c in controllers if c.state in ("lost", "taken_over")}
+    gone = {
+        c.vehicle_id
+        for c in controllers
+        if c.state in (ControllerState.LOST, ControllerState.TAKEN_OVER)
+    }
     landing = [
         v for v in vehicles if v.armed and v.control_lost is None and v.system_id not in gone
     ]

@@ -64,7 +64,7 @@ from ..bus import (
 from ..bus.broker import OPERATOR_USER, flight_user, read_credentials
 from ..environment import USERNAME_ENV
 from ..errors import error_reason
-from ..records import StepRecord, VehicleRun
+from ..records import ControllerState, StepRecord, VehicleRun
 from ..wiring import altitude_of, autopilot_params
 from .clock import WallClock
 from .controller import VehicleController, build_controller
@@ -93,7 +93,12 @@ logger = logging.getLogger(__name__)
 
 #: A vehicle's states after which nothing changes: it gave up (lost), could not fly (failed), was
 #: stopped by the ground station (aborted), or is flown by someone else (taken over).
-FINAL_STATES = ("lost", "failed", "aborted", "taken_over")
+FINAL_STATES = (
+    ControllerState.LOST,
+    ControllerState.FAILED,
+    ControllerState.ABORTED,
+    ControllerState.TAKEN_OVER,
+)
 
 DEFAULT_API_PORT_BASE = 14540
 
@@ -122,7 +127,12 @@ class _Reporter:
         self.controller: VehicleController | None = None
 
     async def __call__(
-        self, state: str, *, step: int = 0, detail: str = "", clock_rate: float | None = None
+        self,
+        state: ControllerState,
+        *,
+        step: int = 0,
+        detail: str = "",
+        clock_rate: float | None = None,
     ) -> None:
         self.run.state, self.run.detail = state, detail
         status = VehicleStatus(
@@ -130,7 +140,7 @@ class _Reporter:
             time.time(),
             state,
             step,
-            state == "following",
+            state == ControllerState.FOLLOWING,
             detail,
             mission_id=self.run.mission_id,
             clock_rate=clock_rate,
@@ -188,14 +198,14 @@ async def run_vehicle(
         control = await stack.enter_async_context(bus.subscribe(topics.control()))
         controller_bus = await stack.enter_async_context(flight_bus(scenario, vehicle_id, bus))
         report = _Reporter(bus, topics, run)
-        await report("waiting", detail="waiting for the ground station's prepare")
+        await report(ControllerState.WAITING, detail="waiting for the ground station's prepare")
         prepare = await next_command(control, {ControlCommand.PREPARE}, timeout_s=ready_timeout_s)
         run.mission_id = prepare.mission_id
         try:
             run.params = await vehicle.apply_params(autopilot_params(scenario))
             await vehicle.take_off(altitude_of(scenario, config))
         except RunnerError as error:
-            await report("failed", detail=str(error))
+            await report(ControllerState.FAILED, detail=str(error))
             with contextlib.suppress(RunnerError):
                 await vehicle.finish("land", timeout_s=SAFE_STATE_TIMEOUT_S)
             raise
@@ -224,7 +234,7 @@ async def run_vehicle(
             else:  # its setpoint stream ended when it was taken: see that it did
                 await vehicle.stream_ended()
             if run.state not in FINAL_STATES:
-                await report("lost", detail=f"mission ended: {error_reason(error)}")
+                await report(ControllerState.LOST, detail=f"mission ended: {error_reason(error)}")
             raise
         finally:
             run.records = controller.records
@@ -327,19 +337,21 @@ async def _fly(  # noqa: PLR0917
         await _abort(vehicle, report, run, scenario, ending)
         return
     last = controller.records[-1].step if controller.records else 0
-    if controller.state == "taken_over":
+    if controller.state == ControllerState.TAKEN_OVER:
         # Someone else flies it now: report it and leave it be (never fight a pilot). Its
         # setpoint stream ended when the link saw it taken (MavsdkVehicle.release).
         await vehicle.stream_ended()
-        await report("taken_over", step=last, detail=vehicle.control_lost or "")
+        await report(ControllerState.TAKEN_OVER, step=last, detail=vehicle.control_lost or "")
         return
-    if controller.state == "lost":
-        await report("lost", step=last, detail="own odometry stopped: no longer driven")
+    if controller.state == ControllerState.LOST:
+        await report(
+            ControllerState.LOST, step=last, detail="own odometry stopped: no longer driven"
+        )
         with contextlib.suppress(RunnerError):
             await vehicle.finish(scenario.flight.on_lost, timeout_s=SAFE_STATE_TIMEOUT_S)
         return
     await vehicle.finish(scenario.flight.end_action)
-    await report("done", step=len(controller.records))
+    await report(ControllerState.DONE, step=len(controller.records))
 
 
 async def _abort(
@@ -351,7 +363,7 @@ async def _abort(
 ) -> None:
     detail = f"mission aborted by the ground station: {command.reason or command.command.value}"
     logger.warning("vehicle %s: %s", run.vehicle_id, detail)
-    await report("aborted", detail=detail)
+    await report(ControllerState.ABORTED, detail=detail)
     action = ENDING_ACTIONS.get(command.command, scenario.flight.on_lost)
     await vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S)
 
@@ -367,7 +379,7 @@ async def _until_start(
     or stop for this vehicle."""
     wanted = {ControlCommand.PREPARE, ControlCommand.START, *ENDING_ACTIONS}
     while True:
-        await report("ready", clock_rate=mapping.recent_boot_rate())
+        await report(ControllerState.READY, clock_rate=mapping.recent_boot_rate())
         command = await next_command(control, wanted)
         if command.command is ControlCommand.PREPARE:
             run.mission_id = command.mission_id
@@ -451,7 +463,7 @@ class GroundOutcome:
 
     @property
     def lost(self) -> list[int]:
-        return sorted(i for i, s in self.statuses.items() if s.state != "done")
+        return sorted(i for i, s in self.statuses.items() if s.state != ControllerState.DONE)
 
     @property
     def stale_steps(self) -> int | None:
@@ -503,7 +515,7 @@ async def run_ground(
             # The last will has no mission id; after the start it can only be this mission's.
             return (
                 status.mission_id is None
-                and status.state == "lost"
+                and status.state == ControllerState.LOST
                 and started["at"] is not None
                 and status.vehicle_id in latest
             )
@@ -525,7 +537,7 @@ async def run_ground(
                 return False
             vehicle_id = status.vehicle_id
             if status.mission_id is None:  # its last will (ours: after the start, lost)
-                if latest[vehicle_id].state not in ("done", *FINAL_STATES):
+                if latest[vehicle_id].state not in (ControllerState.DONE, *FINAL_STATES):
                     wills.add(status, now_s)
                     logger.warning(
                         "ground: vehicle %s dropped off the bus (its last will); lost unless "
@@ -592,18 +604,21 @@ async def run_ground(
                 )
                 try:
                     await until(
-                        lambda: bool(states("failed")) or ids <= states("ready"),
+                        lambda: (
+                            bool(states(ControllerState.FAILED))
+                            or ids <= states(ControllerState.READY)
+                        ),
                         ready_timeout_s,
                         "every vehicle ready",
                     )
                 except RunnerTimeoutError as error:
-                    missing = sorted(ids - states("ready"))
+                    missing = sorted(ids - states(ControllerState.READY))
                     await control(ControlCommand.LAND, time.time(), reason=f"not ready: {missing}")
                     raise MissionAbortedError(
                         f"mission aborted, every vehicle told to land: vehicles {missing} not "
                         f"ready within {ready_timeout_s:g} s"
                     ) from error
-                failed = sorted(states("failed"))
+                failed = sorted(states(ControllerState.FAILED))
                 if failed:
                     reasons = "; ".join(latest[i].detail for i in failed)
                     await control(
@@ -630,7 +645,7 @@ async def run_ground(
                 )
                 try:
                     await until(
-                        lambda: ids <= states("done", *FINAL_STATES),
+                        lambda: ids <= states(ControllerState.DONE, *FINAL_STATES),
                         (start_delay_s + duration_s) / rate + 120.0,
                         "every vehicle done",
                     )
@@ -704,14 +719,14 @@ async def wait_and_merge(
     wanted = [mission_dir / "truth" / "truth.csv"] + [
         mission_dir / f"vehicle_{i}" / "summary.json"
         for i, status in outcome.statuses.items()
-        if status.state == "done"
+        if status.state == ControllerState.DONE
     ]
     deadline = time.monotonic() + timeout_s
     while not all(path.exists() for path in wanted) and time.monotonic() < deadline:
         await asyncio.sleep(0.2)  # files written by other processes: nothing to wait on but disk
     result = merge_mission(scenario, mission_dir)
     if result is not None and scenario.flight.end_action == "land":
-        landed = sum(status.state == "done" for status in outcome.statuses.values())
+        landed = sum(status.state == ControllerState.DONE for status in outcome.statuses.values())
         result.extra_metrics["vehicles_disarmed_at_end"] = np.array([landed])
     return result
 

@@ -16,7 +16,7 @@ import numpy as np
 from ..enclosing.target import OBSERVED, STATUS_NAMES
 from ..metrics import SimulationResult, closest_pair, score
 from ..paths import write_atomic
-from ..records import FORMATION_STATES, STALE_STATES, StepRecord, TruthSample
+from ..records import FORMATION_STATES, STALE_STATES, ControllerState, StepRecord, TruthSample
 
 if TYPE_CHECKING:
     from ..config import Scenario
@@ -202,17 +202,20 @@ def read_steps_csv(path: PathName) -> list[StepRecord]:
             gated = tuple(int(p) for p in (row.get("gated_ranges") or "").split())
             records.append(
                 StepRecord(
-                    int(row["step"]),
-                    float(row["time_s"]),
-                    row["state"],
-                    _ned(row, "velocity_{}_m_s"),
-                    (float(row["consensus_north_m_s"]), float(row["consensus_east_m_s"])),
-                    float(row["phase_rad"]),
-                    used,
-                    estimates,
-                    float(row["time_s"]) + float(row["setpoint_lateness_s"]),
-                    _ned(row, "odometry_{}_m"),
-                    gated,
+                    step=int(row["step"]),
+                    time_s=float(row["time_s"]),
+                    state=ControllerState(row["state"]),
+                    velocity_ned_m_s=_ned(row, "velocity_{}_m_s"),
+                    consensus_m_s=(
+                        float(row["consensus_north_m_s"]),
+                        float(row["consensus_east_m_s"]),
+                    ),
+                    phase_rad=float(row["phase_rad"]),
+                    neighbours_used=used,
+                    estimates_m=estimates,
+                    setpoint_sent_s=float(row["time_s"]) + float(row["setpoint_lateness_s"]),
+                    odometry_m=_ned(row, "odometry_{}_m"),
+                    gated=gated,
                     target=row.get("target") or "",
                 )
             )

@@ -26,7 +26,7 @@ from mission_runner.bus import (
 )
 from mission_runner.checks import validate_scenario
 from mission_runner.enclosing import NeighbourReport, TargetReport, VehicleEnclosing
-from mission_runner.runner import controller as controller_module
+from mission_runner.runner import pipeline
 from mission_runner.runner.controller import build_controller
 from mission_runner.runner.odometry import OdometrySample
 from mission_runner.wiring import algorithm_params
@@ -429,7 +429,7 @@ async def test_step_messages_carry_the_setpoint_in_force_and_the_guard_uses_the_
         seen.append((own, others))
         return velocity
 
-    monkeypatch.setattr(controller_module, "separation_guard", guard)
+    monkeypatch.setattr(pipeline, "separation_guard", guard)
     async with rig(min_separation_m=1.0) as flight:
         # Vehicle 3 says it flies faster than any vehicle of the mission may (10 m/s).
         flight.neighbours.commands = {1: (0.5, -0.25), 3: (40.0, 0.0)}
