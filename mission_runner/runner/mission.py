@@ -193,8 +193,11 @@ class InProcessFlight:
         emulator_overrides: Mapping[str, Any] | None = None,
         on_step: StepCallback | None = None,
         on_progress: Callable[[Progress], None] | None = None,
+        unix_s: Callable[[], float] = time.time,
     ) -> None:
         self.scenario = scenario
+        #: The UNIX clock the ground station's messages are stamped with (injectable for tests).
+        self.unix_s = unix_s
         self.ids = [vehicle.id for vehicle in scenario.vehicles]
         overrides = {
             # Capped so that lockstep never floods MAVSDK (whose timers and callback queues run
@@ -262,7 +265,7 @@ class InProcessFlight:
         )
         self.receivers = [self.bus]
         self.ground = await stack.enter_async_context(
-            _ground_station(self.bus, scenario, self.mission_id)
+            _ground_station(self.bus, scenario, self.mission_id, self.unix_s)
         )
         self.world = await stack.enter_async_context(
             World.for_scenario(emulator, scenario, self.bus.as_sender(Sender.ranges()))
@@ -390,7 +393,9 @@ class InProcessFlight:
         self.mission_wall_s = time.perf_counter() - mission_started
 
     async def _send(self, command: OperatorCommand) -> None:
-        await publish_operator(self.ground, self.topics, command, self.mission_id)
+        await publish_operator(
+            self.ground, self.topics, command, self.mission_id, time_s=self.unix_s()
+        )
 
     async def _fly_vehicle(
         self,
@@ -496,7 +501,7 @@ def _how_it_ended(
 
 @contextlib.asynccontextmanager
 async def _ground_station(
-    bus: Bus, scenario: Scenario, mission_id: str
+    bus: Bus, scenario: Scenario, mission_id: str, unix_s: Callable[[], float] = time.time
 ) -> AsyncIterator[ControllerBus]:
     """Where the operator's commands are published from, signed as the ground station: this
     process's bus in-process; over MQTT a client of the ground's own (its broker login), which
@@ -509,7 +514,7 @@ async def _ground_station(
     async with open_bus(
         scenario.bus, sender=Sender.ground(), client_id=f"{scenario.name}-ground"
     ) as ground:
-        prepare = MissionControl(ControlCommand.PREPARE, time.time(), mission_id=mission_id)
+        prepare = MissionControl(ControlCommand.PREPARE, unix_s(), mission_id=mission_id)
         await ground.publish_message(topics.control(), prepare, retain=True, timeout=5.0)
         try:
             yield ground

@@ -683,7 +683,9 @@ class GroundStation:
         )
 
     async def _send(self, command: OperatorCommand) -> None:
-        await publish_operator(self.bus, self.topics, command, self.mission_id)
+        await publish_operator(
+            self.bus, self.topics, command, self.mission_id, time_s=self.unix_s()
+        )
 
     def states(self, *wanted: str) -> set[int]:
         return {i for i, s in self.latest.items() if s.state in wanted}
@@ -818,6 +820,7 @@ async def wait_and_merge(
         for i, status in outcome.statuses.items()
         if status.state == "done"
     ]
+    # This process's own monotonic clock: a timeout on files other processes write.
     deadline = time.monotonic() + timeout_s
     while not all(path.exists() for path in wanted) and time.monotonic() < deadline:
         await asyncio.sleep(0.2)  # files written by other processes: nothing to wait on but disk
