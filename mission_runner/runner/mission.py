@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import functools
 import logging
 import math
 import time
@@ -314,9 +313,7 @@ class InProcessFlight:
             EmulatorClock(
                 self.emulator.clock,
                 f"vehicle-{vehicle_id}",
-                setpoints_in=functools.partial(
-                    getattr, self.emulator.autopilot(index), "accepted_setpoints"
-                ),
+                setpoints=self.emulator.autopilot(index),
             )
             for index, vehicle_id in enumerate(self.ids)
         ]
