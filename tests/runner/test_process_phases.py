@@ -1,9 +1,11 @@
 """The ground station's phases alone, on the in-process bus with an injected UNIX clock: the
 ready verdict (abort for everyone when a vehicle failed or not all were ready), the start on the
-step grid at the autopilots' rate, and the mission clock following the autopilots' clocks."""
+step grid at the autopilots' rate, and the mission clock following the autopilots' clocks. Then
+a vehicle process's end: what it does to its vehicle and reports, by how its controller ended."""
 
 import contextlib
 import math
+from types import SimpleNamespace
 
 import pytest
 
@@ -14,7 +16,8 @@ from mission_runner.bus import (
     VehicleStatus,
     open_bus,
 )
-from mission_runner.runner.process import GroundStation, MissionAbortedError
+from mission_runner.checks import validate_scenario
+from mission_runner.runner.process import GroundStation, MissionAbortedError, VehicleProcess
 
 from .flying import load
 
@@ -143,3 +146,74 @@ def status(ground, vehicle_id, *, clock_rate):
         vehicle_id, ground.unix_s(), "following", 1, True, "",
         mission_id=ground.mission_id, clock_rate=clock_rate,
     )  # fmt: skip
+
+
+# -- the vehicle process's end ----------------------------------------------------------------
+
+
+class Vehicle:
+    """What the vehicle process's end does to its vehicle."""
+
+    def __init__(self, control_lost=None):
+        self.control_lost, self.done = control_lost, []
+
+    async def finish(self, action, timeout_s=None):
+        self.done.append(action)
+
+    async def stream_ended(self):
+        self.done.append("stream ended")
+
+
+class Controller:
+    def __init__(self, state, steps):
+        self.state = state
+        self.records = [SimpleNamespace(step=k) for k in range(steps)]
+
+
+def vehicle_process(state, *, steps=5, control_lost=None, end_action="land", on_lost="hold"):
+    data = load("paper_tracking_flyable").model_dump(mode="json")
+    data["bus"] = {"kind": "mqtt", "mqtt": {"host": "127.0.0.1", "port": 1883}}
+    data["flight"] |= {"end_action": end_action, "on_lost": on_lost}
+    process = VehicleProcess(validate_scenario(data), 2)
+    process.vehicle = Vehicle(control_lost)
+    process.controller = Controller(state, steps)
+    process.reported = []
+
+    async def report(state, **fields):
+        process.reported.append((state, fields))
+
+    process.report = report
+    return process
+
+
+async def test_a_vehicle_that_flew_its_steps_takes_the_end_action_and_reports_done():
+    process = vehicle_process("following", steps=5, end_action="return")
+    await process.land(None)
+    assert process.vehicle.done == ["return"]
+    assert process.reported == [("done", {"step": 5})]
+
+
+async def test_a_lost_vehicle_reports_lost_at_its_last_step_and_takes_the_on_lost_action():
+    process = vehicle_process("lost", steps=4, on_lost="land")
+    await process.land(None)
+    assert process.reported == [
+        ("lost", {"step": 3, "detail": "own odometry stopped: no longer driven"})
+    ]
+    assert process.vehicle.done == ["land"]
+
+
+async def test_a_vehicle_taken_over_is_left_to_whoever_took_it():
+    process = vehicle_process("taken_over", steps=2, control_lost="mode changed to POSCTL")
+    await process.land(None)
+    assert process.vehicle.done == ["stream ended"]  # never commanded against the pilot
+    assert process.reported == [("taken_over", {"step": 1, "detail": "mode changed to POSCTL"})]
+
+
+async def test_the_operators_ending_is_carried_out_and_reported_aborted():
+    process = vehicle_process("following")
+    stop = MissionControl(ControlCommand.RETURN, 0.0, reason="weather", vehicle_id=2)
+    await process.land(stop)
+    assert process.vehicle.done == ["return"]
+    assert process.reported == [
+        ("aborted", {"detail": "mission aborted by the ground station: weather"})
+    ]
