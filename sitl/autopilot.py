@@ -285,6 +285,14 @@ class Px4Autopilot:
         """Offboard setpoints taken so far (a client can tell when one has arrived)."""
         return self._offboard.accepted_setpoints
 
+    def add_setpoint_listener(self, listener: Callable[[], None]) -> None:
+        """Call ``listener()`` after every offboard setpoint taken (from the datagram handler,
+        synchronously: a client waiting for one sets its event there instead of polling)."""
+        self._offboard.setpoint_listeners.append(listener)
+
+    def remove_setpoint_listener(self, listener: Callable[[], None]) -> None:
+        self._offboard.setpoint_listeners.remove(listener)
+
     @property
     def offboard_setpoint(self) -> OffboardSetpoint | None:
         """The latest offboard setpoint taken, in the vehicle's own units (simulated seconds)."""

@@ -15,6 +15,7 @@ Implausible setpoints (non-finite, absurd magnitudes, unsupported frames) are co
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -103,6 +104,8 @@ class Offboard:
         self._last_setpoint_s = -math.inf
         self.rejected_setpoints = 0
         self.accepted_setpoints = 0
+        #: Called (synchronously, no arguments) after every setpoint taken.
+        self.setpoint_listeners: list[Callable[[], None]] = []
 
     @property
     def setpoint(self) -> OffboardSetpoint | None:
@@ -265,6 +268,8 @@ class Offboard:
         self.accepted_setpoints += 1
         if state.mode is FlightMode.OFFBOARD and state.armed:
             self.apply()
+        for listener in self.setpoint_listeners:
+            listener()
 
 
 def _valid_vectors(

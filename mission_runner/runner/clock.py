@@ -18,7 +18,7 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import AsyncIterator, Callable
-from typing import TYPE_CHECKING, Any, Self
+from typing import TYPE_CHECKING, Any, Protocol, Self
 
 from .timesync import MissionTime
 
@@ -32,20 +32,34 @@ logger = logging.getLogger(__name__)
 DELIVERY_TIMEOUT_S = 1.0
 
 
+class SetpointsTaken(Protocol):
+    """An emulated vehicle's offboard setpoints taken (``sitl.autopilot.Px4Autopilot``): how
+    many so far, and a call after each."""
+
+    @property
+    def accepted_setpoints(self) -> int: ...
+
+    def add_setpoint_listener(self, listener: Callable[[], None]) -> None: ...
+
+    def remove_setpoint_listener(self, listener: Callable[[], None]) -> None: ...
+
+
 class EmulatorClock:
     """A participant view of a :class:`sitl.clock.Clock`. Use as ``async with``.
 
-    ``setpoints_in``: the emulated vehicle's count of offboard setpoints taken
-    (``Px4Autopilot.accepted_setpoints``). With it, a lockstep command (:meth:`commanding`) is
-    applied at a fixed simulated time: the world waits at the release point until the setpoint
-    has arrived, whatever the MAVSDK server and the machine's load make of its delivery.
+    ``setpoints``: the emulated vehicle's offboard setpoints taken. With it, a lockstep command
+    (:meth:`commanding`) is applied at a fixed simulated time: the world waits at the release
+    point until the setpoint has arrived, whatever the MAVSDK server and the machine's load make
+    of its delivery.
     """
 
     def __init__(
-        self, clock: SimulatedClock, name: str, setpoints_in: Callable[[], int] | None = None
+        self, clock: SimulatedClock, name: str, setpoints: SetpointsTaken | None = None
     ) -> None:
         self._clock = clock
-        self._setpoints_in = setpoints_in
+        self._setpoints = setpoints
+        #: Set by the vehicle each time it takes a setpoint (while this clock is entered).
+        self._setpoint_taken = asyncio.Event()
         self.name = name
         self.lockstep = clock.mode == "lockstep"
         self._participant: Participant | None = None
@@ -57,6 +71,10 @@ class EmulatorClock:
                 self._participant = await stack.enter_async_context(
                     self._clock.participant(self.name)
                 )
+                if self._setpoints is not None:
+                    taken = self._setpoint_taken.set
+                    self._setpoints.add_setpoint_listener(taken)
+                    stack.callback(self._setpoints.remove_setpoint_listener, taken)
             self._stack = stack.pop_all()
         return self
 
@@ -89,18 +107,21 @@ class EmulatorClock:
         lockstep the world is first let reach ``released_s`` and held there until the vehicle
         has the setpoint, so every command takes effect at that simulated time; in real time
         nothing is waited for."""
-        if self._participant is None or self._setpoints_in is None:
+        setpoints = self._setpoints
+        if self._participant is None or setpoints is None:
             yield
             return
         await self._clock.sleep_until(released_s)
-        before = self._setpoints_in()
+        before = setpoints.accepted_setpoints
         yield
         try:
             async with asyncio.timeout(DELIVERY_TIMEOUT_S):
-                while self._setpoints_in() == before:
-                    # A short real sleep: the MAVSDK server (another process) must get the CPU
-                    # to send it, and the emulator's datagram handler runs meanwhile.
-                    await asyncio.sleep(0.0005)
+                # Woken by the emulator's datagram handler as it takes a setpoint (the MAVSDK
+                # server, another process, delivers it meanwhile); no other await between the
+                # count's check and the clear, so none is missed.
+                while setpoints.accepted_setpoints == before:
+                    self._setpoint_taken.clear()
+                    await self._setpoint_taken.wait()
         except TimeoutError:
             logger.warning(
                 "%s: setpoint not seen by the vehicle within %.1f s", self.name, DELIVERY_TIMEOUT_S

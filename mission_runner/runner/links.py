@@ -380,6 +380,8 @@ class MavsdkVehicle:
         stream = self.telemetry.subscribe_status_text()
         async with contextlib.aclosing(stream):
             async for status in stream:
+                # This process's own monotonic clock, as the commands' (_commanded): it tells
+                # which autopilot messages came after a command was sent.
                 self.status_texts.append((time.monotonic(), status.type.name, status.text))
                 logger.info("vehicle %s says: %s", self.system_id, status.text)
                 self._status_text.set()
@@ -405,6 +407,7 @@ class MavsdkVehicle:
         highest = (
             None if sample is None else self.track.highest_since(sample.time_s - DISARM_LOOKBACK_S)
         )
+        # This process's own monotonic clock: when the runner saw it, for logs and the ending.
         self.disarms.append(Disarm(time.monotonic(), None if highest is None else -highest))
 
     @property
@@ -649,7 +652,7 @@ class MavsdkVehicle:
         """Arm. PX4 refuses while a preflight check settles (EKF2 seconds after boot or after a
         parameter change, even once MAVSDK reported it healthy): a refusal is asked again every
         ARM_RETRY_INTERVAL_S for ARM_RETRY_S, and the last one raised with PX4's reason."""
-        give_up_s = time.monotonic() + ARM_RETRY_S
+        give_up_s = time.monotonic() + ARM_RETRY_S  # a timeout: this process's own clock
         warned = False
         while True:
             try:
@@ -765,6 +768,7 @@ class MavsdkVehicle:
             raise ValueError(f"vehicle {self.system_id}: setpoint {velocity}, {yaw_deg} not finite")
         fields = json.dumps(
             {
+                # This companion computer's own boot clock, as MAVLink's time_boot_ms means.
                 "time_boot_ms": int(time.monotonic() * 1000) & 0xFFFFFFFF,
                 "target_system": self.system_id,
                 "target_component": 1,

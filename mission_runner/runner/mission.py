@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import functools
 import logging
 import math
 import time
@@ -163,43 +162,112 @@ async def fly(
     on_step(vehicle_id, record) sees every controller step; on_progress(Progress) every step of
     the whole swarm; ``console`` gives the operator's typed commands (:mod:`.operator`).
     """
-    from sitl.emulator import Emulator  # noqa: PLC0415 - real-vehicle runs do not need it
-
     if any(vehicle.url for vehicle in scenario.vehicles):
         raise RunnerError("vehicles with a url fly on real PX4: use 'mission-runner vehicle'")
-    started = time.perf_counter()
-    flight, step_s = scenario.flight, scenario.timing.step_s
-    ids = [vehicle.id for vehicle in scenario.vehicles]
-    overrides = {
-        # Capped so that lockstep never floods MAVSDK (whose timers and callback queues run on
-        # wall time) with telemetry; take-off and landing are held lower still (_paced).
-        "clock": {
-            "mode": flight.clock,
-            "speed": flight.speed,
-            "lockstep_max_speed": LOCKSTEP_MAX_SPEED,
-        },
-        **(emulator_overrides or {}),
-    }
-    config = emulator_config(scenario, **overrides)
-    topics = scenario.bus.topics(scenario.name)
-    mission_id = uuid.uuid4().hex[:12]
-    async with contextlib.AsyncExitStack() as stack:
-        emulator = await stack.enter_async_context(Emulator(config))
+    flight = InProcessFlight(
+        scenario,
+        emulator_overrides=emulator_overrides,
+        on_step=on_step,
+        on_progress=on_progress,
+    )
+    return await flight.fly(console)
+
+
+class InProcessFlight:
+    """One flight of :func:`fly`, phase by phase: :meth:`connect` (emulator, bus, world and the
+    vehicles), :meth:`take_off`, :meth:`build_controllers`, :meth:`start_and_fly` (OFFBOARD, k = 0
+    and the steps), :meth:`land`, then :meth:`score` and :meth:`outcome`. Its attributes are what
+    one phase hands to the next; :meth:`fly` runs them in order and lands every vehicle still in
+    the air when one fails."""
+
+    emulator: Emulator
+    bus: Bus
+    ground: ControllerBus
+    world: World
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        *,
+        emulator_overrides: Mapping[str, Any] | None = None,
+        on_step: StepCallback | None = None,
+        on_progress: Callable[[Progress], None] | None = None,
+        unix_s: Callable[[], float] = time.time,
+    ) -> None:
+        self.scenario = scenario
+        #: The UNIX clock the ground station's messages are stamped with (injectable for tests).
+        self.unix_s = unix_s
+        self.ids = [vehicle.id for vehicle in scenario.vehicles]
+        overrides = {
+            # Capped so that lockstep never floods MAVSDK (whose timers and callback queues run
+            # on wall time) with telemetry; take-off and landing are held lower still (_paced).
+            "clock": {
+                "mode": scenario.flight.clock,
+                "speed": scenario.flight.speed,
+                "lockstep_max_speed": LOCKSTEP_MAX_SPEED,
+            },
+            **(emulator_overrides or {}),
+        }
+        self.config = emulator_config(scenario, **overrides)
+        self.topics = scenario.bus.topics(scenario.name)
+        self.mission_id = uuid.uuid4().hex[:12]
+        self.on_step = on_step
+        self.aggregator: _ProgressAggregator | None = None
+        self.on_progress = on_progress
+        self.vehicles: list[MavsdkVehicle] = []
+        self.controllers: list[VehicleController] = []
+        #: Every bus that checks what it receives (their counters go into ``bus_security``).
+        self.receivers: list[Bus] = []
+        self.endings: dict[int, MissionControl | None] = {}
+        self.records: dict[int, list[StepRecord]] = {}
+        self.start_s = math.nan
+        self.mission_wall_s = math.nan
+
+    async def fly(self, console: OperatorConsole | None = None) -> FlightOutcome:
+        """Every phase in order; a flight that fails or is cancelled lands its vehicles first."""
+        # This process's own wall time, for the outcome's timings (not the mission's clock).
+        started = time.perf_counter()
+        async with contextlib.AsyncExitStack() as stack:
+            before_mission = await self.connect(stack)
+            try:
+                await self.take_off()
+                controls, clocks = await self.build_controllers(stack)
+                await self.start_and_fly(console, before_mission, controls, clocks)
+                await self.land()
+            except BaseException as error:
+                # Never leave a vehicle in the air undriven: whatever ended the flight (Ctrl-C
+                # cancelling it, a failure), land every vehicle still ours first.
+                await _land_everyone(self.emulator.clock, self.vehicles, self.controllers, error)
+                raise
+            stats = self.emulator.stats()
+            result = self.score()
+        return self.outcome(result, stats, time.perf_counter() - started)
+
+    async def connect(self, stack: contextlib.AsyncExitStack) -> contextlib.AsyncExitStack:
+        """The emulator, the bus, the ground station, the world and a link to every vehicle, on
+        ``stack``. Returns the stack that paces the clock until the mission starts."""
+        from sitl.emulator import Emulator  # noqa: PLC0415 - real-vehicle runs do not need it
+
+        scenario = self.scenario
+        self.emulator = emulator = await stack.enter_async_context(Emulator(self.config))
         before_mission = await stack.enter_async_context(contextlib.AsyncExitStack())
         await before_mission.enter_async_context(_paced(emulator.clock))
         # In-process, the one bus is the whole network: each member signs as itself through
         # its own view of it. Over MQTT the world is the range aid's client.
         in_process = scenario.bus.kind == "inprocess"
-        bus = await stack.enter_async_context(
+        self.bus = await stack.enter_async_context(
             open_bus(
                 scenario.bus,
                 sender=None if in_process else Sender.ranges(),
                 client_id=f"{scenario.name}-world",
             )
         )
-        ground = await stack.enter_async_context(_ground_station(bus, scenario, mission_id))
-        world = await stack.enter_async_context(
-            World.for_scenario(emulator, scenario, bus.as_sender(Sender.ranges()))
+        self.receivers = [self.bus]
+        self.ground = await stack.enter_async_context(
+            _ground_station(self.bus, scenario, self.mission_id, self.unix_s)
+        )
+        self.world = await stack.enter_async_context(
+            World.for_scenario(emulator, scenario, self.bus.as_sender(Sender.ranges()))
         )
         sysids = [endpoint.sysid for endpoint in emulator.endpoints]
         systems = await stack.enter_async_context(
@@ -209,171 +277,211 @@ async def fly(
                 url_setting="flight.emulator.ports.api_remote_base",
             )
         )
-        vehicles = [
+        self.vehicles = [
             await stack.enter_async_context(MavsdkVehicle(systems[sysid], sysid))
             for sysid in sysids
         ]
-        controllers: list[VehicleController] = []
-        try:
-            params = autopilot_params(scenario)
-            async with asyncio.TaskGroup() as group:
-                for vehicle, vehicle_config in zip(vehicles, scenario.vehicles, strict=True):
-                    group.create_task(
-                        _prepare(vehicle, params, altitude_of(scenario, vehicle_config)),
-                        name=f"takeoff-{vehicle.system_id}",
-                    )
+        return before_mission
 
-            callbacks: list[StepCallback] = [on_step] if on_step else []
-            aggregator = None
-            if on_progress is not None:
-                aggregator = _ProgressAggregator(scenario, world, emulator, on_progress)
-                callbacks.append(aggregator)
-
-            def step_callback(vehicle_id: int, record: StepRecord) -> None:
-                for callback in callbacks:
-                    callback(vehicle_id, record)
-
-            # Over MQTT every vehicle has its own client, as on a real swarm (one companion
-            # computer each, with its last will on its status topic); in-process each has its
-            # own view of the one bus (its own losses and delays under a link model).
-            buses: list[ControllerBus] = [bus.as_sender(Sender.vehicle(i)) for i in ids]
-            receivers: list[Bus] = [bus]  # every bus that checks what it receives
-            if scenario.bus.kind == "mqtt":
-                receivers += [
-                    await stack.enter_async_context(
-                        open_bus(
-                            scenario.bus,
-                            sender=Sender.vehicle(vehicle_id),
-                            client_id=f"{scenario.name}-vehicle-{vehicle_id}",
-                            will=lost_vehicle_will(topics, vehicle_id, time_s=emulator.time_s),
-                        )
-                    )
-                    for vehicle_id in ids
-                ]
-                buses = list(receivers[1:])
-            # Each vehicle hears the operator as a vehicle process does: on its control topic.
-            controls = [
-                await stack.enter_async_context(b.subscribe(topics.control())) for b in buses
-            ]
-            # Each controller's own view of the emulator's clock: a lockstep participant while
-            # its controller flies.
-            clocks = [
-                EmulatorClock(
-                    emulator.clock,
-                    f"vehicle-{vehicle_id}",
-                    setpoints_in=functools.partial(
-                        getattr, emulator.autopilot(index), "accepted_setpoints"
-                    ),
+    async def take_off(self) -> None:
+        """The scenario's autopilot parameters, then every vehicle to its own altitude."""
+        params = autopilot_params(self.scenario)
+        async with asyncio.TaskGroup() as group:
+            for vehicle, vehicle_config in zip(self.vehicles, self.scenario.vehicles, strict=True):
+                group.create_task(
+                    _prepare(vehicle, params, altitude_of(self.scenario, vehicle_config)),
+                    name=f"takeoff-{vehicle.system_id}",
                 )
-                for index, vehicle_id in enumerate(ids)
-            ]
-            controllers += _controllers(scenario, vehicles, buses, clocks, step_callback)
-            start: asyncio.Future[float] = asyncio.get_running_loop().create_future()
 
-            async def fly_vehicle(
-                controller: VehicleController,
-                vehicle: MavsdkVehicle,
-                clock: EmulatorClock,
-                control: MessageSource,
-            ) -> MissionControl | None:
-                ending = await _fly_one(
-                    controller, clock, start, scenario.timing.steps, control, mission_id
+    async def build_controllers(
+        self, stack: contextlib.AsyncExitStack
+    ) -> tuple[list[MessageSource], list[EmulatorClock]]:
+        """A controller per vehicle, each with its own bus and clock. Returns each one's control
+        topic subscription and clock, in the vehicles' order."""
+        if self.on_progress is not None:
+            self.aggregator = _ProgressAggregator(
+                self.scenario, self.world, self.emulator, self.on_progress
+            )
+        buses = await self._vehicle_buses(stack)
+        # Each vehicle hears the operator as a vehicle process does: on its control topic.
+        controls: list[MessageSource] = [
+            await stack.enter_async_context(b.subscribe(self.topics.control())) for b in buses
+        ]
+        # Each controller's own view of the emulator's clock: a lockstep participant while
+        # its controller flies.
+        clocks = [
+            EmulatorClock(
+                self.emulator.clock,
+                f"vehicle-{vehicle_id}",
+                setpoints=self.emulator.autopilot(index),
+            )
+            for index, vehicle_id in enumerate(self.ids)
+        ]
+        self.controllers += _controllers(
+            self.scenario, self.vehicles, buses, clocks, self._step_callback
+        )
+        return controls, clocks
+
+    async def _vehicle_buses(self, stack: contextlib.AsyncExitStack) -> list[ControllerBus]:
+        """Over MQTT every vehicle has its own client, as on a real swarm (one companion
+        computer each, with its last will on its status topic); in-process each has its own
+        view of the one bus (its own losses and delays under a link model)."""
+        scenario = self.scenario
+        if scenario.bus.kind != "mqtt":
+            return [self.bus.as_sender(Sender.vehicle(i)) for i in self.ids]
+        clients = [
+            await stack.enter_async_context(
+                open_bus(
+                    scenario.bus,
+                    sender=Sender.vehicle(vehicle_id),
+                    client_id=f"{scenario.name}-vehicle-{vehicle_id}",
+                    will=lost_vehicle_will(self.topics, vehicle_id, time_s=self.emulator.time_s),
                 )
-                if aggregator is not None:
-                    aggregator.leave(controller.vehicle_id)
-                if ending is not None:
-                    await _end_vehicle(emulator.clock, vehicle, ENDING_ACTIONS[ending.command])
-                elif controller.state == ControllerState.LOST:
-                    # Its setpoint stream ends with it (MAVSDK would re-send the last one for
-                    # ever), and it is put where a vehicle process puts a lost one.
-                    await _end_vehicle(emulator.clock, vehicle, flight.on_lost)
-                return ending
+            )
+            for vehicle_id in self.ids
+        ]
+        self.receivers += clients
+        return list(clients)
 
-            async def send(command: OperatorCommand) -> None:
-                await publish_operator(ground, topics, command, mission_id)
+    def _step_callback(self, vehicle_id: int, record: StepRecord) -> None:
+        if self.on_step is not None:
+            self.on_step(vehicle_id, record)
+        if self.aggregator is not None:
+            self.aggregator(vehicle_id, record)
 
-            async with serving(console, ids, send), asyncio.TaskGroup() as group:
-                flying = [
-                    group.create_task(
-                        fly_vehicle(controller, vehicle, clock, control),
-                        name=f"controller-{controller.vehicle_id}",
+    async def start_and_fly(
+        self,
+        console: OperatorConsole | None,
+        before_mission: contextlib.AsyncExitStack,
+        controls: Sequence[MessageSource],
+        clocks: Sequence[EmulatorClock],
+    ) -> None:
+        """OFFBOARD for all, then k = 0 on the step grid ``flight.start_delay_s`` later; returns
+        when every controller is done (its steps flown, or ended early)."""
+        start: asyncio.Future[float] = asyncio.get_running_loop().create_future()
+        flight, step_s = self.scenario.flight, self.scenario.timing.step_s
+        async with serving(console, self.ids, self._send), asyncio.TaskGroup() as group:
+            flying = [
+                group.create_task(
+                    self._fly_vehicle(controller, vehicle, clock, control, start),
+                    name=f"controller-{controller.vehicle_id}",
+                )
+                for controller, vehicle, clock, control in zip(
+                    self.controllers, self.vehicles, clocks, controls, strict=True
+                )
+            ]
+            async with asyncio.TaskGroup() as entering:
+                for vehicle, controller in zip(self.vehicles, self.controllers, strict=True):
+                    entering.create_task(
+                        _enter_offboard(vehicle, controller.altitude_m),
+                        name=f"offboard-{vehicle.system_id}",
                     )
-                    for controller, vehicle, clock, control in zip(
-                        controllers, vehicles, clocks, controls, strict=True
-                    )
-                ]
-                async with asyncio.TaskGroup() as entering:
-                    for vehicle, controller in zip(vehicles, controllers, strict=True):
-                        entering.create_task(
-                            _enter_offboard(vehicle, controller.altitude_m),
-                            name=f"offboard-{vehicle.system_id}",
-                        )
-                start_s = math.ceil((emulator.time_s + flight.start_delay_s) / step_s) * step_s
-                world.start(start_s)
-                mission_started = time.perf_counter()
-                start.set_result(start_s)
-                await before_mission.aclose()  # from here on the controllers pace the clock
-            endings = {
-                c.vehicle_id: task.result() for c, task in zip(controllers, flying, strict=True)
-            }
-            records = {c.vehicle_id: c.records for c in controllers}
-            mission_wall = time.perf_counter() - mission_started
-            async with _paced(emulator.clock), asyncio.TaskGroup() as group:
-                for vehicle, controller in zip(vehicles, controllers, strict=True):
-                    if controller.state in (
-                        ControllerState.LOST,
-                        ControllerState.TAKEN_OVER,
-                    ):  # leave be
-                        continue
-                    if endings[controller.vehicle_id] is not None:  # the operator's already
-                        continue
-                    group.create_task(
-                        vehicle.finish(flight.end_action), name=f"finish-{vehicle.system_id}"
-                    )
-        except BaseException as error:
-            # Never leave a vehicle in the air undriven: whatever ended the flight (Ctrl-C
-            # cancelling it, a failure), land every vehicle still ours first.
-            await _land_everyone(emulator.clock, vehicles, controllers, error)
-            raise
-        stats = emulator.stats()
+            self.start_s = (
+                math.ceil((self.emulator.time_s + flight.start_delay_s) / step_s) * step_s
+            )
+            self.world.start(self.start_s)
+            mission_started = time.perf_counter()  # wall time, for the outcome's timings
+            start.set_result(self.start_s)
+            await before_mission.aclose()  # from here on the controllers pace the clock
+        self.endings = {
+            c.vehicle_id: task.result() for c, task in zip(self.controllers, flying, strict=True)
+        }
+        self.records = {c.vehicle_id: c.records for c in self.controllers}
+        self.mission_wall_s = time.perf_counter() - mission_started
+
+    async def _send(self, command: OperatorCommand) -> None:
+        await publish_operator(
+            self.ground, self.topics, command, self.mission_id, time_s=self.unix_s()
+        )
+
+    async def _fly_vehicle(
+        self,
+        controller: VehicleController,
+        vehicle: MavsdkVehicle,
+        clock: EmulatorClock,
+        control: MessageSource,
+        start: asyncio.Future[float],
+    ) -> MissionControl | None:
+        """One controller's flight (:func:`_fly_one`), then its vehicle's end if it ended
+        early: what the operator commanded, or ``flight.on_lost`` for a lost one."""
+        ending = await _fly_one(
+            controller, clock, start, self.scenario.timing.steps, control, self.mission_id
+        )
+        if self.aggregator is not None:
+            self.aggregator.leave(controller.vehicle_id)
+        if ending is not None:
+            await _end_vehicle(self.emulator.clock, vehicle, ENDING_ACTIONS[ending.command])
+        elif controller.state == ControllerState.LOST:
+            # Its setpoint stream ends with it (MAVSDK would re-send the last one for ever),
+            # and it is put where a vehicle process puts a lost one.
+            await _end_vehicle(self.emulator.clock, vehicle, self.scenario.flight.on_lost)
+        return ending
+
+    async def land(self) -> None:
+        """``flight.end_action`` for every vehicle that flew its steps (not one lost, taken over
+        or already ended by the operator), at take-off's pace."""
+        async with _paced(self.emulator.clock), asyncio.TaskGroup() as group:
+            for vehicle, controller in zip(self.vehicles, self.controllers, strict=True):
+                if controller.state in (
+                    ControllerState.LOST,
+                    ControllerState.TAKEN_OVER,
+                ):  # leave those be
+                    continue
+                if self.endings[controller.vehicle_id] is not None:  # the operator's already
+                    continue
+                group.create_task(
+                    vehicle.finish(self.scenario.flight.end_action),
+                    name=f"finish-{vehicle.system_id}",
+                )
+
+    def score(self) -> SimulationResult:
+        """The flight against the world's truth (:func:`.scoring.score_flight`)."""
+        emulator = self.emulator
         # Truth, for the score: a vehicle disarmed in the air fell; it did not land.
-        fell = np.array([bool(emulator.autopilot(i).disarms_in_air) for i in range(len(ids))])
+        fell = np.array([bool(emulator.autopilot(i).disarms_in_air) for i in range(len(self.ids))])
         landed = int(np.sum(~np.asarray(emulator.truth.armed) & ~fell))
-        result = score_flight(
-            scenario,
-            world.samples,
-            records,
+        return score_flight(
+            self.scenario,
+            self.world.samples,
+            self.records,
             landed,
-            final_phases={c.vehicle_id: c.law.phase_rad for c in controllers},
+            final_phases={c.vehicle_id: c.law.phase_rad for c in self.controllers},
             disarmed_in_air=int(np.sum(fell)),
         )
-    messages: dict[str, int] = {}
-    for receiver in receivers:
-        for reason, count in receiver.auth_counters.as_dict().items():
-            messages[reason] = messages.get(reason, 0) + count
-    security = bus_security(
-        messages,
-        {c.vehicle_id: c.range_gate.rejected for c in controllers if c.range_gate is not None},
-        {
-            c.vehicle_id: c.command_gate.rejected["command_speed"]
-            for c in controllers
-            if c.command_gate is not None
-        },
-    )
-    ended = {
-        controller.vehicle_id: _how_it_ended(controller, vehicle, endings[controller.vehicle_id])
-        for controller, vehicle in zip(controllers, vehicles, strict=True)
-    }
-    return FlightOutcome(
-        result=result,
-        records=records,
-        start_s=start_s,
-        wall_time_s=time.perf_counter() - started,
-        mission_wall_time_s=mission_wall,
-        emulator_stats=stats,
-        vehicles=ended,
-        bus_security=security,
-    )
+
+    def outcome(
+        self, result: SimulationResult, stats: EmulatorStats, wall_time_s: float
+    ) -> FlightOutcome:
+        """The :class:`FlightOutcome`: the score, what the buses and gates dropped, how each
+        vehicle ended."""
+        messages: dict[str, int] = {}
+        for receiver in self.receivers:
+            for reason, count in receiver.auth_counters.as_dict().items():
+                messages[reason] = messages.get(reason, 0) + count
+        controllers = self.controllers
+        security = bus_security(
+            messages,
+            {c.vehicle_id: c.range_gate.rejected for c in controllers if c.range_gate is not None},
+            {
+                c.vehicle_id: c.command_gate.rejected["command_speed"]
+                for c in controllers
+                if c.command_gate is not None
+            },
+        )
+        ended = {
+            c.vehicle_id: _how_it_ended(c, vehicle, self.endings[c.vehicle_id])
+            for c, vehicle in zip(controllers, self.vehicles, strict=True)
+        }
+        return FlightOutcome(
+            result=result,
+            records=self.records,
+            start_s=self.start_s,
+            wall_time_s=wall_time_s,
+            mission_wall_time_s=self.mission_wall_s,
+            emulator_stats=stats,
+            vehicles=ended,
+            bus_security=security,
+        )
 
 
 def _how_it_ended(
@@ -393,7 +501,7 @@ def _how_it_ended(
 
 @contextlib.asynccontextmanager
 async def _ground_station(
-    bus: Bus, scenario: Scenario, mission_id: str
+    bus: Bus, scenario: Scenario, mission_id: str, unix_s: Callable[[], float] = time.time
 ) -> AsyncIterator[ControllerBus]:
     """Where the operator's commands are published from, signed as the ground station: this
     process's bus in-process; over MQTT a client of the ground's own (its broker login), which
@@ -406,7 +514,7 @@ async def _ground_station(
     async with open_bus(
         scenario.bus, sender=Sender.ground(), client_id=f"{scenario.name}-ground"
     ) as ground:
-        prepare = MissionControl(ControlCommand.PREPARE, time.time(), mission_id=mission_id)
+        prepare = MissionControl(ControlCommand.PREPARE, unix_s(), mission_id=mission_id)
         await ground.publish_message(topics.control(), prepare, retain=True, timeout=5.0)
         try:
             yield ground

@@ -156,10 +156,13 @@ async def publish_operator(
     mission_id: str | None,
     *,
     timeout_s: float = 5.0,
+    time_s: float | None = None,
 ) -> None:
     """Send ``command`` to mission ``mission_id`` on ``bus`` (which must sign as the ground
-    station: the vehicles obey no one else). Raises :class:`BusError` if it could not."""
-    await bus.publish_message(topics.control(), command.message(mission_id), timeout=timeout_s)
+    station: the vehicles obey no one else), stamped ``time_s`` (UNIX time; default now).
+    Raises :class:`BusError` if it could not."""
+    message = command.message(mission_id, time_s=time_s)
+    await bus.publish_message(topics.control(), message, timeout=timeout_s)
 
 
 # -- obeying ----------------------------------------------------------------------------------

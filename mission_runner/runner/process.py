@@ -121,8 +121,11 @@ def default_url(scenario: Scenario, vehicle_id: int) -> str:
 class _Reporter:
     """Publishes this vehicle's status (retained) under the current mission id."""
 
-    def __init__(self, bus: Bus, topics: Topics, run: VehicleRun) -> None:
+    def __init__(
+        self, bus: Bus, topics: Topics, run: VehicleRun, *, unix_s: Callable[[], float] = time.time
+    ) -> None:
         self.bus, self.topics, self.run = bus, topics, run
+        self.unix_s = unix_s
         #: Once flying: its steps held or skipped go with every report (the ground's verdict).
         self.controller: VehicleController | None = None
 
@@ -137,7 +140,7 @@ class _Reporter:
         self.run.state, self.run.detail = state, detail
         status = VehicleStatus(
             self.run.vehicle_id,
-            time.time(),
+            self.unix_s(),
             state,
             step,
             state == ControllerState.FOLLOWING,
@@ -169,85 +172,249 @@ async def run_vehicle(
     :class:`VehicleRun` (``run``, if given, is filled in as the flight goes, so the caller has it
     even when this raises); raises :class:`RunnerError` when it could not fly (after reporting it
     and putting the vehicle in a safe state)."""
-    if scenario.bus.kind != "mqtt":
-        raise RunnerError("a vehicle process talks to the others over MQTT: set bus.kind: mqtt")
-    ids = [v.id for v in scenario.vehicles]
-    if vehicle_id not in ids:
-        raise RunnerError(f"vehicle {vehicle_id} is not in the scenario (ids {ids})")
-    config = scenario.vehicles[ids.index(vehicle_id)]
-    url = url or config.url or default_url(scenario, vehicle_id)
-    topics = scenario.bus.topics(scenario.name)
-    mission_time = MissionTime()
-    run = run or VehicleRun(vehicle_id)
+    process = VehicleProcess(scenario, vehicle_id, url=url, on_step=on_step, run=run)
     async with contextlib.AsyncExitStack() as stack:
+        await process.connect(stack)
+        await process.prepare(ready_timeout_s)
+        await process.fly()
+    return process.run
+
+
+class VehicleProcess:
+    """One vehicle's side of the handshake (module docstring), phase by phase: :meth:`connect`
+    (autopilot, its clock, the bus), :meth:`prepare` (the ground's prepare, take-off, the
+    controller), then :meth:`fly`: :meth:`wait_start` (OFFBOARD, hover, ready until the start),
+    :meth:`fly_steps` and :meth:`land` (the vehicle's end, reported). ``unix_s`` is the UNIX clock
+    its statuses and mission clock read (injectable for tests)."""
+
+    vehicle: MavsdkVehicle
+    mapping: ClockMapping
+    bus: Bus
+    control: Subscription
+    controller_bus: Bus
+    report: _Reporter
+    controller: VehicleController
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        vehicle_id: int,
+        *,
+        url: str | None = None,
+        on_step: Callable[[int, StepRecord], None] | None = None,
+        run: VehicleRun | None = None,
+        unix_s: Callable[[], float] = time.time,
+    ) -> None:
+        if scenario.bus.kind != "mqtt":
+            raise RunnerError("a vehicle process talks to the others over MQTT: set bus.kind: mqtt")
+        ids = [v.id for v in scenario.vehicles]
+        if vehicle_id not in ids:
+            raise RunnerError(f"vehicle {vehicle_id} is not in the scenario (ids {ids})")
+        self.scenario, self.vehicle_id, self.on_step = scenario, vehicle_id, on_step
+        self.index = ids.index(vehicle_id)
+        self.config = scenario.vehicles[self.index]
+        self.url = url or self.config.url or default_url(scenario, vehicle_id)
+        self.topics = scenario.bus.topics(scenario.name)
+        self.unix_s = unix_s
+        self.mission_time = MissionTime(unix=unix_s)
+        self.run = run or VehicleRun(vehicle_id)
+
+    async def connect(self, stack: contextlib.AsyncExitStack) -> None:
+        """The autopilot (its clock mapped onto the mission's) and the bus, on ``stack``;
+        reports ``waiting``."""
+        scenario, vehicle_id = self.scenario, self.vehicle_id
         systems = await stack.enter_async_context(
             connected_vehicles(
-                [url], [vehicle_id], url_setting=f"--url or vehicles[{ids.index(vehicle_id)}].url"
+                [self.url], [vehicle_id], url_setting=f"--url or vehicles[{self.index}].url"
             )
         )
-        vehicle = await stack.enter_async_context(MavsdkVehicle(systems[vehicle_id], vehicle_id))
-        mapping = await vehicle.follow_clock(mission_time)
-        bus = await stack.enter_async_context(
+        self.vehicle = await stack.enter_async_context(
+            MavsdkVehicle(systems[vehicle_id], vehicle_id)
+        )
+        self.mapping = await self.vehicle.follow_clock(self.mission_time)
+        self.bus = await stack.enter_async_context(
             open_bus(
                 scenario.bus,
                 sender=Sender.vehicle(vehicle_id),
                 client_id=f"{scenario.name}-vehicle-{vehicle_id}",
-                will=lost_vehicle_will(topics, vehicle_id, time_s=time.time()),
+                will=lost_vehicle_will(self.topics, vehicle_id, time_s=self.unix_s()),
             )
         )
-        control = await stack.enter_async_context(bus.subscribe(topics.control()))
-        controller_bus = await stack.enter_async_context(flight_bus(scenario, vehicle_id, bus))
-        report = _Reporter(bus, topics, run)
-        await report(ControllerState.WAITING, detail="waiting for the ground station's prepare")
-        prepare = await next_command(control, {ControlCommand.PREPARE}, timeout_s=ready_timeout_s)
-        run.mission_id = prepare.mission_id
+        self.control = await stack.enter_async_context(self.bus.subscribe(self.topics.control()))
+        self.controller_bus = await stack.enter_async_context(
+            flight_bus(scenario, vehicle_id, self.bus)
+        )
+        self.report = _Reporter(self.bus, self.topics, self.run, unix_s=self.unix_s)
+        await self.report(
+            ControllerState.WAITING, detail="waiting for the ground station's prepare"
+        )
+
+    async def prepare(self, ready_timeout_s: float) -> None:
+        """On the ground's prepare: the scenario's parameters and the take-off (a refusal is
+        reported ``failed`` and the vehicle landed), then the controller."""
+        scenario, vehicle = self.scenario, self.vehicle
+        prepare = await next_command(
+            self.control, {ControlCommand.PREPARE}, timeout_s=ready_timeout_s
+        )
+        self.run.mission_id = prepare.mission_id
         try:
-            run.params = await vehicle.apply_params(autopilot_params(scenario))
-            await vehicle.take_off(altitude_of(scenario, config))
+            self.run.params = await vehicle.apply_params(autopilot_params(scenario))
+            await vehicle.take_off(altitude_of(scenario, self.config))
         except RunnerError as error:
-            await report(ControllerState.FAILED, detail=str(error))
+            await self.report(ControllerState.FAILED, detail=str(error))
             with contextlib.suppress(RunnerError):
                 await vehicle.finish("land", timeout_s=SAFE_STATE_TIMEOUT_S)
             raise
-        controller = build_controller(
+        self.controller = build_controller(
             scenario,
-            config,
+            self.config,
             link=vehicle,
-            bus=controller_bus,
-            clock=WallClock(mission_time),
-            on_step=on_step,
+            bus=self.controller_bus,
+            clock=WallClock(self.mission_time),
+            on_step=self.on_step,
         )
-        report.controller = controller
-        controller.autopilot_clock_rate = mapping.recent_boot_rate
+        self.report.controller = self.controller
+        self.controller.autopilot_clock_rate = self.mapping.recent_boot_rate
+
+    async def fly(self) -> None:
+        """From hover to the vehicle's end; whatever ends it early puts the vehicle in a safe
+        state. ``run`` has the controller's records and counters in any case."""
         try:
-            await _fly(scenario, vehicle, controller, control, report, run, mapping, mission_time)
+            start = await self.wait_start()
+            if start is not None:
+                ending = await self.fly_steps(start)
+                await self.land(ending)
         except BaseException as error:
-            # Never leave a vehicle in the air undriven: whatever ended the mission, command the
-            # configured safe state (PX4's offboard-loss failsafe covers a dead process).
-            action = scenario.flight.on_lost
-            logger.warning(
-                "vehicle %s: mission ended (%s): %s", vehicle_id, error_reason(error), action
-            )
-            if vehicle.control_lost is None:  # a vehicle someone else flies is theirs
-                with contextlib.suppress(RunnerError):
-                    await asyncio.shield(vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S))
-            else:  # its setpoint stream ended when it was taken: see that it did
-                await vehicle.stream_ended()
-            if run.state not in FINAL_STATES:
-                await report(ControllerState.LOST, detail=f"mission ended: {error_reason(error)}")
+            await self._safe_state(error)
             raise
         finally:
-            run.records = controller.records
-            run.skipped_steps = controller.skipped_steps
-            run.bus_messages = bus.auth_counters.as_dict()
-            if controller.range_gate is not None:
-                run.ranges_rejected = dict(controller.range_gate.rejected)
-            if controller.command_gate is not None:
-                run.commands_rejected = controller.command_gate.rejected["command_speed"]
-            run.autopilot_clock_rate = mapping.fit.boot_rate
-            run.setpoints_scale_bounded = vehicle.scale_bounded_setpoints
-            run.clock_residual_s = mapping.fit.residual_s
-    return run
+            self._collect()
+
+    async def wait_start(self) -> float | None:
+        """OFFBOARD at the vehicle's altitude, hovering on the step grid and reporting ready,
+        until the start (returns k = 0's time, the mission clock set) or a land, return or stop
+        for this vehicle (carried out; returns None)."""
+        run, vehicle, controller = self.run, self.vehicle, self.controller
+        controller.mission_id = run.mission_id
+        start: asyncio.Future[float] = asyncio.get_running_loop().create_future()
+        async with asyncio.TaskGroup() as group:
+            hovering = group.create_task(
+                controller.hover_until(start), name=f"vehicle-{run.vehicle_id}-hover"
+            )
+            try:
+                await vehicle.start_offboard()
+                await vehicle.wait_altitude(controller.altitude_m)
+                await vehicle.quiet_unread_streams()
+                command = await self._until_start()
+            except BaseException:
+                hovering.cancel()
+                raise
+            if command.command is not ControlCommand.START:
+                hovering.cancel()
+                await self._abort(command)
+                return None
+            freeze_heap()
+            rate = command.clock_rate or 1.0
+            self.mission_time.set(rate, command.clock_reference_s or command.time_s)
+            run.clock_rate, run.start_s = rate, command.time_s
+            controller.mission_id = run.mission_id
+            start.set_result(command.time_s)
+        return run.start_s
+
+    async def fly_steps(self, start_s: float) -> MissionControl | None:
+        """The controller flies its steps unless the operator's land, return or stop for this
+        vehicle ends them (returned); a controller failure propagates and lands it (:meth:`fly`)."""
+        return await fly_obeying(
+            self.controller,
+            self.controller.run(start_s, self.scenario.timing.steps),
+            self.control,
+            mission_id=self.run.mission_id,
+            mission_time=self.mission_time,
+        )
+
+    async def land(self, ending: MissionControl | None) -> None:
+        """The vehicle's end, reported: the operator's ``ending``, left to whoever took it, put
+        in ``flight.on_lost`` when lost, or ``flight.end_action`` after its steps (done)."""
+        vehicle, controller, report = self.vehicle, self.controller, self.report
+        if ending is not None:
+            await self._abort(ending)
+            return
+        last = controller.records[-1].step if controller.records else 0
+        if controller.state == ControllerState.TAKEN_OVER:
+            # Someone else flies it now: report it and leave it be (never fight a pilot). Its
+            # setpoint stream ended when the link saw it taken (MavsdkVehicle.release).
+            await vehicle.stream_ended()
+            await report(ControllerState.TAKEN_OVER, step=last, detail=vehicle.control_lost or "")
+            return
+        if controller.state == ControllerState.LOST:
+            await report(
+                ControllerState.LOST, step=last, detail="own odometry stopped: no longer driven"
+            )
+            with contextlib.suppress(RunnerError):
+                await vehicle.finish(self.scenario.flight.on_lost, timeout_s=SAFE_STATE_TIMEOUT_S)
+            return
+        await vehicle.finish(self.scenario.flight.end_action)
+        await report(ControllerState.DONE, step=len(controller.records))
+
+    async def _safe_state(self, error: BaseException) -> None:
+        """Never leave a vehicle in the air undriven: whatever ended the mission, command the
+        configured safe state (PX4's offboard-loss failsafe covers a dead process)."""
+        vehicle, action = self.vehicle, self.scenario.flight.on_lost
+        logger.warning(
+            "vehicle %s: mission ended (%s): %s", self.vehicle_id, error_reason(error), action
+        )
+        if vehicle.control_lost is None:  # a vehicle someone else flies is theirs
+            with contextlib.suppress(RunnerError):
+                await asyncio.shield(vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S))
+        else:  # its setpoint stream ended when it was taken: see that it did
+            await vehicle.stream_ended()
+        if self.run.state not in FINAL_STATES:
+            await self.report(ControllerState.LOST, detail=f"mission ended: {error_reason(error)}")
+
+    def _collect(self) -> None:
+        """The controller's records and counters, the bus's and the clock fit's, into ``run``."""
+        run, controller, fit = self.run, self.controller, self.mapping.fit
+        run.records = controller.records
+        run.skipped_steps = controller.skipped_steps
+        run.bus_messages = self.bus.auth_counters.as_dict()
+        if controller.range_gate is not None:
+            run.ranges_rejected = dict(controller.range_gate.rejected)
+        if controller.command_gate is not None:
+            run.commands_rejected = controller.command_gate.rejected["command_speed"]
+        run.autopilot_clock_rate = fit.boot_rate
+        run.setpoints_scale_bounded = self.vehicle.scale_bounded_setpoints
+        run.clock_residual_s = fit.residual_s
+
+    async def _abort(self, command: MissionControl) -> None:
+        detail = f"mission aborted by the ground station: {command.reason or command.command.value}"
+        logger.warning("vehicle %s: %s", self.vehicle_id, detail)
+        await self.report(ControllerState.ABORTED, detail=detail)
+        action = ENDING_ACTIONS.get(command.command, self.scenario.flight.on_lost)
+        await self.vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S)
+
+    async def _until_start(self) -> MissionControl:
+        """Report ready (again for every new prepare) until this mission's start, or a land,
+        return or stop for this vehicle."""
+        run = self.run
+        wanted = {ControlCommand.PREPARE, ControlCommand.START, *ENDING_ACTIONS}
+        while True:
+            await self.report(ControllerState.READY, clock_rate=self.mapping.recent_boot_rate())
+            command = await next_command(self.control, wanted)
+            if command.command is ControlCommand.PREPARE:
+                run.mission_id = command.mission_id
+                continue
+            if command.vehicle_id not in (None, run.vehicle_id):
+                continue
+            if command.mission_id != run.mission_id:
+                logger.warning(
+                    "vehicle %s: ignoring %s of mission %s (this is %s)",
+                    run.vehicle_id,
+                    command.command.value,
+                    command.mission_id,
+                    run.mission_id,
+                )
+                continue
+            return command
 
 
 def flight_bus(
@@ -287,115 +454,6 @@ def flight_bus(
     )
     bus.auth = control_bus.auth
     return bus
-
-
-async def _fly(  # noqa: PLR0917
-    scenario: Scenario,
-    vehicle: MavsdkVehicle,
-    controller: VehicleController,
-    control: Subscription,
-    report: _Reporter,
-    run: VehicleRun,
-    mapping: ClockMapping,
-    mission_time: MissionTime,
-) -> None:
-    steps = scenario.timing.steps
-    controller.mission_id = run.mission_id
-    start = asyncio.get_running_loop().create_future()
-    async with asyncio.TaskGroup() as group:
-        hovering = group.create_task(
-            controller.hover_until(start), name=f"vehicle-{run.vehicle_id}-hover"
-        )
-        try:
-            await vehicle.start_offboard()
-            await vehicle.wait_altitude(controller.altitude_m)
-            await vehicle.quiet_unread_streams()
-            command = await _until_start(control, report, run, mapping, scenario)
-        except BaseException:
-            hovering.cancel()
-            raise
-        if command.command is not ControlCommand.START:
-            hovering.cancel()
-            await _abort(vehicle, report, run, scenario, command)
-            return
-        freeze_heap()
-        rate = command.clock_rate or 1.0
-        mission_time.set(rate, command.clock_reference_s or command.time_s)
-        run.clock_rate, run.start_s = rate, command.time_s
-        controller.mission_id = run.mission_id
-        start.set_result(command.time_s)
-    # The controller flies its steps unless the operator's land, return or stop for this vehicle
-    # ends them (a controller failure propagates and lands it, see run_vehicle).
-    ending = await fly_obeying(
-        controller,
-        controller.run(run.start_s, steps),
-        control,
-        mission_id=run.mission_id,
-        mission_time=mission_time,
-    )
-    if ending is not None:
-        await _abort(vehicle, report, run, scenario, ending)
-        return
-    last = controller.records[-1].step if controller.records else 0
-    if controller.state == ControllerState.TAKEN_OVER:
-        # Someone else flies it now: report it and leave it be (never fight a pilot). Its
-        # setpoint stream ended when the link saw it taken (MavsdkVehicle.release).
-        await vehicle.stream_ended()
-        await report(ControllerState.TAKEN_OVER, step=last, detail=vehicle.control_lost or "")
-        return
-    if controller.state == ControllerState.LOST:
-        await report(
-            ControllerState.LOST, step=last, detail="own odometry stopped: no longer driven"
-        )
-        with contextlib.suppress(RunnerError):
-            await vehicle.finish(scenario.flight.on_lost, timeout_s=SAFE_STATE_TIMEOUT_S)
-        return
-    await vehicle.finish(scenario.flight.end_action)
-    await report(ControllerState.DONE, step=len(controller.records))
-
-
-async def _abort(
-    vehicle: MavsdkVehicle,
-    report: _Reporter,
-    run: VehicleRun,
-    scenario: Scenario,
-    command: MissionControl,
-) -> None:
-    detail = f"mission aborted by the ground station: {command.reason or command.command.value}"
-    logger.warning("vehicle %s: %s", run.vehicle_id, detail)
-    await report(ControllerState.ABORTED, detail=detail)
-    action = ENDING_ACTIONS.get(command.command, scenario.flight.on_lost)
-    await vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S)
-
-
-async def _until_start(
-    control: Subscription,
-    report: _Reporter,
-    run: VehicleRun,
-    mapping: ClockMapping,
-    scenario: Scenario,
-) -> MissionControl:
-    """Report ready (again for every new prepare) until this mission's start, or a land, return
-    or stop for this vehicle."""
-    wanted = {ControlCommand.PREPARE, ControlCommand.START, *ENDING_ACTIONS}
-    while True:
-        await report(ControllerState.READY, clock_rate=mapping.recent_boot_rate())
-        command = await next_command(control, wanted)
-        if command.command is ControlCommand.PREPARE:
-            run.mission_id = command.mission_id
-            continue
-        if command.vehicle_id not in (None, run.vehicle_id):
-            continue
-        if command.mission_id != run.mission_id:
-            logger.warning(
-                "vehicle %s: ignoring %s of mission %s (this is %s)",
-                run.vehicle_id,
-                command.command.value,
-                command.mission_id,
-                run.mission_id,
-            )
-            continue
-        return command
 
 
 def rejoin_grace_s(scenario: Scenario) -> float:
@@ -489,191 +547,249 @@ async def run_ground(
     the operator's typed commands, sent to this mission while it runs."""
     if scenario.bus.kind != "mqtt":
         raise RunnerError("the ground station talks to vehicle processes over MQTT")
-    ids = {v.id for v in scenario.vehicles}
     topics = scenario.bus.topics(scenario.name)
-    step_s = scenario.timing.step_s
-    duration_s = scenario.timing.steps * step_s
-    mission_id = uuid.uuid4().hex[:12]
-    latest: dict[int, VehicleStatus] = {}
-    started: dict[str, float | None] = {"at": None}
-    clock: dict[str, ClockFollower] = {}  # from the start: the mission clock following them
-    wills = _Wills(rejoin_grace_s(scenario))
     async with (
         open_bus(scenario.bus, sender=Sender.ground(), client_id=f"{scenario.name}-ground") as bus,
         bus.subscribe(topics.all_status()) as heard,
     ):
+        ground = GroundStation(scenario, bus, heard, on_status=on_status)
+        return await ground.run(
+            console, start_delay_s=start_delay_s, ready_timeout_s=ready_timeout_s
+        )
 
-        async def control(command: ControlCommand, time_s: float, **fields: Any) -> None:
-            message = MissionControl(command, time_s, mission_id=mission_id, **fields)
-            await bus.publish_message(
-                topics.control(), message, retain=command is ControlCommand.PREPARE, timeout=5.0
-            )
 
-        def ours(status: VehicleStatus) -> bool:
-            if status.mission_id == mission_id:
-                return True
-            # The last will has no mission id; after the start it can only be this mission's.
-            return (
-                status.mission_id is None
-                and status.state == ControllerState.LOST
-                and started["at"] is not None
-                and status.vehicle_id in latest
-            )
+class GroundStation:
+    """The ground's side of the handshake (module docstring) over ``bus``, hearing the vehicles'
+    statuses on ``heard``, phase by phase: :meth:`prepare`, :meth:`wait_ready` (the verdict:
+    every vehicle ready, or the mission aborted), :meth:`start` and :meth:`watch` (until every
+    vehicle is done or lost, the mission clock following the autopilots'), then
+    :meth:`outcome`. ``unix_s`` is the UNIX clock the mission clock and the commands' times read
+    (injectable for tests)."""
 
-        def accept(status: VehicleStatus) -> bool:
-            if _final_already(latest.get(status.vehicle_id), status):
-                return False
-            latest[status.vehicle_id] = status
-            if "follower" in clock:
-                clock["follower"].heard(status.vehicle_id, status.clock_rate, time.time())
-            if on_status is not None:
-                on_status(status)
-            return True
+    def __init__(
+        self,
+        scenario: Scenario,
+        bus: Bus,
+        heard: Subscription,
+        *,
+        on_status: Callable[[VehicleStatus], None] | None = None,
+        unix_s: Callable[[], float] = time.time,
+    ) -> None:
+        self.scenario, self.bus, self.heard = scenario, bus, heard
+        self.on_status, self.unix_s = on_status, unix_s
+        self.ids = {v.id for v in scenario.vehicles}
+        self.topics = scenario.bus.topics(scenario.name)
+        self.mission_id = uuid.uuid4().hex[:12]
+        #: Every vehicle's latest status of this mission.
+        self.latest: dict[int, VehicleStatus] = {}
+        self.start_s: float | None = None
+        self.clock_rate = 1.0
+        #: From the start: the mission clock following the autopilots'.
+        self.follower: ClockFollower | None = None
+        self.wills = _Wills(rejoin_grace_s(scenario))
 
-        def hear(topic: str, payload: bytes, now_s: float) -> bool:
-            """Take in one message; whether it changed a vehicle's status."""
-            status = _vehicle_status(topics, ids, topic, payload)
-            if status is None or not ours(status):
-                return False
-            vehicle_id = status.vehicle_id
-            if status.mission_id is None:  # its last will (ours: after the start, lost)
-                if latest[vehicle_id].state not in (ControllerState.DONE, *FINAL_STATES):
-                    wills.add(status, now_s)
-                    logger.warning(
-                        "ground: vehicle %s dropped off the bus (its last will); lost unless "
-                        "heard again within %.1f s",
-                        vehicle_id,
-                        wills.grace_s,
-                    )
-                return False
-            # Its own status (a flying controller sends one every step): it is on the bus.
-            wills.heard(vehicle_id)
-            return accept(status)
-
-        async def until(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-            loop = asyncio.get_running_loop()
-            deadline_s = loop.time() + timeout_s
-            while True:
-                changed = False
-                for will in wills.due(loop.time()):
-                    changed = accept(will) or changed
-                if changed and condition():
-                    return
-                if loop.time() >= deadline_s:
-                    raise RunnerTimeoutError(what, timeout_s)
-                wake_s = min(deadline_s, wills.next_due_s())
-                try:
-                    topic, payload = await heard.receive(timeout=max(wake_s - loop.time(), 0.0))
-                except BusTimeoutError:
-                    continue
-                changed = hear(topic, payload, loop.time())
-                await follow_clock()
-                if changed and condition():
-                    return
-
-        async def follow_clock() -> None:
-            change = clock["follower"].due(time.time()) if "follower" in clock else None
-            if change is None:
-                return
-            await control(
-                ControlCommand.CLOCK,
-                change.mission_s,
-                clock_rate=change.rate,
-                clock_reference_s=change.at_unix_s,
-            )
-            logger.warning(
-                "ground: the autopilots' clocks run at %.4fx now: so does the mission clock, "
-                "from %.3f",
-                change.rate,
-                change.at_unix_s,
-            )
-
-        def states(*wanted: str) -> set[int]:
-            return {i for i, s in latest.items() if s.state in wanted}
-
-        async def send(command: OperatorCommand) -> None:
-            await publish_operator(bus, topics, command, mission_id)
-
+    async def run(
+        self, console: OperatorConsole | None, *, start_delay_s: float, ready_timeout_s: float
+    ) -> GroundOutcome:
+        """Every phase in order; the prepare is cleared at the end, whatever happened."""
+        timing = self.scenario.timing
         try:
             # Typed commands from the prepare on: vehicles obey land, return and stop before
             # the start too.
-            async with serving(console, ids, send):
-                await control(ControlCommand.PREPARE, time.time())
-                logger.info(
-                    "ground: mission %s prepared; waiting for %d vehicles", mission_id, len(ids)
-                )
-                try:
-                    await until(
-                        lambda: (
-                            bool(states(ControllerState.FAILED))
-                            or ids <= states(ControllerState.READY)
-                        ),
-                        ready_timeout_s,
-                        "every vehicle ready",
-                    )
-                except RunnerTimeoutError as error:
-                    missing = sorted(ids - states(ControllerState.READY))
-                    await control(ControlCommand.LAND, time.time(), reason=f"not ready: {missing}")
-                    raise MissionAbortedError(
-                        f"mission aborted, every vehicle told to land: vehicles {missing} not "
-                        f"ready within {ready_timeout_s:g} s"
-                    ) from error
-                failed = sorted(states(ControllerState.FAILED))
-                if failed:
-                    reasons = "; ".join(latest[i].detail for i in failed)
-                    await control(
-                        ControlCommand.LAND, time.time(), reason=f"vehicle(s) {failed} failed"
-                    )
-                    raise MissionAbortedError(
-                        f"mission aborted, every vehicle told to land: {reasons}"
-                    )
-                rate = MissionTime.rate_for([latest[i].clock_rate or 1.0 for i in ids])
-                reference_s = time.time()
-                start_s = math.ceil((reference_s + start_delay_s * rate) / step_s) * step_s
-                started["at"] = start_s
-                mission_time = MissionTime()
-                mission_time.set(rate, reference_s)
-                clock["follower"] = ClockFollower(mission_time)
-                await control(
-                    ControlCommand.START,
-                    start_s,
-                    clock_rate=rate,
-                    clock_reference_s=reference_s,
-                )
-                logger.info(
-                    "ground: mission %s starts at %.3f (clock rate %.4f)", mission_id, start_s, rate
-                )
-                try:
-                    await until(
-                        lambda: ids <= states(ControllerState.DONE, *FINAL_STATES),
-                        (start_delay_s + duration_s) / rate + 120.0,
-                        "every vehicle done",
-                    )
-                except asyncio.CancelledError:
-                    # Ctrl-C / SIGTERM at the ground station lands the swarm. Not shielded: a
-                    # second one cancels this send too, and the ground station stops at once.
-                    with contextlib.suppress(BusError):
-                        await control(
-                            ControlCommand.LAND, time.time(), reason="ground station stopped"
-                        )
-                    logger.warning("ground: interrupted; every vehicle told to land")
-                    raise
+            async with serving(console, self.ids, self._send):
+                await self.prepare()
+                await self.wait_ready(ready_timeout_s)
+                rate = await self.start(start_delay_s)
+                await self.watch((start_delay_s + timing.steps * timing.step_s) / rate + 120.0)
         finally:
             # The prepare must not start the next vehicle process that connects.
             with contextlib.suppress(BusError):
-                await bus.publish(topics.control(), b"", retain=True, timeout=2.0)
-            counters = bus.auth_counters.as_dict()
-    follower = clock.get("follower")
-    return GroundOutcome(
-        mission_id,
-        started["at"],
-        rate,
-        latest,
-        counters,
-        dict(wills.drops),
-        0 if follower is None else follower.changes,
-        None if follower is None else follower.time.latest_rate,
-    )
+                await self.bus.publish(self.topics.control(), b"", retain=True, timeout=2.0)
+            counters = self.bus.auth_counters.as_dict()
+        return self.outcome(counters)
+
+    async def prepare(self) -> None:
+        """Announce the mission: a retained ``prepare`` with its id."""
+        await self.control(ControlCommand.PREPARE, self.unix_s())
+        logger.info(
+            "ground: mission %s prepared; waiting for %d vehicles", self.mission_id, len(self.ids)
+        )
+
+    async def wait_ready(self, timeout_s: float) -> None:
+        """Until every vehicle is ready; raises :class:`MissionAbortedError`, every vehicle told
+        to land, when one failed or not all were ready within ``timeout_s``."""
+        try:
+            await self.until(
+                lambda: (
+                    bool(self.states(ControllerState.FAILED))
+                    or self.ids <= self.states(ControllerState.READY)
+                ),
+                timeout_s,
+                "every vehicle ready",
+            )
+        except RunnerTimeoutError as error:
+            missing = sorted(self.ids - self.states(ControllerState.READY))
+            await self.control(ControlCommand.LAND, self.unix_s(), reason=f"not ready: {missing}")
+            raise MissionAbortedError(
+                f"mission aborted, every vehicle told to land: vehicles {missing} not "
+                f"ready within {timeout_s:g} s"
+            ) from error
+        failed = sorted(self.states(ControllerState.FAILED))
+        if failed:
+            reasons = "; ".join(self.latest[i].detail for i in failed)
+            await self.control(
+                ControlCommand.LAND, self.unix_s(), reason=f"vehicle(s) {failed} failed"
+            )
+            raise MissionAbortedError(f"mission aborted, every vehicle told to land: {reasons}")
+
+    async def start(self, start_delay_s: float) -> float:
+        """``start``: k = 0 on the step grid ``start_delay_s`` (scaled) from now, the mission
+        clock at the ready vehicles' autopilots' rate. Returns that rate."""
+        step_s = self.scenario.timing.step_s
+        rate = MissionTime.rate_for([self.latest[i].clock_rate or 1.0 for i in self.ids])
+        reference_s = self.unix_s()
+        start_s = math.ceil((reference_s + start_delay_s * rate) / step_s) * step_s
+        self.start_s, self.clock_rate = start_s, rate
+        mission_time = MissionTime(unix=self.unix_s)
+        mission_time.set(rate, reference_s)
+        self.follower = ClockFollower(mission_time)
+        await self.control(
+            ControlCommand.START, start_s, clock_rate=rate, clock_reference_s=reference_s
+        )
+        logger.info(
+            "ground: mission %s starts at %.3f (clock rate %.4f)", self.mission_id, start_s, rate
+        )
+        return rate
+
+    async def watch(self, timeout_s: float) -> None:
+        """Until every vehicle is done or final. Ctrl-C / SIGTERM at the ground station lands
+        the swarm. Not shielded: a second one cancels this send too, and the ground station
+        stops at once."""
+        try:
+            await self.until(
+                lambda: self.ids <= self.states(ControllerState.DONE, *FINAL_STATES),
+                timeout_s,
+                "every vehicle done",
+            )
+        except asyncio.CancelledError:
+            with contextlib.suppress(BusError):
+                await self.control(
+                    ControlCommand.LAND, self.unix_s(), reason="ground station stopped"
+                )
+            logger.warning("ground: interrupted; every vehicle told to land")
+            raise
+
+    def outcome(self, counters: dict[str, int]) -> GroundOutcome:
+        follower = self.follower
+        return GroundOutcome(
+            self.mission_id,
+            self.start_s,
+            self.clock_rate,
+            self.latest,
+            counters,
+            dict(self.wills.drops),
+            0 if follower is None else follower.changes,
+            None if follower is None else follower.time.latest_rate,
+        )
+
+    async def control(self, command: ControlCommand, time_s: float, **fields: Any) -> None:
+        """Publish ``command`` for this mission (retained: the prepare only)."""
+        message = MissionControl(command, time_s, mission_id=self.mission_id, **fields)
+        await self.bus.publish_message(
+            self.topics.control(), message, retain=command is ControlCommand.PREPARE, timeout=5.0
+        )
+
+    async def _send(self, command: OperatorCommand) -> None:
+        await publish_operator(
+            self.bus, self.topics, command, self.mission_id, time_s=self.unix_s()
+        )
+
+    def states(self, *wanted: str) -> set[int]:
+        return {i for i, s in self.latest.items() if s.state in wanted}
+
+    def ours(self, status: VehicleStatus) -> bool:
+        if status.mission_id == self.mission_id:
+            return True
+        # The last will has no mission id; after the start it can only be this mission's.
+        return (
+            status.mission_id is None
+            and status.state == ControllerState.LOST
+            and self.start_s is not None
+            and status.vehicle_id in self.latest
+        )
+
+    def accept(self, status: VehicleStatus) -> bool:
+        """Take ``status`` as its vehicle's latest (its clock rate to the follower); whether it
+        changed anything (a final status stays, :func:`_final_already`)."""
+        if _final_already(self.latest.get(status.vehicle_id), status):
+            return False
+        self.latest[status.vehicle_id] = status
+        if self.follower is not None:
+            self.follower.heard(status.vehicle_id, status.clock_rate, self.unix_s())
+        if self.on_status is not None:
+            self.on_status(status)
+        return True
+
+    def hear(self, topic: str, payload: bytes, now_s: float) -> bool:
+        """Take in one message; whether it changed a vehicle's status."""
+        status = _vehicle_status(self.topics, self.ids, topic, payload)
+        if status is None or not self.ours(status):
+            return False
+        vehicle_id = status.vehicle_id
+        if status.mission_id is None:  # its last will (ours: after the start, lost)
+            if self.latest[vehicle_id].state not in (ControllerState.DONE, *FINAL_STATES):
+                self.wills.add(status, now_s)
+                logger.warning(
+                    "ground: vehicle %s dropped off the bus (its last will); lost unless "
+                    "heard again within %.1f s",
+                    vehicle_id,
+                    self.wills.grace_s,
+                )
+            return False
+        # Its own status (a flying controller sends one every step): it is on the bus.
+        self.wills.heard(vehicle_id)
+        return self.accept(status)
+
+    async def until(self, condition: Callable[[], bool], timeout_s: float, what: str) -> None:
+        """Hear statuses (and believe wills once due) until ``condition`` holds after a change;
+        raises :class:`RunnerTimeoutError` after ``timeout_s``. The timeout and the wills' grace
+        count this process's own monotonic time (the event loop's), not the mission clock."""
+        loop = asyncio.get_running_loop()
+        deadline_s = loop.time() + timeout_s
+        while True:
+            changed = False
+            for will in self.wills.due(loop.time()):
+                changed = self.accept(will) or changed
+            if changed and condition():
+                return
+            if loop.time() >= deadline_s:
+                raise RunnerTimeoutError(what, timeout_s)
+            wake_s = min(deadline_s, self.wills.next_due_s())
+            try:
+                topic, payload = await self.heard.receive(timeout=max(wake_s - loop.time(), 0.0))
+            except BusTimeoutError:
+                continue
+            changed = self.hear(topic, payload, loop.time())
+            await self.follow_clock()
+            if changed and condition():
+                return
+
+    async def follow_clock(self) -> None:
+        """Send the mission clock's change, if the follower has one due now."""
+        change = self.follower.due(self.unix_s()) if self.follower is not None else None
+        if change is None:
+            return
+        await self.control(
+            ControlCommand.CLOCK,
+            change.mission_s,
+            clock_rate=change.rate,
+            clock_reference_s=change.at_unix_s,
+        )
+        logger.warning(
+            "ground: the autopilots' clocks run at %.4fx now: so does the mission clock, from %.3f",
+            change.rate,
+            change.at_unix_s,
+        )
 
 
 def _vehicle_status(
@@ -721,6 +837,7 @@ async def wait_and_merge(
         for i, status in outcome.statuses.items()
         if status.state == ControllerState.DONE
     ]
+    # This process's own monotonic clock: a timeout on files other processes write.
     deadline = time.monotonic() + timeout_s
     while not all(path.exists() for path in wanted) and time.monotonic() < deadline:
         await asyncio.sleep(0.2)  # files written by other processes: nothing to wait on but disk

@@ -38,7 +38,7 @@ import json
 import logging
 import math
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, cast
 
@@ -335,8 +335,11 @@ class _TruthProtocol(asyncio.DatagramProtocol):
         vehicle_id: int,
         rate_hz: float | None,
         vision: VisionOdometry | None = None,
+        unix_s: Callable[[], float] = time.time,
     ) -> None:
         self.positions = positions
+        #: The UNIX clock arrivals are stamped on (the positions' and the steps' clock).
+        self.unix_s = unix_s
         self.vehicle_id = vehicle_id
         self.vision = vision
         self.decoder = TruthDecoder(vehicle_id)
@@ -356,7 +359,7 @@ class _TruthProtocol(asyncio.DatagramProtocol):
         return self.decoder.malformed
 
     def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
-        arrived_s = time.time()
+        arrived_s = self.unix_s()
         for truth in self.decoder.states(data):
             if not self.asked:
                 self._ask_rate(addr)
@@ -425,13 +428,15 @@ async def _sih_source(
     port_base: int,
     rate_hz: float | None,
     vision: dict[int, VisionOdometry],
+    *,
+    unix_s: Callable[[], float],
 ) -> list[_TruthProtocol]:
     loop = asyncio.get_running_loop()
     protocols: list[_TruthProtocol] = []
     for vehicle_id in positions.ids:
         port = port_base + vehicle_id - 1
         protocol = functools.partial(
-            _TruthProtocol, positions, vehicle_id, rate_hz, vision.get(vehicle_id)
+            _TruthProtocol, positions, vehicle_id, rate_hz, vision.get(vehicle_id), unix_s=unix_s
         )
         try:
             transport, _ = await loop.create_datagram_endpoint(
@@ -500,10 +505,12 @@ async def run_range_provider(
     steps: int | None = None,
     seed: int = 0,
     start_timeout_s: float = 600.0,
+    unix_s: Callable[[], float] = time.time,
 ) -> RangeStats:
     """Publish synthetic ranges for ``steps`` steps (default: the scenario's) from the ground
     station's start, and with ``vision`` (``sih`` only) a vision odometry to every instance from
-    the moment its truth arrives. Returns :class:`RangeStats`."""
+    the moment its truth arrives. Returns :class:`RangeStats`. ``unix_s``: the UNIX clock the
+    mission clock, the truth's arrivals and the steps' deadlines read."""
     if scenario.bus.kind != "mqtt":
         raise RunnerError("the range provider publishes for vehicle processes: set bus.kind: mqtt")
     if source not in SOURCES:
@@ -517,7 +524,7 @@ async def run_range_provider(
     rng = np.random.default_rng([seed, 11])
     uwb = UwbRanging(scenario.sensors, len(scenario.vehicles), scenario.timing.step_s)
     logger.info(ranging_plan(len(scenario.vehicles), scenario.sensors, scenario.timing.step_s))
-    mission_time = MissionTime()
+    mission_time = MissionTime(unix=unix_s)
     positions = _Positions(scenario)
     stats = RangeStats()
     odometry = {
@@ -537,7 +544,9 @@ async def run_range_provider(
         group = await stack.enter_async_context(asyncio.TaskGroup())
         truth: list[_TruthProtocol] = []
         if source == "sih":
-            truth = await _sih_source(stack, positions, truth_port_base, truth_rate_hz, odometry)
+            truth = await _sih_source(
+                stack, positions, truth_port_base, truth_rate_hz, odometry, unix_s=unix_s
+            )
         else:
             await _gps_source(stack, positions, list(urls), mission_time, group)
         start = await start_command(control, timeout_s=start_timeout_s)
@@ -553,27 +562,27 @@ async def run_range_provider(
         # Up to 1.5 periods of the positions' rate: SIH's truth as asked, or the GPS stream's.
         rate_hz = (truth_rate_hz or SIH_TRUTH_RATE_HZ) if source == "sih" else POSITION_RATE_HZ
         extrapolate_s = EXTRAPOLATE_PERIODS / rate_hz
-        started_s = time.time()
+        started_s = unix_s()
         received = {i: p.received for i, p in positions.vehicles.items()}
         sent = {i: o.sent for i, o in odometry.items()}
         for k in range(steps):
             t_k = start.time_s + k * scenario.timing.step_s
             unix_k = mission_time.to_unix(t_k)
-            await asyncio.sleep(max(0.0, unix_k - time.time()))
+            await asyncio.sleep(max(0.0, unix_k - unix_s()))
             deadline_s = mission_time.to_unix(t_k + scenario.flight.step_deadline_s)
             # Behind (short of CPU: four PX4 at speed factor 2 on two cores), a step already past
             # its deadline only costs the time the next ones need: the aid was seconds behind at
             # p95 and stayed there, every vehicle holding for want of ranges.
-            publish = time.time() <= deadline_s
+            publish = unix_s() <= deadline_s
             stats.skipped += not publish
-            wait_s = min(MAX_WAIT_S, max(0.0, deadline_s - time.time()))
+            wait_s = min(MAX_WAIT_S, max(0.0, deadline_s - unix_s()))
             now = await positions.bracketing(unix_k, wait_s, extrapolate_s=extrapolate_s)
             await _publish_step(
                 bus, topics, scenario, now, k, t_k, start.time_s, (rng, uwb), stats, publish=publish
             )
             if publish:
                 stats.lateness_s.append(mission_time.now_s() - t_k)
-        elapsed_s = max(time.time() - started_s, 1e-9)
+        elapsed_s = max(unix_s() - started_s, 1e-9)
         stats.position_rates_hz = {
             i: (p.received - received[i]) / elapsed_s for i, p in positions.vehicles.items()
         }

@@ -157,6 +157,21 @@ def test_the_first_frame_asks_for_the_rate_and_each_goes_into_the_positions():
     assert truth.malformed == 0
 
 
+def test_each_truth_is_stamped_on_arrival_by_the_aids_unix_clock():
+    """The bracketing of a step's t_k compares these stamps with the mission clock's UNIX time:
+    both read one clock."""
+    now_s = [1000.0]
+    truth = _TruthProtocol(
+        _Positions(load("paper_tracking_flyable")), 1, 100.0, unix_s=lambda: now_s[0]
+    )
+    truth.datagram_received(hil_frame(seq=1), ADDRESS)
+    positions = truth.positions.vehicles[1]
+    assert positions.newest_s() == 1000.0
+    now_s[0] = 1000.25
+    truth.datagram_received(hil_frame(seq=2), ADDRESS)
+    assert positions.newest_s() == 1000.25 and positions.received == 2
+
+
 def pymavlink_command(data):
     (message,) = mavlink.MAVLink(None).parse_buffer(data)
     return message
