@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import csv
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..enclosing.target import OBSERVED, STATUS_NAMES
 from ..metrics import SimulationResult, closest_pair, score
@@ -66,60 +68,106 @@ def score_flight(
     steps = scenario.timing.steps
     samples = samples[: steps + 1]
     ids = [vehicle.id for vehicle in scenario.vehicles]
-    n, count = len(ids), len(samples)
-    positions = np.stack([s.positions_m for s in samples])[None]
-    live = np.stack([s.alive for s in samples])[None]
-    following = np.zeros_like(live)
-    target = np.stack([s.target_m for s in samples])
-    phases = np.full((1, count, n), np.nan)
-    commands = np.zeros((1, max(count - 1, 0), n, 2))
-    consensus = np.zeros((1, max(count - 1, 0)))
-    localization = np.zeros((1, max(count - 1, 0)))
-    square_errors: list[list[float]] = [[] for _ in range(max(count - 1, 0))]
-    gated = np.zeros((1, max(count - 1, 0)), dtype=np.int64)
-    target_status = np.full((1, max(count - 1, 0)), OBSERVED, dtype=np.int8)
+    columns = _RecordColumns.empty(len(samples), len(ids))
     truth_by_step = {s.step: s for s in samples}
     for column, vehicle_id in enumerate(ids):
         for record in records.get(vehicle_id, []):
             k = record.step
-            if k >= count:
+            if k >= len(samples):
                 continue
-            phases[0, k, column] = record.phase_rad
-            following[0, k, column] = record.state in FORMATION_STATES
-            if k < count - 1:
-                commands[0, k, column] = record.velocity_ned_m_s[:2]
-                consensus[0, k] = max(consensus[0, k], float(np.hypot(*record.consensus_m_s)))
-                errors = estimate_errors(ids, {vehicle_id: record}, truth_by_step[k])
-                localization[0, k] = max(localization[0, k], *errors, 0.0)
-                square_errors[k] += [error * error for error in errors]
-                gated[0, k] += len(record.gated)
-                if record.target:
-                    status = STATUS_NAMES.index(record.target)
-                    target_status[0, k] = max(target_status[0, k], status)
-    for column, vehicle_id in enumerate(ids):
+            last = k == len(samples) - 1  # no command after the last sample
+            errors = [] if last else estimate_errors(ids, {vehicle_id: record}, truth_by_step[k])
+            columns.add(column, record, errors)
         final = (final_phases or {}).get(vehicle_id)
-        if final is not None and count == steps + 1 and np.isnan(phases[0, steps, column]):
-            phases[0, steps, column] = final
-            following[0, steps, column] = following[0, steps - 1, column]
-    live &= following
-    phases = np.where(live, phases, np.nan)
+        if final is not None and len(samples) == steps + 1:
+            columns.end_with(column, final)
+    positions = np.stack([s.positions_m for s in samples])[None]
+    live = np.stack([s.alive for s in samples])[None] & columns.following
     gaps = positions[..., :, None, :] - positions[..., None, :, :]
     distance = np.sqrt(np.sum(gaps * gaps, axis=-1))
     out = {
         "positions_m": positions,
-        "phases_rad": phases,
-        "commands_m_s": commands,
+        "phases_rad": np.where(live, columns.phases, np.nan),
+        "commands_m_s": columns.commands,
         "live": live,
-        "localization_error_m": localization,
-        "localization_rms_m": np.array(
-            [[np.sqrt(np.mean(squares)) if squares else 0.0 for squares in square_errors]]
-        ),
-        "gated_ranges": gated,
-        "consensus_speed_m_s": consensus,
+        "localization_error_m": columns.localization,
+        "localization_rms_m": columns.localization_rms(),
+        "gated_ranges": columns.gated,
+        "consensus_speed_m_s": columns.consensus,
         "separation_m": closest_pair(distance, live),
-        "target_status": target_status,
+        "target_status": columns.target_status,
     }
     times = np.array([s.time_s for s in samples]) - samples[0].time_s
+    target = np.stack([s.target_m for s in samples])
+    extra = _extra_metrics(live, records, steps, disarmed, disarmed_in_air)
+    return score(scenario, times, target, out, extra)
+
+
+@dataclass
+class _RecordColumns:
+    """What the controllers' records say, step by vehicle column, for :func:`score_flight`:
+    ``count`` truth samples, so ``count - 1`` steps of commands."""
+
+    phases: NDArray[np.float64]
+    following: NDArray[np.bool_]
+    commands: NDArray[np.float64]
+    consensus: NDArray[np.float64]
+    localization: NDArray[np.float64]
+    square_errors: list[list[float]]
+    gated: NDArray[np.int64]
+    target_status: NDArray[np.int8]
+
+    @classmethod
+    def empty(cls, count: int, n: int) -> _RecordColumns:
+        steps = max(count - 1, 0)
+        return cls(
+            phases=np.full((1, count, n), np.nan),
+            following=np.zeros((1, count, n), dtype=bool),
+            commands=np.zeros((1, steps, n, 2)),
+            consensus=np.zeros((1, steps)),
+            localization=np.zeros((1, steps)),
+            square_errors=[[] for _ in range(steps)],
+            gated=np.zeros((1, steps), dtype=np.int64),
+            target_status=np.full((1, steps), OBSERVED, dtype=np.int8),
+        )
+
+    def add(self, column: int, record: StepRecord, errors: list[float]) -> None:
+        """Vehicle ``column``'s record of its step (within the samples); ``errors``: its
+        estimates' errors against the truth of that step (none at the last sample)."""
+        k = record.step
+        self.phases[0, k, column] = record.phase_rad
+        self.following[0, k, column] = record.state in FORMATION_STATES
+        if k >= self.commands.shape[1]:
+            return
+        self.commands[0, k, column] = record.velocity_ned_m_s[:2]
+        self.consensus[0, k] = max(self.consensus[0, k], float(np.hypot(*record.consensus_m_s)))
+        self.localization[0, k] = max(self.localization[0, k], *errors, 0.0)
+        self.square_errors[k] += [error * error for error in errors]
+        self.gated[0, k] += len(record.gated)
+        if record.target:
+            status = STATUS_NAMES.index(record.target)
+            self.target_status[0, k] = max(self.target_status[0, k], status)
+
+    def end_with(self, column: int, final_phase: float) -> None:
+        """The phase after the last step, where no record has it, as the last step followed."""
+        if np.isnan(self.phases[0, -1, column]):
+            self.phases[0, -1, column] = final_phase
+            self.following[0, -1, column] = self.following[0, -2, column]
+
+    def localization_rms(self) -> NDArray[np.float64]:
+        """Per step, the RMS of every estimate's error (0 where none was recorded)."""
+        return np.array(
+            [[np.sqrt(np.mean(squares)) if squares else 0.0 for squares in self.square_errors]]
+        )
+
+
+def _extra_metrics(
+    live: NDArray[np.bool_],
+    records: Mapping[int, Sequence[StepRecord]],
+    steps: int,
+    disarmed: int | None,
+    disarmed_in_air: int | None,
+) -> dict[str, NDArray[np.int64]]:
     extra = {
         "vehicles_in_formation_at_end": np.array([int(live[0, -1].sum())]),
         # Steps not flown by the law for want of fresh data (held or skipped): a formation that
@@ -132,7 +180,7 @@ def score_flight(
         extra["vehicles_disarmed_at_end"] = np.array([disarmed])
     if disarmed_in_air is not None:
         extra["vehicles_disarmed_in_air"] = np.array([disarmed_in_air])
-    return score(scenario, times, target, out, extra)
+    return extra
 
 
 def write_truth_csv(samples: Iterable[TruthSample], ids: Sequence[int], path: PathName) -> None:
