@@ -38,7 +38,7 @@ import json
 import logging
 import math
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, cast
 
@@ -49,6 +49,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from ..bus import (
     Bus,
     ControlCommand,
+    MissionControl,
     RangeSet,
     Sender,
     Subscription,
@@ -511,22 +512,11 @@ async def run_range_provider(
     station's start, and with ``vision`` (``sih`` only) a vision odometry to every instance from
     the moment its truth arrives. Returns :class:`RangeStats`. ``unix_s``: the UNIX clock the
     mission clock, the truth's arrivals and the steps' deadlines read."""
-    if scenario.bus.kind != "mqtt":
-        raise RunnerError("the range provider publishes for vehicle processes: set bus.kind: mqtt")
-    if source not in SOURCES:
-        raise RunnerError(f"unknown range source {source!r}: use one of {', '.join(SOURCES)}")
-    if vision is not None and source != "sih":
-        raise RunnerError("a vision odometry is made from a simulator's truth: use --source sih")
-    if vision is not None and truth_rate_hz is not None:
-        truth_rate_hz = max(truth_rate_hz, vision.rate_hz)
-    steps = scenario.timing.steps if steps is None else steps
+    truth_rate_hz = _truth_rate(scenario, source, vision, truth_rate_hz)
     topics = scenario.bus.topics(scenario.name)
-    rng = np.random.default_rng([seed, 11])
-    uwb = UwbRanging(scenario.sensors, len(scenario.vehicles), scenario.timing.step_s)
     logger.info(ranging_plan(len(scenario.vehicles), scenario.sensors, scenario.timing.step_s))
     mission_time = MissionTime(unix=unix_s)
     positions = _Positions(scenario)
-    stats = RangeStats()
     odometry = {
         vehicle.id: VisionOdometry(
             vehicle.id, vision, np.random.default_rng([seed, 12, vehicle.id])
@@ -549,45 +539,129 @@ async def run_range_provider(
             )
         else:
             await _gps_source(stack, positions, list(urls), mission_time, group)
-        start = await start_command(control, timeout_s=start_timeout_s)
-        freeze_heap()
-        mission_time.set(start.clock_rate or 1.0, start.clock_reference_s or start.time_s)
-        if mission_time.rate != 1.0:
-            for protocol in truth:
-                protocol.ask_rate(mission_time.rate)
+        start = await _take_start(control, mission_time, truth, start_timeout_s)
         following = group.create_task(
             _follow_clock(control, mission_time, truth, start.mission_id), name="aid-clock"
         )
         stack.callback(following.cancel)  # before the task group waits for its tasks
         # Up to 1.5 periods of the positions' rate: SIH's truth as asked, or the GPS stream's.
         rate_hz = (truth_rate_hz or SIH_TRUTH_RATE_HZ) if source == "sih" else POSITION_RATE_HZ
-        extrapolate_s = EXTRAPOLATE_PERIODS / rate_hz
-        started_s = unix_s()
-        received = {i: p.received for i, p in positions.vehicles.items()}
-        sent = {i: o.sent for i, o in odometry.items()}
+        aid = _AidSteps(bus, topics, scenario, mission_time, positions, unix_s)
+        rates = _Rates(positions, odometry, unix_s)
+        stats = await aid.run(
+            start.time_s,
+            scenario.timing.steps if steps is None else steps,
+            np.random.default_rng([seed, 11]),
+            extrapolate_s=EXTRAPOLATE_PERIODS / rate_hz,
+        )
+        rates.measure(stats)
+    return stats
+
+
+def _truth_rate(
+    scenario: Scenario, source: str, vision: VisionSettings | None, truth_rate_hz: float | None
+) -> float | None:
+    """The truth rate to ask SIH for (the vision's, if faster); raises on a setting the aid
+    cannot serve."""
+    if scenario.bus.kind != "mqtt":
+        raise RunnerError("the range provider publishes for vehicle processes: set bus.kind: mqtt")
+    if source not in SOURCES:
+        raise RunnerError(f"unknown range source {source!r}: use one of {', '.join(SOURCES)}")
+    if vision is not None and source != "sih":
+        raise RunnerError("a vision odometry is made from a simulator's truth: use --source sih")
+    if vision is not None and truth_rate_hz is not None:
+        return max(truth_rate_hz, vision.rate_hz)
+    return truth_rate_hz
+
+
+async def _take_start(
+    control: Subscription,
+    mission_time: MissionTime,
+    truth: Sequence[_TruthProtocol],
+    timeout_s: float,
+) -> MissionControl:
+    """The ground station's start: the mission clock set by it, and SIH's truth asked at its
+    rate where the clock does not run at 1x."""
+    start = await start_command(control, timeout_s=timeout_s)
+    freeze_heap()
+    mission_time.set(start.clock_rate or 1.0, start.clock_reference_s or start.time_s)
+    if mission_time.rate != 1.0:
+        for protocol in truth:
+            protocol.ask_rate(mission_time.rate)
+    return start
+
+
+@dataclass
+class _AidSteps:
+    """The aid's step loop: at each t_k (on the mission clock), the positions of that instant,
+    and the step's ranges published while its deadline has not passed."""
+
+    bus: Bus
+    topics: Topics
+    scenario: Scenario
+    mission_time: MissionTime
+    positions: _Positions
+    unix_s: Callable[[], float]
+
+    async def run(
+        self, start_s: float, steps: int, rng: np.random.Generator, *, extrapolate_s: float
+    ) -> RangeStats:
+        stats = RangeStats()
+        uwb = UwbRanging(
+            self.scenario.sensors, len(self.scenario.vehicles), self.scenario.timing.step_s
+        )
         for k in range(steps):
-            t_k = start.time_s + k * scenario.timing.step_s
-            unix_k = mission_time.to_unix(t_k)
-            await asyncio.sleep(max(0.0, unix_k - unix_s()))
-            deadline_s = mission_time.to_unix(t_k + scenario.flight.step_deadline_s)
+            t_k = start_s + k * self.scenario.timing.step_s
+            unix_k = self.mission_time.to_unix(t_k)
+            await asyncio.sleep(max(0.0, unix_k - self.unix_s()))
+            deadline_s = self.mission_time.to_unix(t_k + self.scenario.flight.step_deadline_s)
             # Behind (short of CPU: four PX4 at speed factor 2 on two cores), a step already past
             # its deadline only costs the time the next ones need: the aid was seconds behind at
             # p95 and stayed there, every vehicle holding for want of ranges.
-            publish = unix_s() <= deadline_s
+            publish = self.unix_s() <= deadline_s
             stats.skipped += not publish
-            wait_s = min(MAX_WAIT_S, max(0.0, deadline_s - unix_s()))
-            now = await positions.bracketing(unix_k, wait_s, extrapolate_s=extrapolate_s)
+            wait_s = min(MAX_WAIT_S, max(0.0, deadline_s - self.unix_s()))
+            now = await self.positions.bracketing(unix_k, wait_s, extrapolate_s=extrapolate_s)
             await _publish_step(
-                bus, topics, scenario, now, k, t_k, start.time_s, (rng, uwb), stats, publish=publish
+                self.bus,
+                self.topics,
+                self.scenario,
+                now,
+                k,
+                t_k,
+                start_s,
+                (rng, uwb),
+                stats,
+                publish=publish,
             )
             if publish:
-                stats.lateness_s.append(mission_time.now_s() - t_k)
-        elapsed_s = max(unix_s() - started_s, 1e-9)
+                stats.lateness_s.append(self.mission_time.now_s() - t_k)
+        return stats
+
+
+class _Rates:
+    """The positions' and the vision's rates over the steps, from their counts when made."""
+
+    def __init__(
+        self,
+        positions: _Positions,
+        odometry: Mapping[int, VisionOdometry],
+        unix_s: Callable[[], float],
+    ) -> None:
+        self.positions, self.odometry, self.unix_s = positions, odometry, unix_s
+        self.started_s = unix_s()
+        self.received = {i: p.received for i, p in positions.vehicles.items()}
+        self.sent = {i: o.sent for i, o in odometry.items()}
+
+    def measure(self, stats: RangeStats) -> None:
+        elapsed_s = max(self.unix_s() - self.started_s, 1e-9)
         stats.position_rates_hz = {
-            i: (p.received - received[i]) / elapsed_s for i, p in positions.vehicles.items()
+            i: (p.received - self.received[i]) / elapsed_s
+            for i, p in self.positions.vehicles.items()
         }
-        stats.vision_rates_hz = {i: (o.sent - sent[i]) / elapsed_s for i, o in odometry.items()}
-    return stats
+        stats.vision_rates_hz = {
+            i: (o.sent - self.sent[i]) / elapsed_s for i, o in self.odometry.items()
+        }
 
 
 async def _follow_clock(
