@@ -228,12 +228,11 @@ def enclosing_step(
     phase[..., row_slots] = state.phase_rad
     phase[..., TARGET_SLOT] = np.nan
     heard = np.isfinite(phase) & inputs.member
-    oscillator_weights = row_normalised(not_self & heard[..., None, :])
     n_live = inputs.member[..., 1:].sum(axis=-1)
     gains = harmonic_gains(n_live, n_slots - 1, params.coupling_gain, params.coupling_gain_last)[
         ..., None, :
     ]
-    coupling = coupling_rate(state.phase_rad, phase, oscillator_weights, gains)
+    coupling = coupling_rate(phase, row_slots, heard, gains)
     phase_next = advance_phase(state.phase_rad, inputs.omega_rad_s, coupling, params.step_s)
 
     # 3. Desired offsets; the target's is 0 whatever the shape.
