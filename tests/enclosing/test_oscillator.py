@@ -14,6 +14,7 @@ from mission_runner.enclosing.oscillator import (
     advance_phase,
     coupling_rate,
     harmonic_gains,
+    harmonics,
     splay_spacing_error,
 )
 
@@ -77,6 +78,17 @@ def test_large_swarms_sum_the_neighbours_as_the_matrix_product_does():
     sums = _neighbour_sums(cos_slots, sin_slots, rows, heard)
     for fast, reference in zip(sums, product, strict=True):
         np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("n_harmonics", [1, 2, 7, 256, 300])
+def test_harmonics_by_angle_addition_equal_the_direct_ones(n_harmonics):
+    phase = np.random.default_rng(n_harmonics).uniform(-50, 50, (3, 40))
+    cos, sin = harmonics(phase, n_harmonics)
+    angle = phase[..., None] * np.arange(1, n_harmonics + 1)
+    # np.cos(l theta) itself is off by up to |l theta| eps (the rounding of l theta)
+    np.testing.assert_allclose(cos, np.cos(angle), rtol=0, atol=1e-11)
+    np.testing.assert_allclose(sin, np.sin(angle), rtol=0, atol=1e-11)
+    assert cos.shape == sin.shape == (3, 40, n_harmonics)
 
 
 def test_unheard_neighbours_with_nan_phase_do_not_poison_the_sum():
