@@ -10,8 +10,8 @@ vehicle is lost or joins and the rest re-balance.
 The double sum is evaluated through
 ``sum_j a_ij sin(l (theta_i - theta_j))
 = sin(l theta_i) (A cos(l theta))_i - cos(l theta_i) (A sin(l theta))_i``,
-with A's rows the neighbours heard (a matrix product for a few vehicles, sums over every heard
-vehicle for many, see :data:`PRODUCT_MAX_SLOTS`), instead of a Python triple loop; it works
+with A's rows the neighbours heard (a matrix product for a few vehicles; for many, sums over
+every heard vehicle, see :data:`PRODUCT_MAX_SLOTS`), instead of a Python triple loop; it works
 unchanged for one vehicle (one row) and for a whole swarm or a batch of swarms (leading axes).
 """
 
@@ -46,28 +46,19 @@ def coupling_rate(
 
     phase_slots: ``(..., S)`` phases of every slot [rad], the rows' own included; NaN where not
     heard. row_slots: ``(R,)`` the rows' slots. heard: ``(..., S)`` bool, the slots heard this
-    step (finite phases). gains: ``(..., R, L)`` K_l for l = 1..L (see :func:`harmonic_gains`).
-    Returns ``(..., R)``.
+    step (finite phases). gains: ``(..., L)`` K_l for l = 1..L, the same for every row (see
+    :func:`harmonic_gains`). Returns ``(..., R)``.
     """
-    n_harmonics = gains.shape[-1]
-    order = np.arange(1, n_harmonics + 1)
     # Unheard phases (NaN) have zero weight; 0 keeps them from poisoning the sums.
     phase_slots = np.where(np.isfinite(phase_slots), phase_slots, 0.0)
     if phase_slots.shape[-1] <= PRODUCT_MAX_SLOTS:
-        slots = phase_slots[..., :, None] * order  # (..., S, L)
-        cos_slots, sin_slots = np.cos(slots), np.sin(slots)
-        mixed_cos, mixed_sin = _product_sums(cos_slots, sin_slots, row_slots, heard)
-    else:
-        cos_slots, sin_slots = harmonics(phase_slots, n_harmonics)
-        mixed_cos, mixed_sin = _neighbour_sums(cos_slots, sin_slots, row_slots, heard)
-    cos_rows, sin_rows = cos_slots[..., row_slots, :], sin_slots[..., row_slots, :]  # (..., R, L)
-    terms = sin_rows * mixed_cos - cos_rows * mixed_sin
-    return np.sum((gains / order) * terms, axis=-1)
+        return _product_coupling(phase_slots, row_slots, heard, gains)
+    return _summed_coupling(phase_slots, row_slots, heard, gains)
 
 
 #: Up to this many slots the neighbour sums are one matrix product with the weights, O(R S L),
-#: of np.cos and np.sin of every l theta; above, the sums over every heard slot less each row's
-#: own term, O(S L) for any number of rows, of the harmonics by angle addition (:func:`harmonics`).
+#: of np.cos and np.sin of every l theta; above, sums over every heard slot, O(S L) for any
+#: number of rows, of the harmonics by angle addition (:func:`harmonics`).
 #: Both are the same sums up to rounding; the product keeps the bundled scenarios (a handful of
 #: vehicles) bit-identical to the results published with them, and costs little at that size,
 #: while for the simulator's 256-vehicle complete graph it and the sines were most of the step.
@@ -97,37 +88,47 @@ def harmonics(
     return cos, sin
 
 
-def _product_sums(
-    cos_slots: NDArray[np.float64],
-    sin_slots: NDArray[np.float64],
+def _product_coupling(
+    phase_slots: NDArray[np.float64],
     row_slots: NDArray[np.intp],
     heard: NDArray[np.bool_],
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(A cos(l theta), A sin(l theta)), ``(..., R, L)``, as ``A @ [cos, sin]``."""
+    gains: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """:func:`coupling_rate` as ``sin(l theta_i) (A cos(l theta))_i - cos(l theta_i) (A sin(l
+    theta))_i`` with one matrix product ``A @ [cos, sin]``; phases finite."""
+    n_harmonics = gains.shape[-1]
+    order = np.arange(1, n_harmonics + 1)
+    slots = phase_slots[..., :, None] * order  # (..., S, L)
+    cos_slots, sin_slots = np.cos(slots), np.sin(slots)
     not_self = np.arange(heard.shape[-1]) != row_slots[:, None]  # (R, S)
     weights = row_normalised(not_self & heard[..., None, :])
     mixed = weights @ np.concatenate([cos_slots, sin_slots], axis=-1)  # (..., R, 2L)
-    n_harmonics = cos_slots.shape[-1]
-    return mixed[..., :n_harmonics], mixed[..., n_harmonics:]
+    # The rows' sines and cosines are their slots' (the same floats).
+    cos_rows, sin_rows = cos_slots[..., row_slots, :], sin_slots[..., row_slots, :]  # (..., R, L)
+    terms = sin_rows * mixed[..., :n_harmonics] - cos_rows * mixed[..., n_harmonics:]
+    return np.sum((gains[..., None, :] / order) * terms, axis=-1)
 
 
-def _neighbour_sums(
-    cos_slots: NDArray[np.float64],
-    sin_slots: NDArray[np.float64],
+def _summed_coupling(
+    phase_slots: NDArray[np.float64],
     row_slots: NDArray[np.intp],
     heard: NDArray[np.bool_],
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(A cos(l theta), A sin(l theta)), ``(..., R, L)``, as the sums over the heard slots less
-    each row's own term, over the row's neighbour count."""
-    heard_slots = heard[..., :, None]
-    own = heard_slots[..., row_slots, :]  # (..., R, 1)
-    n_neighbours = np.sum(heard, axis=-1)[..., None, None] - own  # (..., R, 1)
-    weight = 1.0 / np.maximum(n_neighbours, 1)
-    sums = []
-    for basis in (cos_slots, sin_slots):
-        total = np.sum(np.where(heard_slots, basis, 0.0), axis=-2)[..., None, :]  # (..., 1, L)
-        sums.append((total - np.where(own, basis[..., row_slots, :], 0.0)) * weight)
-    return sums[0], sums[1]
+    gains: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """:func:`coupling_rate` in O(S L): with the same gains for every row,
+    ``sum_{j heard} sum_l (K_l / l) sin(l (theta_i - theta_j))
+    = sum_l (K_l / l) (sin(l theta_i) C_l - cos(l theta_i) S_l)`` with C_l, S_l the sums of
+    cos(l theta_j), sin(l theta_j) over the heard slots; a heard row's own term is sin(0) = 0,
+    so the sum over its neighbours is the sum over every heard slot. Phases finite."""
+    n_harmonics = gains.shape[-1]
+    cos_slots, sin_slots = harmonics(phase_slots, n_harmonics)  # (..., S, L)
+    heard_weights = heard[..., None, :].astype(float)  # (..., 1, S)
+    scaled = gains[..., :, None] / np.arange(1, n_harmonics + 1)[:, None]  # (..., L, 1)
+    sum_cos, sum_sin = heard_weights @ cos_slots, heard_weights @ sin_slots  # (..., 1, L)
+    rates = sin_slots @ (scaled * np.swapaxes(sum_cos, -1, -2))
+    rates -= cos_slots @ (scaled * np.swapaxes(sum_sin, -1, -2))  # (..., S, 1)
+    n_neighbours = np.sum(heard, axis=-1, keepdims=True) - heard[..., row_slots]  # (..., R)
+    return rates[..., row_slots, 0] / np.maximum(n_neighbours, 1)
 
 
 def advance_phase(

@@ -229,9 +229,7 @@ def enclosing_step(
     phase[..., TARGET_SLOT] = np.nan
     heard = np.isfinite(phase) & inputs.member
     n_live = inputs.member[..., 1:].sum(axis=-1)
-    gains = harmonic_gains(n_live, n_slots - 1, params.coupling_gain, params.coupling_gain_last)[
-        ..., None, :
-    ]
+    gains = harmonic_gains(n_live, n_slots - 1, params.coupling_gain, params.coupling_gain_last)
     coupling = coupling_rate(phase, row_slots, heard, gains)
     phase_next = advance_phase(state.phase_rad, inputs.omega_rad_s, coupling, params.step_s)
 
