@@ -98,10 +98,12 @@ class EdgeEstimates:
         relative_north_m, relative_east_m: ``(..., R, S)`` o_i - o_j now (NaN where unknown).
         Returns ``(north, east)``; NaN where the edge is unanchored or its odometry unknown.
         """
-        anchored = self.anchored
-        north = self.estimate_north_m + (relative_north_m - self.anchor_north_m)
-        east = self.estimate_east_m + (relative_east_m - self.anchor_east_m)
-        return np.where(anchored, north, np.nan), np.where(anchored, east, np.nan)
+        unanchored = ~self.anchored
+        north = _sum_into(relative_north_m - self.anchor_north_m, self.estimate_north_m)
+        east = _sum_into(relative_east_m - self.anchor_east_m, self.estimate_east_m)
+        np.copyto(north, np.nan, where=unanchored)
+        np.copyto(east, np.nan, where=unanchored)
+        return north, east
 
 
 def rlse_update(
