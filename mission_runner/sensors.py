@@ -167,8 +167,10 @@ def range_schedule(n: int, sensors: SensorConfig, step_s: float, k: int) -> NDAr
     by the scenario's vehicles (a lost vehicle's slots stay unused, as a static TDMA frame's)."""
     everyone = ~np.eye(n, dtype=bool)
     capacity = exchanges_per_step(sensors, step_s)
+    if capacity is None:
+        return everyone
     initiators, responders = range_slots(n, sensors)
-    if capacity is None or capacity >= len(initiators):
+    if capacity >= len(initiators):
         return everyone
     served = (k * capacity + np.arange(capacity)) % len(initiators)
     carried = np.zeros((n, n), dtype=bool)
@@ -261,8 +263,14 @@ class UwbRanging:
         kept = np.isfinite(true_m) & range_schedule(self.n, sensors, self.step_s, k)
         if measured is not None:
             kept &= measured & np.swapaxes(measured, -1, -2) if self.per_pair else measured
-        readings = true_m + self.bias_m + self.multipath_m + self.clock_m
-        readings = readings + np.where(self.nlos, self.nlos_bias_m, 0.0)
+        readings = true_m
+        # Error terms that are all zero (not configured) are skipped: adding 0 changes nothing
+        # (the readings are distances, so not -0), and each is a pass over n^2 ranges.
+        for error_m in (self.bias_m, self.multipath_m, self.clock_m):
+            if error_m.any():
+                readings = readings + error_m
+        if self.nlos.any():
+            readings = readings + np.where(self.nlos, self.nlos_bias_m, 0.0)
         if sensors.range_noise_std_m > 0:
             readings = readings + self._exchanged(
                 rng.normal(scale=sensors.range_noise_std_m, size=self.shape)

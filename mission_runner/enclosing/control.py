@@ -32,10 +32,13 @@ def consensus_velocity(
     is 0. weights: ``(..., R, S)`` abar_ij, rows summing to 1 (or all 0 for an isolated vehicle).
     Returns ``(..., R, 2)`` [m/s].
     """
-    used = weights > 0
-    north = np.sum(np.where(used, weights * error_north_m, 0.0), axis=-1)
-    east = np.sum(np.where(used, weights * error_east_m, 0.0), axis=-1)
-    return -beta * np.stack([north, east], axis=-1)
+    unused = ~(weights > 0)
+    sums = []
+    for error_m in (error_north_m, error_east_m):
+        weighted = weights * error_m
+        np.copyto(weighted, 0.0, where=unused)  # NaN errors of zero weights, in place
+        sums.append(np.sum(weighted, axis=-1))
+    return -beta * np.stack(sums, axis=-1)
 
 
 def row_normalised(mask: NDArray[np.bool_]) -> NDArray[np.float64]:

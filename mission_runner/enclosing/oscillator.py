@@ -7,15 +7,18 @@ With K_l > 0 for l < n and K_n < 0 small, the splay state (phases 2 pi / n apart
 equilibrium (Lemma 1). ``n`` is the number of live vehicles, so the harmonic gains change when a
 vehicle is lost or joins and the rest re-balance.
 
-The double sum is evaluated as one matrix product,
+The double sum is evaluated through
 ``sum_j a_ij sin(l (theta_i - theta_j))
 = sin(l theta_i) (A cos(l theta))_i - cos(l theta_i) (A sin(l theta))_i``,
-which runs in BLAS instead of a Python triple loop and works unchanged for one vehicle (one row)
-and for a whole swarm or a batch of swarms (leading axes).
+with A's rows the neighbours heard (a matrix product for a few vehicles; for many, sums over
+every heard vehicle, see :data:`PRODUCT_MAX_SLOTS`), instead of a Python triple loop; it works
+unchanged for one vehicle (one row) and for a whole swarm or a batch of swarms (leading axes).
 """
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from .control import row_normalised
 
 
 def harmonic_gains(
@@ -32,27 +35,100 @@ def harmonic_gains(
 
 
 def coupling_rate(
-    phase_rows: NDArray[np.float64],
     phase_slots: NDArray[np.float64],
-    weights: NDArray[np.float64],
+    row_slots: NDArray[np.intp],
+    heard: NDArray[np.bool_],
     gains: NDArray[np.float64],
 ) -> NDArray[np.float64]:
-    """The coupling term sum_j a_ij sum_l (K_l / l) sin(l (theta_i - theta_j)), in rad/s per unit T.
+    """The coupling term sum_j a_ij sum_l (K_l / l) sin(l (theta_i - theta_j)), in rad/s per unit T,
+    with every heard vehicle but itself a neighbour of each row: a_ij = 1 / |N_i| over
+    N_i = heard minus i.
 
-    phase_rows: ``(..., R)`` phases of the computing vehicles [rad].
-    phase_slots: ``(..., S)`` phases of every slot [rad]; entries with zero weight may be NaN.
-    weights: ``(..., R, S)`` a_ij, zero where j is not a neighbour of row i this step.
-    gains: ``(..., R, L)`` K_l for l = 1..L (see :func:`harmonic_gains`).
-    Returns ``(..., R)``.
+    phase_slots: ``(..., S)`` phases of every slot [rad], the rows' own included; NaN where not
+    heard. row_slots: ``(R,)`` the rows' slots. heard: ``(..., S)`` bool, the slots heard this
+    step (finite phases). gains: ``(..., L)`` K_l for l = 1..L, the same for every row (see
+    :func:`harmonic_gains`). Returns ``(..., R)``.
     """
+    # Unheard phases (NaN) have zero weight; 0 keeps them from poisoning the sums.
+    phase_slots = np.where(np.isfinite(phase_slots), phase_slots, 0.0)
+    if phase_slots.shape[-1] <= PRODUCT_MAX_SLOTS:
+        return _product_coupling(phase_slots, row_slots, heard, gains)
+    return _summed_coupling(phase_slots, row_slots, heard, gains)
+
+
+#: Up to this many slots the neighbour sums are one matrix product with the weights, O(R S L),
+#: of np.cos and np.sin of every l theta; above, sums over every heard slot, O(S L) for any
+#: number of rows, of the harmonics by angle addition (:func:`harmonics`).
+#: Both are the same sums up to rounding; the product keeps the bundled scenarios (a handful of
+#: vehicles) bit-identical to the results published with them, and costs little at that size,
+#: while for the simulator's 256-vehicle complete graph it and the sines were most of the step.
+PRODUCT_MAX_SLOTS = 64
+
+
+def harmonics(
+    phase_rad: NDArray[np.float64], n_harmonics: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(cos(l theta), sin(l theta)) for l = 1..n_harmonics, each ``(..., n_harmonics)`` for phases
+    ``(...)`` [rad], by angle addition from harmonics computed directly at l = 1, 2, 4, ...:
+    harmonics d+1..2d are harmonics 1..d turned by d theta. A few times faster than np.cos and
+    np.sin of every l theta, and closer to the exact values for large l theta: the error grows
+    with the number of doublings, not with the rounding of l theta."""
+    shape = (*phase_rad.shape, n_harmonics)
+    cos, sin = np.empty(shape), np.empty(shape)
+    cos[..., 0], sin[..., 0] = np.cos(phase_rad), np.sin(phase_rad)
+    done = 1
+    while done < n_harmonics:
+        width = min(done, n_harmonics - done)
+        turn = done * phase_rad[..., None]
+        cos_turn, sin_turn = np.cos(turn), np.sin(turn)
+        cos_done, sin_done = cos[..., :width], sin[..., :width]
+        np.subtract(cos_done * cos_turn, sin_done * sin_turn, out=cos[..., done : done + width])
+        np.add(sin_done * cos_turn, cos_done * sin_turn, out=sin[..., done : done + width])
+        done += width
+    return cos, sin
+
+
+def _product_coupling(
+    phase_slots: NDArray[np.float64],
+    row_slots: NDArray[np.intp],
+    heard: NDArray[np.bool_],
+    gains: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """:func:`coupling_rate` as ``sin(l theta_i) (A cos(l theta))_i - cos(l theta_i) (A sin(l
+    theta))_i`` with one matrix product ``A @ [cos, sin]``; phases finite."""
     n_harmonics = gains.shape[-1]
     order = np.arange(1, n_harmonics + 1)
-    slots = np.where(weights.any(axis=-2), phase_slots, 0.0)[..., :, None] * order  # (..., S, L)
-    basis = np.concatenate([np.cos(slots), np.sin(slots)], axis=-1)  # (..., S, 2L)
-    mixed = weights @ basis  # (..., R, 2L)
-    rows = phase_rows[..., :, None] * order  # (..., R, L)
-    terms = np.sin(rows) * mixed[..., :n_harmonics] - np.cos(rows) * mixed[..., n_harmonics:]
-    return np.sum((gains / order) * terms, axis=-1)
+    slots = phase_slots[..., :, None] * order  # (..., S, L)
+    cos_slots, sin_slots = np.cos(slots), np.sin(slots)
+    not_self = np.arange(heard.shape[-1]) != row_slots[:, None]  # (R, S)
+    weights = row_normalised(not_self & heard[..., None, :])
+    mixed = weights @ np.concatenate([cos_slots, sin_slots], axis=-1)  # (..., R, 2L)
+    # The rows' sines and cosines are their slots' (the same floats).
+    cos_rows, sin_rows = cos_slots[..., row_slots, :], sin_slots[..., row_slots, :]  # (..., R, L)
+    terms = sin_rows * mixed[..., :n_harmonics] - cos_rows * mixed[..., n_harmonics:]
+    return np.sum((gains[..., None, :] / order) * terms, axis=-1)
+
+
+def _summed_coupling(
+    phase_slots: NDArray[np.float64],
+    row_slots: NDArray[np.intp],
+    heard: NDArray[np.bool_],
+    gains: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """:func:`coupling_rate` in O(S L): with the same gains for every row,
+    ``sum_{j heard} sum_l (K_l / l) sin(l (theta_i - theta_j))
+    = sum_l (K_l / l) (sin(l theta_i) C_l - cos(l theta_i) S_l)`` with C_l, S_l the sums of
+    cos(l theta_j), sin(l theta_j) over the heard slots; a heard row's own term is sin(0) = 0,
+    so the sum over its neighbours is the sum over every heard slot. Phases finite."""
+    n_harmonics = gains.shape[-1]
+    cos_slots, sin_slots = harmonics(phase_slots, n_harmonics)  # (..., S, L)
+    heard_weights = heard[..., None, :].astype(float)  # (..., 1, S)
+    scaled = gains[..., :, None] / np.arange(1, n_harmonics + 1)[:, None]  # (..., L, 1)
+    sum_cos, sum_sin = heard_weights @ cos_slots, heard_weights @ sin_slots  # (..., 1, L)
+    rates = sin_slots @ (scaled * np.swapaxes(sum_cos, -1, -2))
+    rates -= cos_slots @ (scaled * np.swapaxes(sum_sin, -1, -2))  # (..., S, 1)
+    n_neighbours = np.sum(heard, axis=-1, keepdims=True) - heard[..., row_slots]  # (..., R)
+    return rates[..., row_slots, 0] / np.maximum(n_neighbours, 1)
 
 
 def advance_phase(

@@ -98,10 +98,12 @@ class EdgeEstimates:
         relative_north_m, relative_east_m: ``(..., R, S)`` o_i - o_j now (NaN where unknown).
         Returns ``(north, east)``; NaN where the edge is unanchored or its odometry unknown.
         """
-        anchored = self.anchored
-        north = self.estimate_north_m + (relative_north_m - self.anchor_north_m)
-        east = self.estimate_east_m + (relative_east_m - self.anchor_east_m)
-        return np.where(anchored, north, np.nan), np.where(anchored, east, np.nan)
+        unanchored = ~self.anchored
+        north = _sum_into(relative_north_m - self.anchor_north_m, self.estimate_north_m)
+        east = _sum_into(relative_east_m - self.anchor_east_m, self.estimate_east_m)
+        np.copyto(north, np.nan, where=unanchored)
+        np.copyto(east, np.nan, where=unanchored)
+        return north, east
 
 
 def rlse_update(
@@ -128,44 +130,40 @@ def rlse_update(
     regression starves to garbage while a pair barely moves. 0: every range is used (the paper).
     Returns the new :class:`EdgeEstimates`.
     """
+    anchored = estimates.anchored
     if min_displacement_m > 0:
         moved_n = relative_north_m - estimates.anchor_north_m
         moved_e = relative_east_m - estimates.anchor_east_m
         short = moved_n * moved_n + moved_e * moved_e < min_displacement_m * min_displacement_m
-        range_m = np.where(estimates.anchored & short, np.nan, range_m)
+        range_m = np.where(anchored & short, np.nan, range_m)
     measured = np.isfinite(range_m) & np.isfinite(relative_north_m) & np.isfinite(relative_east_m)
-    update = measured & estimates.anchored
-
-    # Edges that do not update compute NaN or stale values here; np.where keeps their old state.
+    update = measured & anchored
+    # Edges that do not update compute NaN or stale values here; _where keeps their old state.
     v_n = relative_north_m - estimates.anchor_north_m
     v_e = relative_east_m - estimates.anchor_east_m
     anchor_range = estimates.anchor_range_m
-    zeta = 0.5 * ((range_m - anchor_range) * (range_m + anchor_range) - (v_n * v_n + v_e * v_e))
-    p_n, p_e = estimates.estimate_north_m, estimates.estimate_east_m
-    eps = zeta - (v_n * p_n + v_e * p_e)
-    g_nn, g_ne, g_ee = estimates.gain_nn, estimates.gain_ne, estimates.gain_ee
-    gv_n = g_nn * v_n + g_ne * v_e
-    gv_e = g_ne * v_n + g_ee * v_e
-    scale = 1.0 / (forgetting_factor + v_n * gv_n + v_e * gv_e)
-    forget = 1.0 / forgetting_factor
-    new_nn = np.where(update, (g_nn - gv_n * gv_n * scale) * forget, g_nn)
-    new_ne = np.where(update, (g_ne - gv_n * gv_e * scale) * forget, g_ne)
-    new_ee = np.where(update, (g_ee - gv_e * gv_e * scale) * forget, g_ee)
+    eps = _innovation(range_m, anchor_range, (v_n, v_e), estimates)
+    new_nn, new_ne, new_ee = _gain_update(estimates, (v_n, v_e), forgetting_factor, update)
+    k_n, k_e = new_nn * v_n, new_ne * v_n  # phat += v + k eps
+    k_n += new_ne * v_e
+    k_e += new_ee * v_e
     error = None
     if range_noise_std_m is not None:
-        k_n, k_e = new_nn * v_n + new_ne * v_e, new_ne * v_n + new_ee * v_e  # phat += v + k eps
         zeta_variance = range_noise_std_m**2 * (range_m * range_m + anchor_range * anchor_range)
         error = _error_update(estimates, (k_n, k_e), (v_n, v_e), zeta_variance, update=update)
-        first = measured & ~estimates.anchored  # phat is the paper's 0: off by d, any way
+        first = measured & ~anchored  # phat is the paper's 0: off by d, any way
         start = range_m * range_m
         error = (
             np.where(first, start, error[0]),
             np.where(first, 0.0, error[1]),
             np.where(first, start, error[2]),
         )
+    p_n, p_e = estimates.estimate_north_m, estimates.estimate_east_m
+    k_n *= eps
+    k_e *= eps
     return EdgeEstimates(
-        estimate_north_m=np.where(update, p_n + v_n + (new_nn * v_n + new_ne * v_e) * eps, p_n),
-        estimate_east_m=np.where(update, p_e + v_e + (new_ne * v_n + new_ee * v_e) * eps, p_e),
+        estimate_north_m=_where(update, _sum_into(p_n + v_n, k_n), p_n),
+        estimate_east_m=_where(update, _sum_into(p_e + v_e, k_e), p_e),
         gain_nn=new_nn,
         gain_ne=new_ne,
         gain_ee=new_ee,
@@ -211,3 +209,64 @@ def _error_update(
         np.where(update, new_ne, c_ne),
         np.where(update, new_ee, c_ee),
     )
+
+
+# The update runs on every edge of the simulator's swarms (65 280 for 256 vehicles) every step;
+# the helpers below compute in place, in the order of the formulas, to spare temporaries.
+
+
+def _innovation(
+    range_m: NDArray[np.float64],
+    anchor_range_m: NDArray[np.float64],
+    displacement: tuple[NDArray[np.float64], NDArray[np.float64]],
+    estimates: EdgeEstimates,
+) -> NDArray[np.float64]:
+    """eps = zeta - v . phat(a), zeta = (d(b)^2 - d(a)^2 - |v|^2) / 2, ``(..., R, S)``."""
+    v_n, v_e = displacement
+    zeta = range_m - anchor_range_m
+    zeta *= range_m + anchor_range_m
+    zeta -= _sum_into(v_n * v_n, v_e * v_e)
+    zeta *= 0.5
+    zeta -= _sum_into(v_n * estimates.estimate_north_m, v_e * estimates.estimate_east_m)
+    return zeta
+
+
+def _gain_update(
+    estimates: EdgeEstimates,
+    displacement: tuple[NDArray[np.float64], NDArray[np.float64]],
+    forgetting_factor: float,
+    update: NDArray[np.bool_],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Gamma(b) = (Gamma - Gamma v v^T Gamma / (beta_f + v^T Gamma v)) / beta_f, as (nn, ne, ee),
+    where ``update``; Gamma(a) elsewhere."""
+    v_n, v_e = displacement
+    g_nn, g_ne, g_ee = estimates.gain_nn, estimates.gain_ne, estimates.gain_ee
+    gv_n = _sum_into(g_nn * v_n, g_ne * v_e)
+    gv_e = _sum_into(g_ne * v_n, g_ee * v_e)
+    scale = v_n * gv_n
+    scale += forgetting_factor
+    scale += v_e * gv_e
+    np.divide(1.0, scale, out=scale)
+    forget = 1.0 / forgetting_factor
+    new = []
+    for gain, left, right in ((g_nn, gv_n, gv_n), (g_ne, gv_n, gv_e), (g_ee, gv_e, gv_e)):
+        term = left * right
+        term *= scale
+        np.subtract(gain, term, out=term)
+        term *= forget
+        new.append(_where(update, term, gain))
+    return new[0], new[1], new[2]
+
+
+def _sum_into(total: NDArray[np.float64], term: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``total + term``, written into ``total`` (a temporary of the caller's)."""
+    total += term
+    return total
+
+
+def _where(
+    update: NDArray[np.bool_], new: NDArray[np.float64], old: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """``np.where(update, new, old)``, written into ``new`` (a temporary of the caller's)."""
+    np.copyto(new, old, where=~update)
+    return new

@@ -228,12 +228,9 @@ def enclosing_step(
     phase[..., row_slots] = state.phase_rad
     phase[..., TARGET_SLOT] = np.nan
     heard = np.isfinite(phase) & inputs.member
-    oscillator_weights = row_normalised(not_self & heard[..., None, :])
     n_live = inputs.member[..., 1:].sum(axis=-1)
-    gains = harmonic_gains(n_live, n_slots - 1, params.coupling_gain, params.coupling_gain_last)[
-        ..., None, :
-    ]
-    coupling = coupling_rate(state.phase_rad, phase, oscillator_weights, gains)
+    gains = harmonic_gains(n_live, n_slots - 1, params.coupling_gain, params.coupling_gain_last)
+    coupling = coupling_rate(phase, row_slots, heard, gains)
     phase_next = advance_phase(state.phase_rad, inputs.omega_rad_s, coupling, params.step_s)
 
     # 3. Desired offsets; the target's is 0 whatever the shape.
@@ -262,7 +259,7 @@ def enclosing_step(
         estimate_east_m=estimate_east,
         consensus_weights=weights,
         gated=gated,
-        bearing_std_rad=np.where(np.isfinite(estimate_north), _bearing_std_rad(edges), np.nan),
+        bearing_std_rad=_bearing_std_rad(edges, estimate_north),
     )
     return next_state, outputs
 
@@ -290,12 +287,19 @@ def pair_ranges(
     return paired, own.astype(float) + reverse
 
 
-def _bearing_std_rad(edges: EdgeEstimates | FilterEdges) -> NDArray[np.float64]:
-    """How far each edge's estimate in force may be off in bearing [rad] ``(..., R, S)``."""
+def _bearing_std_rad(
+    edges: EdgeEstimates | FilterEdges, estimate_north_m: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """How far each edge's estimate in force may be off in bearing [rad] ``(..., R, S)``; NaN
+    where the edge has no estimate (``estimate_north_m`` NaN) or no bound is kept."""
+    if isinstance(edges, EdgeEstimates) and edges.error_nn is None:
+        return np.full(estimate_north_m.shape, np.nan)
+    estimated = np.isfinite(estimate_north_m)
     if isinstance(edges, EdgeEstimates):
-        return edges.bearing_std_rad
+        return np.where(estimated, edges.bearing_std_rad, np.nan)
     covariance = edges.filter  # the filter keeps its covariance in the gain fields
     nn, ne, ee = covariance.gain_nn, covariance.gain_ne, covariance.gain_ee
     largest = 0.5 * (nn + ee) + np.sqrt(0.25 * (nn - ee) ** 2 + ne * ne)
     filtered = np.sqrt(np.maximum(largest, 0.0)) / covariance.anchor_range_m
-    return np.where(edges.engaged, filtered, edges.regression.bearing_std_rad)
+    bearing = np.where(edges.engaged, filtered, edges.regression.bearing_std_rad)
+    return np.where(estimated, bearing, np.nan)

@@ -8,9 +8,13 @@ from hypothesis.extra.numpy import arrays
 
 from mission_runner.enclosing.control import row_normalised
 from mission_runner.enclosing.oscillator import (
+    PRODUCT_MAX_SLOTS,
+    _product_coupling,
+    _summed_coupling,
     advance_phase,
     coupling_rate,
     harmonic_gains,
+    harmonics,
     splay_spacing_error,
 )
 
@@ -38,29 +42,70 @@ def test_harmonic_gains_follow_the_live_count():
     theta=arrays(np.float64, st.integers(2, 7), elements=st.floats(-10, 10)),
     seed=st.integers(0, 2**16),
 )
-def test_matrix_form_equals_the_double_sum(theta, seed):
+def test_sums_over_the_heard_equal_the_double_sum(theta, seed):
     rng = np.random.default_rng(seed)
     n = theta.size
-    mask = (rng.uniform(size=(n, n)) < 0.8) & ~np.eye(n, dtype=bool)
-    weights = row_normalised(mask)
+    heard = rng.uniform(size=n) < 0.8
+    rows = np.arange(n)
+    weights = row_normalised(heard[None, :] & (rows[:, None] != rows))
     gains = harmonic_gains(n, n, 1.3, -0.7)
-    fast = coupling_rate(theta, theta, weights, np.broadcast_to(gains, (n, n)))
+    slots = np.where(heard, theta, np.nan)
+    slots[rows] = theta  # a row always knows its own phase
+    fast = coupling_rate(slots, rows, heard, gains)
     np.testing.assert_allclose(fast, brute_force_coupling(theta, weights, gains), atol=1e-9)
+
+
+@pytest.mark.parametrize("n_slots", [5, PRODUCT_MAX_SLOTS + 7])
+def test_one_row_sees_the_same_coupling_as_in_the_swarm(n_slots):
+    rng = np.random.default_rng(n_slots)
+    theta = rng.uniform(-10, 10, n_slots)
+    heard = rng.uniform(size=n_slots) < 0.8
+    gains = harmonic_gains(n_slots, n_slots, 1.0, -1.0)
+    swarm = coupling_rate(theta, np.arange(n_slots), heard, gains)
+    for row in range(n_slots):
+        alone = coupling_rate(theta, np.array([row]), heard, gains)
+        np.testing.assert_allclose(alone, swarm[row : row + 1], rtol=0, atol=1e-13)
+
+
+def test_large_swarms_sum_over_the_heard_as_the_matrix_product_does():
+    rng = np.random.default_rng(3)
+    batch, n_slots = 2, PRODUCT_MAX_SLOTS + 9
+    phases = rng.uniform(-50, 50, (batch, n_slots))
+    rows = rng.permutation(n_slots)[:20]
+    heard = rng.uniform(size=(batch, n_slots)) < 0.7
+    gains = harmonic_gains(heard.sum(axis=-1), n_slots - 1, 1.3, -0.7)  # (batch, L)
+    product = _product_coupling(phases, rows, heard, gains)
+    summed = _summed_coupling(phases, rows, heard, gains)
+    assert summed.shape == (batch, rows.size)
+    # np.cos(l theta) in the product is itself off by |l theta| eps, up to 4e-13 here
+    np.testing.assert_allclose(summed, product, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("n_harmonics", [1, 2, 7, 256, 300])
+def test_harmonics_by_angle_addition_equal_the_direct_ones(n_harmonics):
+    phase = np.random.default_rng(n_harmonics).uniform(-50, 50, (3, 40))
+    cos, sin = harmonics(phase, n_harmonics)
+    angle = phase[..., None] * np.arange(1, n_harmonics + 1)
+    # np.cos(l theta) itself is off by up to |l theta| eps (the rounding of l theta)
+    np.testing.assert_allclose(cos, np.cos(angle), rtol=0, atol=1e-11)
+    np.testing.assert_allclose(sin, np.sin(angle), rtol=0, atol=1e-11)
+    assert cos.shape == sin.shape == (3, 40, n_harmonics)
 
 
 def test_unheard_neighbours_with_nan_phase_do_not_poison_the_sum():
     theta = np.array([0.1, 0.5, np.nan])
-    weights = row_normalised(np.array([[False, True, False]]))
-    rate = coupling_rate(theta[:1], theta, weights, harmonic_gains(3, 3, 1.0, -1.0)[None])
+    heard = np.array([False, True, False])
+    rate = coupling_rate(theta, np.array([0]), heard, harmonic_gains(3, 3, 1.0, -1.0))
     assert np.isfinite(rate).all()
+    assert rate[0] != 0.0  # slot 1 is heard
 
 
 def run_oscillators(theta, steps=400, step_s=0.125, omega=math.pi / 2):
     n = theta.size
-    weights = row_normalised(~np.eye(n, dtype=bool))
-    gains = np.broadcast_to(harmonic_gains(n, n, 1.0, -1.0), (n, n))
+    rows, heard = np.arange(n), np.ones(n, dtype=bool)
+    gains = harmonic_gains(n, n, 1.0, -1.0)
     for _ in range(steps):
-        theta = advance_phase(theta, omega, coupling_rate(theta, theta, weights, gains), step_s)
+        theta = advance_phase(theta, omega, coupling_rate(theta, rows, heard, gains), step_s)
     return theta
 
 
