@@ -26,9 +26,9 @@ test: install
 ## The fast lane while developing: lint, types and every test that flies nothing, needs no broker
 ## and is not marked slow, on two pytest workers (pytest-xdist; benchmarks off, as xdist turns
 ## them off with a warning). `make test` (what CI runs) adds the rest, on one. Measured with
-## `/usr/bin/time make -o install check`, mypy's cache warm: 1153 tests, 138 s CPU (user+sys),
-## 350 s wall on 2 cores that other work held at load 7 (before, on one worker at load 5-11:
-## 1155 tests, 594 s wall; its pytest alone took 524 s, against 338 s now).
+## `/usr/bin/time make -o install check`, mypy's cache warm, on 2 cores that other work held at
+## load 1.5-3: 1153 tests, 125 s CPU (user+sys), 107 s wall. The same tests on one worker
+## (`python -m pytest -q -m "not slow and not mavsdk and not mqtt"`): 114 s CPU, 148 s wall.
 check: install
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m ruff format --check .
