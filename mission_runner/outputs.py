@@ -384,66 +384,86 @@ def write_vehicle_run(
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    peers = sorted({peer for record in run.records for peer in record.estimates_m})
+    write_atomic(out_dir / "steps.csv", _steps_csv(run.records))
+    write_vehicle_recording(
+        run.vehicle_id, run.records, out_dir / RECORDING, scenario=scenario, logs=logs
+    )
+    document = _vehicle_summary(run, config_path=config_path, status=status)
+    write_atomic(out_dir / "summary.json", _json_text(document))
+    return document
+
+
+#: steps.csv's columns before the estimates (``estimate_<peer>_<north|east>_m``).
+_STEP_COLUMNS = (
+    "step",
+    "time_s",
+    "state",
+    "phase_rad",
+    "velocity_north_m_s",
+    "velocity_east_m_s",
+    "velocity_down_m_s",
+    "consensus_north_m_s",
+    "consensus_east_m_s",
+    "neighbours_used",
+    "setpoint_lateness_s",
+    "odometry_lateness_s",
+    "message_lateness_s",
+    "inputs_lateness_s",
+    "odometry_north_m",
+    "odometry_east_m",
+    "odometry_down_m",
+    "gated_ranges",
+    "target",
+)
+
+
+def _steps_csv(records: Sequence[StepRecord]) -> str:
+    """A vehicle's ``steps.csv``: one row per step record, every peer ever estimated a pair of
+    estimate columns (empty at the steps without that estimate)."""
+    peers = sorted({peer for record in records for peer in record.estimates_m})
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(
         [
-            "step",
-            "time_s",
-            "state",
-            "phase_rad",
-            "velocity_north_m_s",
-            "velocity_east_m_s",
-            "velocity_down_m_s",
-            "consensus_north_m_s",
-            "consensus_east_m_s",
-            "neighbours_used",
-            "setpoint_lateness_s",
-            "odometry_lateness_s",
-            "message_lateness_s",
-            "inputs_lateness_s",
-            "odometry_north_m",
-            "odometry_east_m",
-            "odometry_down_m",
-            "gated_ranges",
-            "target",
+            *_STEP_COLUMNS,
             *(f"estimate_{peer}_{axis}_m" for peer in peers for axis in ("north", "east")),
         ]
     )
-    for record in run.records:
-        estimates = []
-        for peer in peers:
-            value = record.estimates_m.get(peer)
-            estimates += ["", ""] if value is None else [f"{value[0]:.6f}", f"{value[1]:.6f}"]
-        writer.writerow(
-            [
-                record.step,
-                f"{record.time_s:.6f}",
-                record.state,
-                f"{record.phase_rad:.9f}",
-                *(f"{v:.6f}" for v in record.velocity_ned_m_s),
-                *(f"{v:.6f}" for v in record.consensus_m_s),
-                " ".join(str(peer) for peer in record.neighbours_used),
-                f"{record.setpoint_sent_s - record.time_s:.6f}",
-                *(
-                    f"{at_s - record.time_s:.6f}"
-                    for at_s in (
-                        record.odometry_ready_s,
-                        record.message_sent_s,
-                        record.inputs_ready_s,
-                    )
-                ),
-                *(f"{v:.6f}" for v in record.odometry_m),
-                " ".join(str(peer) for peer in record.gated),
-                record.target,
-                *estimates,
-            ]
-        )
-    write_atomic(out_dir / "steps.csv", buffer.getvalue())
-    write_vehicle_recording(
-        run.vehicle_id, run.records, out_dir / RECORDING, scenario=scenario, logs=logs
-    )
+    for record in records:
+        writer.writerow(_step_row(record, peers))
+    return buffer.getvalue()
+
+
+def _step_row(record: StepRecord, peers: Sequence[int]) -> list[object]:
+    """``record`` as a row of steps.csv, with the estimates of ``peers``."""
+    estimates = []
+    for peer in peers:
+        value = record.estimates_m.get(peer)
+        estimates += ["", ""] if value is None else [f"{value[0]:.6f}", f"{value[1]:.6f}"]
+    return [
+        record.step,
+        f"{record.time_s:.6f}",
+        record.state,
+        f"{record.phase_rad:.9f}",
+        *(f"{v:.6f}" for v in record.velocity_ned_m_s),
+        *(f"{v:.6f}" for v in record.consensus_m_s),
+        " ".join(str(peer) for peer in record.neighbours_used),
+        f"{record.setpoint_sent_s - record.time_s:.6f}",
+        *(
+            f"{at_s - record.time_s:.6f}"
+            for at_s in (record.odometry_ready_s, record.message_sent_s, record.inputs_ready_s)
+        ),
+        *(f"{v:.6f}" for v in record.odometry_m),
+        " ".join(str(peer) for peer in record.gated),
+        record.target,
+        *estimates,
+    ]
+
+
+def _vehicle_summary(
+    run: VehicleRun, *, config_path: PathName | None = None, status: Status | None = None
+) -> dict[str, Any]:
+    """What a vehicle process's ``summary.json`` holds (see :func:`write_vehicle_run`)."""
     states: dict[str, int] = {}
     for record in run.records:
         states[record.state] = states.get(record.state, 0) + 1
@@ -459,7 +479,7 @@ def write_vehicle_run(
             "max": float(np.max(values)),
         }
 
-    document = {
+    return {
         "status": status,
         "vehicle_id": run.vehicle_id,
         "mission_id": run.mission_id,
@@ -491,8 +511,6 @@ def write_vehicle_run(
         "config": None if config_path is None else str(config_path),
         "versions": versions(),
     }
-    write_atomic(out_dir / "summary.json", _json_text(document))
-    return document
 
 
 class RunSummary:

@@ -75,6 +75,18 @@ def add_emulator_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="lockstep clock: run as fast as possible (no participants from the command line)",
     )
+    _add_port_options(parser)
+    parser.add_argument("--config", type=Path, help="emulator settings (YAML)")
+    parser.add_argument("--tlog-dir", type=Path, help="record vehicle_<sysid>.tlog files here")
+    parser.add_argument(
+        "--seed", type=int, help="random seed (wind, odometry noise, GPS error, boot offsets)"
+    )
+    _add_signing_options(parser)
+    _add_sih_options(parser)
+
+
+def _add_port_options(parser: argparse.ArgumentParser) -> None:
+    """Where each vehicle's API and GCS links bind and send."""
     parser.add_argument(
         "--api-port-base",
         type=int,
@@ -97,11 +109,10 @@ def add_emulator_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="like PX4 SITL, vehicles with index > 9 all send to api-port-base + 9",
     )
-    parser.add_argument("--config", type=Path, help="emulator settings (YAML)")
-    parser.add_argument("--tlog-dir", type=Path, help="record vehicle_<sysid>.tlog files here")
-    parser.add_argument(
-        "--seed", type=int, help="random seed (wind, odometry noise, GPS error, boot offsets)"
-    )
+
+
+def _add_signing_options(parser: argparse.ArgumentParser) -> None:
+    """MAVLink 2 signing from the start: the key and where it is kept."""
     signing = parser.add_argument_group("MAVLink 2 message signing (as PX4)")
     signing.add_argument(
         "--signing-passphrase",
@@ -118,6 +129,10 @@ def add_emulator_options(parser: argparse.ArgumentParser) -> None:
         "mavlink-signing-key.bin across runs (PX4's format); a vehicle with a key there "
         "starts with signing on",
     )
+
+
+def _add_sih_options(parser: argparse.ArgumentParser) -> None:
+    """The PX4-SIH fidelity group: the preset and the boot clocks, then the rest."""
     sih = parser.add_argument_group("PX4 SIH fidelity")
     sih.add_argument(
         "--sih-like",
@@ -143,6 +158,11 @@ def add_emulator_options(parser: argparse.ArgumentParser) -> None:
         metavar="S",
         help="boot-clock offset of vehicle 0, 1, ... in s (one per vehicle)",
     )
+    _add_truth_options(sih)
+
+
+def _add_truth_options(sih: argparse._ArgumentGroup) -> None:
+    """GPS error, the ground-truth stream and arming denials, in the PX4-SIH group ``sih``."""
     sih.add_argument(
         "--gps-bias-std", type=float, metavar="M", help="GPS/EKF position bias per axis, m"
     )

@@ -233,12 +233,13 @@ def test_bad_input_exits_2_naming_the_yaml_path(name, tmp_path, capsys):
 
 
 def test_a_batch_too_large_for_memory_is_refused_before_any_work(tmp_path, capsys):
-    config = scenario_file(tmp_path, set_value("timing", "steps", 1_000_000))
+    # Steps and runs multiply: few steps (loading a scenario of a million costs seconds), many runs.
+    config = scenario_file(tmp_path, set_value("timing", "steps", 10_000))
     out = tmp_path / "never"
-    code = main(["simulate", str(config), "--runs", "1000", "--out", str(out), "--quiet"])
+    code = main(["simulate", str(config), "--runs", "10000", "--out", str(out), "--quiet"])
     assert code == EXIT_BAD_INPUT
     error = capsys.readouterr().err
-    assert "timing.steps: 1000000 steps x 4 vehicles x 1000 run(s) need about" in error
+    assert "timing.steps: 10000 steps x 4 vehicles x 10000 run(s) need about" in error
     assert "lower timing.steps, the number of vehicles or --runs" in error
     assert not out.exists()
 
@@ -403,7 +404,9 @@ def test_every_file_a_run_writes_is_one_the_next_run_removes(tmp_path):
 def test_a_signal_stops_simulate_with_its_exit_code_and_an_interrupted_summary(
     stop, code, tmp_path
 ):
-    config = scenario_file(tmp_path, set_value("timing", "steps", 1_000_000), name="long.yaml")
+    # Long enough to be running when the signal comes (minutes), not so long that loading it
+    # costs seconds (1 000 000 steps did: 9 s before the run started).
+    config = scenario_file(tmp_path, set_value("timing", "steps", 100_000), name="long.yaml")
     out = tmp_path / "out"
     root = Path(__file__).resolve().parents[1]
     process = subprocess.Popen(
@@ -430,7 +433,7 @@ def test_a_signal_stops_simulate_with_its_exit_code_and_an_interrupted_summary(
     document = json.loads(summary.read_text())
     assert document["status"] == "interrupted"
     assert document["scenario"] == "paper_tracking"
-    assert 0 <= document["steps_done"] < 1_000_000
+    assert 0 <= document["steps_done"] < 100_000
     assert not (out / "timeseries.csv").exists()
 
 

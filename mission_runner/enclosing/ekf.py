@@ -181,10 +181,80 @@ def filter_update(
     Returns the new state and the ``(..., R, S)`` mask of ranges rejected by the gate at this step.
     """
     measured = np.isfinite(range_m) & np.isfinite(relative_north_m) & np.isfinite(relative_east_m)
-    old = edges.filter
-
     # Predict the engaged edges to now and test their ranges (NaN or stale values elsewhere are
     # discarded by np.where below).
+    prediction = _predict(
+        edges,
+        range_m,
+        relative_north_m,
+        relative_east_m,
+        step=step,
+        settings=settings,
+        readings=readings,
+    )
+    tested = measured & edges.engaged
+    gated = tested & _outlying(prediction, settings)
+    accepted = tested & ~gated
+    rejected_in_row = np.where(gated, edges.rejected_in_row + 1, 0.0)
+    rejected_in_row = np.where(tested, rejected_in_row, edges.rejected_in_row)
+    lost = rejected_in_row >= settings.gate_patience
+    filtered = _corrected(
+        edges.filter, prediction, accepted, range_m, relative_north_m, relative_east_m
+    )
+    anchor_step = np.where(accepted, float(step), edges.anchor_step)
+
+    regression, updated, updates, start_range = _regression_step(
+        edges, range_m, relative_north_m, relative_east_m, gated=gated, lost=lost, settings=settings
+    )
+
+    # Hand over where the regression is ready (it was updated now, so its anchor is now).
+    variance, bias = _regression_covariance(
+        regression, updates, settings, start_range, initial_gain
+    )
+    ready = updated & _regression_ready(regression, updates, variance, bias, settings)
+    handover = ready & (~edges.engaged | lost)
+    state = FilterEdges(
+        filter=_handed_over(filtered, regression, variance, handover),
+        regression=regression,
+        engaged=(edges.engaged & ~lost) | handover,
+        anchor_step=np.where(handover, float(step), anchor_step),
+        regression_updates=updates,
+        rejected_in_row=np.where(handover | lost, 0.0, rejected_in_row),
+        start_range_m=start_range,
+    )
+    return state, gated
+
+
+@dataclass(frozen=True)
+class _Prediction:
+    """The filter's anchors carried to now, every field ``(..., R, S)``: p(b|a) (``north_m``,
+    ``east_m``), P(b|a) (``nn``, ``ne``, ``ee``), P(b|a) H^T (``ph_north``, ``ph_east``), the
+    innovation y and its variance s."""
+
+    north_m: NDArray[np.float64]
+    east_m: NDArray[np.float64]
+    nn: NDArray[np.float64]
+    ne: NDArray[np.float64]
+    ee: NDArray[np.float64]
+    ph_north: NDArray[np.float64]
+    ph_east: NDArray[np.float64]
+    innovation: NDArray[np.float64]
+    innovation_variance: NDArray[np.float64]
+
+
+def _predict(
+    edges: FilterEdges,
+    range_m: NDArray[np.float64],
+    relative_north_m: NDArray[np.float64],
+    relative_east_m: NDArray[np.float64],
+    *,
+    step: int,
+    settings: FilterSettings,
+    readings: NDArray[np.float64] | None,
+) -> _Prediction:
+    """Every edge's filter predicted to ``step`` and its range's innovation (meaningful where
+    the edge is engaged and measured; arguments as :func:`filter_update`)."""
+    old = edges.filter
     v_n = relative_north_m - old.anchor_north_m
     v_e = relative_east_m - old.anchor_east_m
     p_n, p_e = old.estimate_north_m + v_n, old.estimate_east_m + v_e
@@ -205,40 +275,78 @@ def filter_update(
     if readings is not None:
         common = min(settings.range_common_std_m**2, settings.range_variance_m2)
         range_variance = (range_variance - common) / np.maximum(readings, 1.0) + common
-    innovation_variance = along + range_variance + 0.5 * across * across
-    innovation = range_m - (predicted + 0.5 * across)
-    tested = measured & edges.engaged
-    gated = np.zeros_like(tested)
-    if settings.gate_chi2 is not None:
-        with np.errstate(invalid="ignore"):
-            outlying = innovation * innovation > settings.gate_chi2 * innovation_variance
-            if settings.gate_long_only:
-                outlying &= innovation > 0
-        gated = tested & outlying
-    accepted = tested & ~gated
-    rejected_in_row = np.where(gated, edges.rejected_in_row + 1, 0.0)
-    rejected_in_row = np.where(tested, rejected_in_row, edges.rejected_in_row)
-    lost = rejected_in_row >= settings.gate_patience
+    return _Prediction(
+        north_m=p_n,
+        east_m=p_e,
+        nn=c_nn,
+        ne=c_ne,
+        ee=c_ee,
+        ph_north=ph_n,
+        ph_east=ph_e,
+        innovation=range_m - (predicted + 0.5 * across),
+        innovation_variance=along + range_variance + 0.5 * across * across,
+    )
 
-    k_n, k_e = ph_n / innovation_variance, ph_e / innovation_variance
-    s = innovation_variance
-    filtered = EdgeEstimates(
-        estimate_north_m=np.where(accepted, p_n + k_n * innovation, old.estimate_north_m),
-        estimate_east_m=np.where(accepted, p_e + k_e * innovation, old.estimate_east_m),
-        gain_nn=np.where(accepted, c_nn - s * k_n * k_n, old.gain_nn),
-        gain_ne=np.where(accepted, c_ne - s * k_n * k_e, old.gain_ne),
-        gain_ee=np.where(accepted, c_ee - s * k_e * k_e, old.gain_ee),
+
+def _outlying(prediction: _Prediction, settings: FilterSettings) -> NDArray[np.bool_]:
+    """``(..., R, S)``: the ranges the gate rejects (none without a gate)."""
+    innovation = prediction.innovation
+    if settings.gate_chi2 is None:
+        return np.zeros(innovation.shape, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        outlying = innovation * innovation > settings.gate_chi2 * prediction.innovation_variance
+        if settings.gate_long_only:
+            outlying &= innovation > 0
+    return outlying
+
+
+def _corrected(  # noqa: PLR0917 - the update's pieces, each named
+    old: EdgeEstimates,
+    prediction: _Prediction,
+    accepted: NDArray[np.bool_],
+    range_m: NDArray[np.float64],
+    relative_north_m: NDArray[np.float64],
+    relative_east_m: NDArray[np.float64],
+) -> EdgeEstimates:
+    """The filter after its ``accepted`` ranges (the Kalman update, anchored now); the other
+    edges keep ``old``."""
+    s = prediction.innovation_variance
+    k_n, k_e = prediction.ph_north / s, prediction.ph_east / s
+    innovation = prediction.innovation
+    return EdgeEstimates(
+        estimate_north_m=np.where(
+            accepted, prediction.north_m + k_n * innovation, old.estimate_north_m
+        ),
+        estimate_east_m=np.where(
+            accepted, prediction.east_m + k_e * innovation, old.estimate_east_m
+        ),
+        gain_nn=np.where(accepted, prediction.nn - s * k_n * k_n, old.gain_nn),
+        gain_ne=np.where(accepted, prediction.ne - s * k_n * k_e, old.gain_ne),
+        gain_ee=np.where(accepted, prediction.ee - s * k_e * k_e, old.gain_ee),
         anchor_range_m=np.where(accepted, range_m, old.anchor_range_m),
         anchor_north_m=np.where(accepted, relative_north_m, old.anchor_north_m),
         anchor_east_m=np.where(accepted, relative_east_m, old.anchor_east_m),
     )
-    anchor_step = np.where(accepted, float(step), edges.anchor_step)
 
+
+def _regression_step(
+    edges: FilterEdges,
+    range_m: NDArray[np.float64],
+    relative_north_m: NDArray[np.float64],
+    relative_east_m: NDArray[np.float64],
+    *,
+    gated: NDArray[np.bool_],
+    lost: NDArray[np.bool_],
+    settings: FilterSettings,
+) -> tuple[EdgeEstimates, NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]:
+    """The edges' regressions after this step's ranges less the ``gated`` ones: the new
+    regression, where it was updated, its update count (afresh where the filter ``lost`` track)
+    and each edge's first range, all ``(..., R, S)``."""
+    measured = np.isfinite(range_m) & np.isfinite(relative_north_m) & np.isfinite(relative_east_m)
     # The regression sees every range the gate let through (all of them before the hand-over).
-    regression_range = np.where(gated, np.nan, range_m)
     regression = rlse_update(
         edges.regression,
-        regression_range,
+        np.where(gated, np.nan, range_m),
         relative_north_m,
         relative_east_m,
         settings.initial_forgetting_factor,
@@ -249,12 +357,19 @@ def filter_update(
     updates = np.where(lost, 0.0, edges.regression_updates) + updated
     start_range = np.where(regression.anchored, edges.start_range_m, np.nan)
     start_range = np.where(np.isnan(start_range), regression.anchor_range_m, start_range)
+    return regression, updated, updates, start_range
 
-    # Hand over where the regression is ready (it was updated now, so its anchor is now).
-    (variance_nn, variance_ne, variance_ee), bias = _regression_covariance(
-        regression, updates, settings, start_range, initial_gain
-    )
-    worst = _largest_eigenvalue(variance_nn, variance_ne, variance_ee)
+
+def _regression_ready(
+    regression: EdgeEstimates,
+    updates: NDArray[np.float64],
+    variance: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+    bias: NDArray[np.float64],
+    settings: FilterSettings,
+) -> NDArray[np.bool_]:
+    """``(..., R, S)``: the regression has earned the hand-over (updates, covariance bound
+    ``variance`` and what is left of its start, ``bias``, from :func:`_regression_covariance`)."""
+    worst = _largest_eigenvalue(*variance)
     # The filter is the better estimator on noise, the regression on exact data (the cosine law
     # is then exact and linear in p): hand over once what is left of the start (bias) is no more
     # than the regression's error from the noise the sensors are said to have, unfloored. With
@@ -264,15 +379,21 @@ def filter_update(
     # gated exact ranges and restarted, and on a conservative covariance the second-order range
     # term holds it microns off for tens of steps.)
     forgotten = bias <= _regression_noise(regression, settings) - bias
-    ready = (
-        updated
-        & (updates >= settings.handover_updates)
-        & (worst <= settings.handover_std_m**2)
-        & forgotten
+    return (
+        (updates >= settings.handover_updates) & (worst <= settings.handover_std_m**2) & forgotten
     )
-    handover = ready & (~edges.engaged | lost)
-    engaged = (edges.engaged & ~lost) | handover
-    filtered = EdgeEstimates(
+
+
+def _handed_over(
+    filtered: EdgeEstimates,
+    regression: EdgeEstimates,
+    variance: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+    handover: NDArray[np.bool_],
+) -> EdgeEstimates:
+    """The filter restarted from the regression (its estimate, anchor and covariance bound
+    ``variance``) where ``handover``; ``filtered`` elsewhere."""
+    variance_nn, variance_ne, variance_ee = variance
+    return EdgeEstimates(
         estimate_north_m=np.where(handover, regression.estimate_north_m, filtered.estimate_north_m),
         estimate_east_m=np.where(handover, regression.estimate_east_m, filtered.estimate_east_m),
         gain_nn=np.where(handover, variance_nn, filtered.gain_nn),
@@ -282,16 +403,6 @@ def filter_update(
         anchor_north_m=np.where(handover, regression.anchor_north_m, filtered.anchor_north_m),
         anchor_east_m=np.where(handover, regression.anchor_east_m, filtered.anchor_east_m),
     )
-    state = FilterEdges(
-        filter=filtered,
-        regression=regression,
-        engaged=engaged,
-        anchor_step=np.where(handover, float(step), anchor_step),
-        regression_updates=updates,
-        rejected_in_row=np.where(handover | lost, 0.0, rejected_in_row),
-        start_range_m=start_range,
-    )
-    return state, gated
 
 
 def _regression_noise(regression: EdgeEstimates, settings: FilterSettings) -> NDArray[np.float64]:

@@ -10,6 +10,8 @@ at once. Ground truth is used here only to make measurements and to score the ru
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,6 +21,7 @@ from ..enclosing import (
     LOST,
     StepOutputs,
     SwarmEnclosing,
+    TargetEstimate,
     TargetTrack,
     track_target,
 )
@@ -194,33 +197,103 @@ def simulate(
             f"events {flying_only} need real links and sensors: fly the scenario with "
             "'mission-runner run' (the numeric model has neither)"
         )
-    step_s, steps = scenario.timing.step_s, scenario.timing.steps
-    sensors = scenario.sensors
-    n = len(scenario.vehicles)
-    params = algorithm_params(scenario)
-    times = np.arange(steps + 1, dtype=np.float64) * step_s
-    target = target_positions(scenario.target.path, np.append(times, times[-1] + step_s))
-    shapes = shape_matrices(scenario.algorithm.shape, np.append(times, times[-1] + step_s))
-    omega = np.array([omega_of(scenario, v) for v in scenario.vehicles])
-    senses = np.array([v.senses_target for v in scenario.vehicles])
-    speed_limit = np.array([v.speed_limit_m_s for v in scenario.vehicles])[:, None]
-    live_at = _event_schedule(scenario)
-    tracker_down = _sensor_windows(scenario, "tracker")
-    radio_down = _sensor_windows(scenario, "uwb")
-    lost_after_s = scenario.algorithm.target_lost_after_s
-    hold_when_lost = scenario.algorithm.target_on_lost == "hold"
+    plan = _Plan.of(scenario)
+    state = _State.initial(scenario, runs, plan)
+    steps = scenario.timing.steps
+    out = _allocate(runs, steps, len(scenario.vehicles))
+    for k in range(steps):
+        _step(scenario, plan, state, out, k)
+        if on_step is not None:
+            on_step(k + 1, steps)
 
-    position, phase = initial_conditions(scenario, runs)
-    origin = position.copy()
-    swarm = SwarmEnclosing(params, phase, np.broadcast_to(omega, phase.shape))
-    noise = _Noise(scenario.seed, runs)
-    drift = odometry_drift(sensors, noise, (runs, n))
-    uwb = UwbRanging(sensors, n, step_s, batch=(runs,))
-    odometry_error = np.zeros((runs, n, 2))
-    # The commands in force, as each vehicle's step message carries them (none before k = 0).
-    in_force = np.full((runs, n, 2), np.nan)
+    position = state.position
+    out["positions_m"][:, steps] = position
+    out["phases_rad"][:, steps] = state.swarm.phase_rad
+    out["live"][:, steps] = plan.live_at(steps)
+    gaps = position[:, :, None, :] - position[:, None, :, :]
+    out["separation_m"][:, steps] = closest_pair(
+        np.sqrt(np.sum(gaps * gaps, axis=-1)), out["live"][:, steps]
+    )
+    return score(scenario, plan.times, plan.target[: steps + 1], out)
 
-    out = {
+
+@dataclass(frozen=True)
+class _Plan:
+    """What a scenario fixes for every run and step: the step times ``(K+1,)``, the target's
+    positions ``(K+2, 2)`` and the shape matrices at them, the vehicles' frequencies,
+    target sensing and speed bounds ``(N,)`` / ``(N, 1)``, and who is live and whose tracker
+    and radio are out at step k."""
+
+    times: NDArray[np.float64]
+    target: NDArray[np.float64]
+    shapes: NDArray[np.float64]
+    omega: NDArray[np.float64]
+    senses: NDArray[np.bool_]
+    speed_limit: NDArray[np.float64]
+    live_at: Callable[[int], NDArray[np.bool_]]
+    tracker_down: Callable[[int], NDArray[np.bool_]]
+    radio_down: Callable[[int], NDArray[np.bool_]]
+
+    @classmethod
+    def of(cls, scenario: Scenario) -> _Plan:
+        step_s, steps = scenario.timing.step_s, scenario.timing.steps
+        times = np.arange(steps + 1, dtype=np.float64) * step_s
+        return cls(
+            times=times,
+            target=target_positions(scenario.target.path, np.append(times, times[-1] + step_s)),
+            shapes=shape_matrices(scenario.algorithm.shape, np.append(times, times[-1] + step_s)),
+            omega=np.array([omega_of(scenario, v) for v in scenario.vehicles]),
+            senses=np.array([v.senses_target for v in scenario.vehicles]),
+            speed_limit=np.array([v.speed_limit_m_s for v in scenario.vehicles])[:, None],
+            live_at=_event_schedule(scenario),
+            tracker_down=_sensor_windows(scenario, "tracker"),
+            radio_down=_sensor_windows(scenario, "uwb"),
+        )
+
+
+@dataclass
+class _State:
+    """The batch of runs as it goes: true positions ``(B, N, 2)`` and where they started, the
+    algorithm, the sensors and their errors, the commands in force ``(B, N, 2)`` (as each
+    vehicle's step message carries them; NaN before k = 0) and the target's track."""
+
+    position: NDArray[np.float64]
+    origin: NDArray[np.float64]
+    swarm: SwarmEnclosing
+    noise: _Noise
+    drift: NDArray[np.float64]
+    uwb: UwbRanging
+    odometry_error: NDArray[np.float64]
+    in_force: NDArray[np.float64]
+    track: TargetTrack
+
+    @classmethod
+    def initial(cls, scenario: Scenario, runs: int, plan: _Plan) -> _State:
+        n = len(scenario.vehicles)
+        position, phase = initial_conditions(scenario, runs)
+        swarm = SwarmEnclosing(
+            algorithm_params(scenario), phase, np.broadcast_to(plan.omega, phase.shape)
+        )
+        noise = _Noise(scenario.seed, runs)
+        drift = odometry_drift(scenario.sensors, noise, (runs, n))
+        return cls(
+            position=position,
+            origin=position.copy(),
+            swarm=swarm,
+            noise=noise,
+            drift=drift,
+            uwb=UwbRanging(scenario.sensors, n, scenario.timing.step_s, batch=(runs,)),
+            odometry_error=np.zeros((runs, n, 2)),
+            in_force=np.full((runs, n, 2), np.nan),
+            # One track of the target per run: every vehicle hears every observation at once
+            # (the relay of a complete graph without loss), so every vehicle's track is this one.
+            track=TargetTrack.initial((runs,)),
+        )
+
+
+def _allocate(runs: int, steps: int, n: int) -> dict[str, NDArray[Any]]:
+    """The recorded series of ``runs`` runs of ``steps`` steps of ``n`` vehicles, unfilled."""
+    out: dict[str, NDArray[Any]] = {
         "positions_m": np.empty((runs, steps + 1, n, 2)),
         "phases_rad": np.empty((runs, steps + 1, n)),
         "commands_m_s": np.empty((runs, steps, n, 2)),
@@ -236,107 +309,145 @@ def simulate(
     }
     # Run 0 only (a 1000-run batch would hold 1000 times as much for nobody to look at), and only
     # while small: they grow as N^2.
-    keep_estimates = estimates_bytes(steps, n) <= ESTIMATES_LIMIT_BYTES
-    if keep_estimates:
+    if estimates_bytes(steps, n) <= ESTIMATES_LIMIT_BYTES:
         out["estimates_m"] = np.empty((steps, n, n + 1, 2))
-    # One track of the target per run: every vehicle hears every observation at once (the
-    # relay of a complete graph without loss), so every vehicle's track is this one.
-    track = TargetTrack.initial((runs,))
+    return out
 
-    for k in range(steps):
-        live = np.broadcast_to(live_at(k), (runs, n))
-        # True relative positions p_i - p_j on north/east planes (B, N, N+1), slot 0 the target.
-        ranged = np.concatenate([np.broadcast_to(target[k], (runs, 1, 2)), position], axis=1)
-        truth_north = position[:, :, None, 0] - ranged[:, None, :, 0]
-        truth_east = position[:, :, None, 1] - ranged[:, None, :, 1]
-        true_ranges = np.sqrt(truth_north * truth_north + truth_east * truth_east)
-        out["separation_m"][:, k] = closest_pair(true_ranges[..., 1:], live)
-        radio = live & ~radio_down(k)
-        seen = target_seen(
-            true_ranges[..., 0], sensors, noise, looking=live & senses & ~tracker_down(k)
-        )
-        # The target's range comes from the tracker, the others' from the UWB radios.
-        target_range = range_readings(
-            true_ranges[..., :1], sensors, noise, measured=seen[..., None]
-        )
-        radio_ranges = uwb.read(
-            true_ranges[..., 1:], noise, k=k, measured=radio[:, :, None] & radio[:, None, :]
-        )
-        ranges = np.concatenate([target_range, radio_ranges], axis=-1)
 
-        odometry = position - origin + drift * times[k] + odometry_error
-        observed = np.asarray(np.isfinite(ranges[..., 0]).any(axis=-1))
-        track, target_estimate = track_target(
-            track,
-            k,
-            velocity_m_s=np.where(observed[:, None], (target[k + 1] - target[k]) / step_s, np.nan),
-            observed_step=np.where(observed, float(k), np.nan),
-            own_odometry_m=np.where(observed[:, None], target[k] - target[0], np.nan),
-            step_s=step_s,
-            lost_after_s=lost_after_s,
-        )
-        lost = target_estimate.status == LOST
-        holding = lost & hold_when_lost
-        # A formation holding for a lost target does not estimate (it does not move: the
-        # regressors would be zero), as a flying controller that holds does not.
-        odometry = np.where(live[..., None] & ~holding[:, None, None], odometry, np.nan)
-        odometry = np.concatenate([target_estimate.odometry_m[:, None, :], odometry], axis=1)
-        target_velocity = target_estimate.velocity_m_s
-
-        out["phases_rad"][:, k] = swarm.phase_rad
-        step = swarm.step(
-            odometry_m=odometry,
-            range_m=ranges,
-            live=live,
-            target_velocity_m_s=target_velocity,
-            shape_now=shapes[k],
-            shape_next=shapes[k + 1],
-        )
-        if keep_estimates:
-            out["estimates_m"][k, ..., 0] = step.estimate_north_m[0]
-            out["estimates_m"][k, ..., 1] = step.estimate_east_m[0]
-        error_north = step.estimate_north_m - truth_north
-        error_east = step.estimate_east_m - truth_east
-        error = np.sqrt(error_north * error_north + error_east * error_east)
-        # NaN: an edge not estimated (never ranged, or an end lost), which does not count. But an
-        # anchored edge between two live ends without a finite estimate has diverged (absurd
-        # noise or gains), which must read as infinitely wrong, not as 0.
-        diverged = (
-            swarm.state.edges.anchored & live[..., None] & np.isfinite(odometry[:, None, :, 0])
-        )
-        error = np.where(diverged & ~np.isfinite(error), np.inf, error)
-        out["localization_error_m"][:, k] = np.where(np.isnan(error), 0.0, error).max(axis=(-1, -2))
-        out["localization_rms_m"][:, k] = edge_rms(error)
-        out["gated_ranges"][:, k] = step.gated.sum(axis=(-1, -2))
-        out["nlos_ranges"][:, k] = (uwb.nlos & np.isfinite(radio_ranges)).sum(axis=(-1, -2))
-        good = ~uwb.nlos & np.isfinite(radio_ranges)
-        out["false_rejections"][:, k] = (step.gated[..., 1:] & good).sum(axis=(-1, -2))
-        speed = np.sqrt(np.sum(step.consensus_m_s**2, axis=-1))
-        out["consensus_speed_m_s"][:, k] = np.where(live, speed, 0.0).max(axis=-1)
-
-        command = step.velocity_m_s
-        if scenario.safety.min_separation_m is not None:
-            command = _guarded(command, step, ranges, in_force, live, scenario)
-        command = saturate(command, speed_limit)
-        command = np.where(live[..., None] & ~holding[:, None, None], command, 0.0)
-        in_force = np.where(live[..., None], command, np.nan)
-        out["target_status"][:, k] = target_estimate.status
-        out["commands_m_s"][:, k] = command
-        out["positions_m"][:, k] = position
-        out["live"][:, k] = live
-        position = position + step_s * command
-        odometry_error = odometry_error_step(sensors, noise, odometry_error)
-        if on_step is not None:
-            on_step(k + 1, steps)
-
-    out["positions_m"][:, steps] = position
-    out["phases_rad"][:, steps] = swarm.phase_rad
-    out["live"][:, steps] = live_at(steps)
-    gaps = position[:, :, None, :] - position[:, None, :, :]
-    out["separation_m"][:, steps] = closest_pair(
-        np.sqrt(np.sum(gaps * gaps, axis=-1)), out["live"][:, steps]
+def _step(
+    scenario: Scenario,
+    plan: _Plan,
+    state: _State,
+    out: dict[str, NDArray[Any]],
+    k: int,
+) -> None:
+    """Step ``k`` of every run: measure, estimate, command, record into ``out`` and move."""
+    runs, n = state.position.shape[:2]
+    live = np.broadcast_to(plan.live_at(k), (runs, n))
+    truth_north, truth_east, ranges, radio_ranges = _measure(scenario, plan, state, out, k, live)
+    odometry, target_estimate, holding = _inputs(scenario, plan, state, ranges, k, live)
+    swarm = state.swarm
+    out["phases_rad"][:, k] = swarm.phase_rad
+    step = swarm.step(
+        odometry_m=odometry,
+        range_m=ranges,
+        live=live,
+        target_velocity_m_s=target_estimate.velocity_m_s,
+        shape_now=plan.shapes[k],
+        shape_next=plan.shapes[k + 1],
     )
-    return score(scenario, times, target[: steps + 1], out)
+    if "estimates_m" in out:
+        out["estimates_m"][k, ..., 0] = step.estimate_north_m[0]
+        out["estimates_m"][k, ..., 1] = step.estimate_east_m[0]
+    _record_estimation(
+        out, k, step, (truth_north, truth_east), odometry, live, swarm, state.uwb, radio_ranges
+    )
+
+    command = step.velocity_m_s
+    if scenario.safety.min_separation_m is not None:
+        command = _guarded(command, step, ranges, state.in_force, live, scenario)
+    command = saturate(command, plan.speed_limit)
+    command = np.where(live[..., None] & ~holding[:, None, None], command, 0.0)
+    state.in_force = np.where(live[..., None], command, np.nan)
+    out["target_status"][:, k] = target_estimate.status
+    out["commands_m_s"][:, k] = command
+    out["positions_m"][:, k] = state.position
+    out["live"][:, k] = live
+    state.position = state.position + scenario.timing.step_s * command
+    state.odometry_error = odometry_error_step(scenario.sensors, state.noise, state.odometry_error)
+
+
+def _measure(  # noqa: PLR0917 - the step's pieces, each named
+    scenario: Scenario,
+    plan: _Plan,
+    state: _State,
+    out: dict[str, NDArray[Any]],
+    k: int,
+    live: NDArray[np.bool_],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The true relative positions p_i - p_j on north and east planes ``(B, N, N+1)`` (slot 0
+    the target), the ranges measured ``(B, N, N+1)`` and those of the radios ``(B, N, N)``;
+    records the closest pair."""
+    runs, sensors, noise = state.position.shape[0], scenario.sensors, state.noise
+    position = state.position
+    ranged = np.concatenate([np.broadcast_to(plan.target[k], (runs, 1, 2)), position], axis=1)
+    truth_north = position[:, :, None, 0] - ranged[:, None, :, 0]
+    truth_east = position[:, :, None, 1] - ranged[:, None, :, 1]
+    true_ranges = np.sqrt(truth_north * truth_north + truth_east * truth_east)
+    out["separation_m"][:, k] = closest_pair(true_ranges[..., 1:], live)
+    radio = live & ~plan.radio_down(k)
+    seen = target_seen(
+        true_ranges[..., 0], sensors, noise, looking=live & plan.senses & ~plan.tracker_down(k)
+    )
+    # The target's range comes from the tracker, the others' from the UWB radios.
+    target_range = range_readings(true_ranges[..., :1], sensors, noise, measured=seen[..., None])
+    radio_ranges = state.uwb.read(
+        true_ranges[..., 1:], noise, k=k, measured=radio[:, :, None] & radio[:, None, :]
+    )
+    ranges = np.concatenate([target_range, radio_ranges], axis=-1)
+    return truth_north, truth_east, ranges, radio_ranges
+
+
+def _inputs(  # noqa: PLR0917 - the step's pieces, each named
+    scenario: Scenario,
+    plan: _Plan,
+    state: _State,
+    ranges: NDArray[np.float64],
+    k: int,
+    live: NDArray[np.bool_],
+) -> tuple[NDArray[np.float64], TargetEstimate, NDArray[np.bool_]]:
+    """The algorithm's odometry ``(B, N+1, 2)`` (slot 0 the target's), the target as tracked
+    (the track moves on) and which runs hold for a lost target ``(B,)``."""
+    step_s, target = scenario.timing.step_s, plan.target
+    odometry = state.position - state.origin + state.drift * plan.times[k] + state.odometry_error
+    observed = np.asarray(np.isfinite(ranges[..., 0]).any(axis=-1))
+    state.track, target_estimate = track_target(
+        state.track,
+        k,
+        velocity_m_s=np.where(observed[:, None], (target[k + 1] - target[k]) / step_s, np.nan),
+        observed_step=np.where(observed, float(k), np.nan),
+        own_odometry_m=np.where(observed[:, None], target[k] - target[0], np.nan),
+        step_s=step_s,
+        lost_after_s=scenario.algorithm.target_lost_after_s,
+    )
+    lost = target_estimate.status == LOST
+    holding = lost & (scenario.algorithm.target_on_lost == "hold")
+    # A formation holding for a lost target does not estimate (it does not move: the
+    # regressors would be zero), as a flying controller that holds does not.
+    odometry = np.where(live[..., None] & ~holding[:, None, None], odometry, np.nan)
+    odometry = np.concatenate([target_estimate.odometry_m[:, None, :], odometry], axis=1)
+    return odometry, target_estimate, holding
+
+
+def _record_estimation(  # noqa: PLR0917 - the step's pieces, each named
+    out: dict[str, NDArray[Any]],
+    k: int,
+    step: StepOutputs,
+    truth: tuple[NDArray[np.float64], NDArray[np.float64]],
+    odometry: NDArray[np.float64],
+    live: NDArray[np.bool_],
+    swarm: SwarmEnclosing,
+    uwb: UwbRanging,
+    radio_ranges: NDArray[np.float64],
+) -> None:
+    """Step ``k``'s localization errors against ``truth`` (north, east ``(B, N, N+1)``), gated
+    and NLOS ranges and the consensus speed, into ``out``."""
+    error_north = step.estimate_north_m - truth[0]
+    error_east = step.estimate_east_m - truth[1]
+    error = np.sqrt(error_north * error_north + error_east * error_east)
+    # NaN: an edge not estimated (never ranged, or an end lost), which does not count. But an
+    # anchored edge between two live ends without a finite estimate has diverged (absurd
+    # noise or gains), which must read as infinitely wrong, not as 0.
+    diverged = swarm.state.edges.anchored & live[..., None] & np.isfinite(odometry[:, None, :, 0])
+    error = np.where(diverged & ~np.isfinite(error), np.inf, error)
+    out["localization_error_m"][:, k] = np.where(np.isnan(error), 0.0, error).max(axis=(-1, -2))
+    out["localization_rms_m"][:, k] = edge_rms(error)
+    out["gated_ranges"][:, k] = step.gated.sum(axis=(-1, -2))
+    out["nlos_ranges"][:, k] = (uwb.nlos & np.isfinite(radio_ranges)).sum(axis=(-1, -2))
+    good = ~uwb.nlos & np.isfinite(radio_ranges)
+    out["false_rejections"][:, k] = (step.gated[..., 1:] & good).sum(axis=(-1, -2))
+    speed = np.sqrt(np.sum(step.consensus_m_s**2, axis=-1))
+    out["consensus_speed_m_s"][:, k] = np.where(live, speed, 0.0).max(axis=-1)
 
 
 def _guarded(  # noqa: PLR0917 - the step's pieces, each named

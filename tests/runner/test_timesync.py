@@ -156,6 +156,7 @@ def test_a_jittery_simulated_clock_is_followed_between_pairs():
         assert mapping.boot_s(UNIX_AT_BOOT + unix) == pytest.approx(boot_at(unix), abs=2e-3)
 
 
+@pytest.mark.slow  # 144 000 pairs, one by one
 def test_the_running_fit_is_the_windows_least_squares_line_after_hours():
     """The fit is kept from running sums (a refit at every SYSTEM_TIME must not cost the whole
     window); after four hours of pairs at 10 Hz, a jump and a sliding window it is still the

@@ -59,6 +59,7 @@ def bursty_run(**settings):
     return simulate(validate_scenario(data), runs=6)
 
 
+@pytest.mark.slow  # two batches of 6 runs: a statistical claim
 def test_an_edge_coasts_through_an_nlos_burst_instead_of_restarting_on_it(clean):
     """5 % NLOS in bursts of 2 s (16 steps): with the patience derived from the bursts (five
     mean bursts) an edge coasts through one; with 10 it restarted from the burst's biased ranges

@@ -285,6 +285,7 @@ class RawClient:
         self.messages: list[Message] = []
         self.keep_messages = False
         self._matchers: list[tuple[Callable[[Message], bool], asyncio.Future[Message]]] = []
+        self._drain_markers: dict[bytes, asyncio.Future[None]] = {}
 
     async def __aenter__(self) -> RawClient:
         loop = asyncio.get_running_loop()
@@ -299,6 +300,10 @@ class RawClient:
             self.transport.close()
 
     def _received(self, data: bytes, addr: tuple[str, int]) -> None:
+        marker = self._drain_markers.get(data)
+        if marker is not None:
+            marker.set_result(None)
+            return
         for msg in self.parser.parse_buffer(data) or []:
             if msg.get_msgId() < 0:
                 continue
@@ -338,6 +343,23 @@ class RawClient:
                 raise AssertionError(
                     f"no {what or 'matching message'} within {timeout_s} s"
                 ) from None
+
+    async def drain(self, timeout_s: float = 5.0) -> None:
+        """Return once every datagram that reached this client's socket so far has been read.
+
+        The socket is read a datagram per event-loop pass, so under load a backlog can wait
+        there for many passes; a datagram this client sends itself queues behind it."""
+        assert self.transport is not None
+        marker = f"drain {len(self._drain_markers)} {id(self)}".encode()
+        arrived = asyncio.get_running_loop().create_future()
+        self._drain_markers[marker] = arrived
+        try:
+            self.transport.sendto(marker, ("127.0.0.1", self.port))
+            await asyncio.wait_for(arrived, timeout_s)
+        except TimeoutError:
+            raise AssertionError(f"port {self.port} not drained within {timeout_s} s") from None
+        finally:
+            del self._drain_markers[marker]
 
     async def command(
         self,

@@ -104,8 +104,9 @@ async def test_kill_silences_a_vehicle_and_it_falls() -> None:
             what="vehicle 1 airborne",
         )
         emulator.kill_vehicle(0)
-        # Telemetry sent before the kill may still wait in c0's socket: let the loop read it.
-        await emulator.run_for(0.1)
+        await emulator.run_for(0.1)  # the kill is applied at the next step
+        # Telemetry sent before the kill may still wait in c0's socket (a backlog under load).
+        await c0.drain()
         c0.counts.clear()
         await emulator.run_for(2.0)
         await c1.expect(is_heartbeat_of(2), 3)  # the other vehicle carries on
