@@ -26,9 +26,10 @@ test: install
 ## The fast lane while developing: lint, types and every test that flies nothing, needs no broker
 ## and is not marked slow, on two pytest workers (pytest-xdist; benchmarks off, as xdist turns
 ## them off with a warning). `make test` (what CI runs) adds the rest, on one. Measured with
-## `/usr/bin/time make -o install check`, mypy's cache warm, on 2 cores that other work held at
-## load 1.5-3: 1153 tests, 125 s CPU (user+sys), 107 s wall. The same tests on one worker
-## (`python -m pytest -q -m "not slow and not mavsdk and not mqtt"`): 114 s CPU, 148 s wall.
+## `/usr/bin/time make -o install check`, mypy's cache warm, on 2 quiet cores (2026-12-04):
+## 1207 tests, 138 s CPU (user+sys), 90 s wall; the target is 60 s. The fast lane's tests on one
+## worker (`python -m pytest -q -m "not slow and not mavsdk and not mqtt"`, 1153 of them, load
+## 1.5-3): 114 s CPU, 148 s wall.
 check: install
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m ruff format --check .
