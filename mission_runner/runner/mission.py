@@ -82,6 +82,13 @@ LOCKSTEP_MAX_SPEED = 25.0
 #: (observed: 10 to 50 s stalls, or the 60 s take-off timeout, at 25x on a loaded 2-core machine).
 PACED_SPEED = 10.0
 PACE_PERIOD_S = 0.02
+#: Above :data:`PACED_SPEED`, take-off and landing time may run ahead of the newest odometry the
+#: runner has taken from every vehicle by this much simulated time: as fast as MAVSDK delivers,
+#: never further ahead of it than a few telemetry periods.
+PACE_LEAD_S = 0.25
+#: The pacer's period while it follows what the runner has heard (its speed is at most
+#: ``PACE_LEAD_S / HEARD_PACE_PERIOD_S`` beyond what the vehicles' telemetry allows).
+HEARD_PACE_PERIOD_S = 0.004
 
 
 class _ProgressAggregator:
@@ -251,7 +258,7 @@ class InProcessFlight:
         scenario = self.scenario
         self.emulator = emulator = await stack.enter_async_context(Emulator(self.config))
         before_mission = await stack.enter_async_context(contextlib.AsyncExitStack())
-        await before_mission.enter_async_context(_paced(emulator.clock))
+        await before_mission.enter_async_context(_paced(emulator.clock, heard=self.heard))
         # In-process, the one bus is the whole network: each member signs as itself through
         # its own view of it. Over MQTT the world is the range aid's client.
         in_process = scenario.bus.kind == "inprocess"
@@ -282,6 +289,10 @@ class InProcessFlight:
             for sysid in sysids
         ]
         return before_mission
+
+    def heard(self) -> float | None:
+        """The vehicle time up to which the runner has every vehicle's odometry (pacing)."""
+        return heard_until(self.vehicles) if self.vehicles else None
 
     async def take_off(self) -> None:
         """The scenario's autopilot parameters, then every vehicle to its own altitude."""
@@ -420,7 +431,7 @@ class InProcessFlight:
     async def land(self) -> None:
         """``flight.end_action`` for every vehicle that flew its steps (not one lost, taken over
         or already ended by the operator), at take-off's pace."""
-        async with _paced(self.emulator.clock), asyncio.TaskGroup() as group:
+        async with _paced(self.emulator.clock, heard=self.heard), asyncio.TaskGroup() as group:
             for vehicle, controller in zip(self.vehicles, self.controllers, strict=True):
                 if controller.state in (
                     ControllerState.LOST,
@@ -527,7 +538,9 @@ async def _end_vehicle(clock: Clock, vehicle: MavsdkVehicle, action: str) -> Non
     """This vehicle's mission ended early (the operator's land, return or stop, or its
     controller gave it up): command ``action``. Its controller has left the lockstep clock;
     while it lands, time is paced for MAVSDK as at take-off."""
-    async with _paced(clock, name=f"pace-{vehicle.system_id}"):
+    async with _paced(
+        clock, name=f"pace-{vehicle.system_id}", heard=lambda: heard_until([vehicle])
+    ):
         try:
             await vehicle.finish(action, timeout_s=SAFE_STATE_TIMEOUT_S)
         except RunnerError as error:
@@ -568,7 +581,10 @@ async def _land_everyone(
         else:
             landed.append(vehicle.system_id)
 
-    async with _paced(clock, name="pace-landing"), asyncio.TaskGroup() as group:
+    async with (
+        _paced(clock, name="pace-landing", heard=lambda: heard_until(landing)),
+        asyncio.TaskGroup() as group,
+    ):
         for vehicle in landing:
             group.create_task(land(vehicle), name=f"land-{vehicle.system_id}")
     logger.warning("flight ended: landed and disarmed: %s", ", ".join(map(str, sorted(landed))))
@@ -590,21 +606,31 @@ async def _prepare(
 
 @contextlib.asynccontextmanager
 async def _paced(
-    clock: Clock, speed: float = PACED_SPEED, *, name: str = "pace"
+    clock: Clock,
+    speed: float = PACED_SPEED,
+    *,
+    name: str = "pace",
+    heard: Callable[[], float | None] | None = None,
 ) -> AsyncIterator[None]:
-    """While the block runs, lockstep time advances at most ``speed`` x wall time (a clock
+    """While the block runs, lockstep time advances at ``speed`` x wall time (a clock
     participant releasing ``speed * PACE_PERIOD_S`` beyond the current time every period; a late
-    period slows it down, never bursts it). A no-op in real time."""
+    period slows it down, never bursts it), or faster while ``heard()`` (the vehicle time up to
+    which the runner has taken every vehicle's telemetry) keeps up: then up to
+    :data:`PACE_LEAD_S` beyond it. A no-op in real time."""
     if clock.mode != "lockstep":
         yield
         return
+    period_s = PACE_PERIOD_S if heard is None else HEARD_PACE_PERIOD_S
 
     async def pace(participant: Participant) -> None:
         released = clock.now_s()
         while True:
-            released = max(released, clock.now_s() + speed * PACE_PERIOD_S)
+            floor_s = clock.now_s() + speed * period_s
+            seen_s = heard() if heard is not None else None
+            following = floor_s if seen_s is None else seen_s + PACE_LEAD_S
+            released = max(released, floor_s, following)
             participant.acted(released)
-            await asyncio.sleep(PACE_PERIOD_S)
+            await asyncio.sleep(period_s)
 
     # The group owns the pacer: should it fail (a ClockError: dropped after a stall), the block
     # is cancelled and the error raised, not lost with the task while time runs unpaced.
@@ -614,6 +640,18 @@ async def _paced(
             yield
         finally:
             task.cancel()
+
+
+def heard_until(vehicles: Sequence[MavsdkVehicle]) -> float | None:
+    """The vehicle time up to which the runner has taken odometry from every one of
+    ``vehicles`` (the oldest of their newest samples); None before each has sent one."""
+    oldest: float | None = None
+    for vehicle in vehicles:
+        sample = vehicle.track.latest
+        if sample is None:
+            return None
+        oldest = sample.time_s if oldest is None else min(oldest, sample.time_s)
+    return oldest
 
 
 async def _fly_one(  # noqa: PLR0917
