@@ -1,24 +1,29 @@
-"""The figures of a run drawn by a process of their own, beside the rest of the results.
+"""A run's figures and its recording, each written by a process of its own beside the rest of
+the results.
 
 matplotlib costs a flight's end about 1.7 s (1 s to import, 0.2 s to draw and encode each of
-four PNGs) that nothing else waits on. :meth:`FigureProcess.start` starts a worker (``python -m
-mission_runner.figure_process``) that imports it while the vehicles land; :meth:`submit` hands
-it the result, and the worker draws while this process writes the recording. The figures are in
-once :meth:`collect` has returned: ``summary.json``, written last, names what it returned.
+four PNGs) and the MCAP recording 1.2 s or more of building Foxglove messages, which nothing else
+waits on. :meth:`FigureProcess.start` (:meth:`RecordingProcess.start`) starts a worker (``python
+-m mission_runner.figure_process figures|recording``) that imports its library while the
+vehicles land; ``submit`` hands it the result, and the two workers write while this process
+writes the rest (on two cores, the end of a run costs the longer of the two, not their sum).
+Their files are in once ``collect`` has returned: ``summary.json``, written last, names them.
 
-    with FigureProcess() as figures:
-        ...fly; figures.start() once the mission phase is over...
-        write_results(result, out_dir, figure_process=figures)
+    with FigureProcess() as figures, RecordingProcess() as recording:
+        ...fly; figures.start(), recording.start() once the mission phase is over...
+        write_results(result, out_dir, figure_process=figures, recording_process=recording)
 
-The worker is a plain interpreter, not a fork: the flight's process has MAVSDK's threads, which a
+A worker is a plain interpreter, not a fork: the flight's process has MAVSDK's threads, which a
 fork would copy in whatever state they are, and a multiprocessing spawn would import the command
-line's main module (0.7 s) before anything useful. The result goes through a private temporary
-pickle file, named on the worker's standard input (a line: it never blocks on the pipe).
+line's main module (0.7 s) before anything useful. The job's arguments go through a private
+temporary pickle file, named on the worker's standard input (a line: it never blocks on the
+pipe). A worker that fails costs its job's time, not its files: ``collect`` does the job here.
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib
 import json
 import logging
 import os
@@ -27,9 +32,10 @@ import signal
 import subprocess
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Self
+from typing import TYPE_CHECKING, Any, Self
 
 from .errors import OutputError
 
@@ -45,9 +51,16 @@ FIGURES_TIMEOUT_S = 120.0
 EXIT_TIMEOUT_S = 10.0
 
 
-class FigureProcess:
-    """One worker process that draws one run's figures. Use as ``with``; leaving it ends the
-    worker (it draws nothing it was not handed)."""
+class _WorkerProcess:
+    """One worker process (``python -m mission_runner.figure_process <job>``) that does one
+    job for one run. Use as ``with``; leaving it ends the worker (it does nothing it was not
+    handed)."""
+
+    #: What the worker does: a key of :data:`_JOBS`; and its name in messages.
+    job = ""
+    what = ""
+    #: How long (wall seconds) the job may take once handed over.
+    timeout_s = FIGURES_TIMEOUT_S
 
     def __init__(self) -> None:
         self._process: subprocess.Popen[bytes] | None = None
@@ -66,7 +79,7 @@ class FigureProcess:
         if process is not None:
             if process.poll() is None:
                 try:
-                    process.communicate(timeout=EXIT_TIMEOUT_S)  # EOF: it leaves undrawn
+                    process.communicate(timeout=EXIT_TIMEOUT_S)  # EOF: it leaves undone
                 except subprocess.TimeoutExpired:
                     process.kill()
                     process.communicate()
@@ -77,69 +90,115 @@ class FigureProcess:
         self._forget_handed()
 
     def start(self) -> None:
-        """Start the worker now (once): it imports matplotlib while the caller does other work."""
+        """Start the worker now (once): it imports its libraries while the caller works on."""
         if self._process is not None:
             return
         self._process = subprocess.Popen(
-            [sys.executable, "-m", __name__],
+            [sys.executable, "-m", __name__, self.job],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             env={**os.environ, "MPLBACKEND": "Agg"},
         )
 
-    def submit(self, result: SimulationResult, out_dir: PathName) -> None:
-        """Hand ``result`` over: its figures are drawn into ``out_dir``; :meth:`collect` them."""
+    def _hand(self, arguments: tuple[Any, ...]) -> None:
+        """The job's ``arguments``, through a private temporary pickle file named on the
+        worker's standard input."""
         self.start()
         process = self._process
         assert process is not None and process.stdin is not None
-        handle, name = tempfile.mkstemp(prefix="figures-", suffix=".pickle")
+        handle, name = tempfile.mkstemp(prefix=f"{self.job}-", suffix=".pickle")
         self._handed = Path(name)
         with os.fdopen(handle, "wb") as file:
-            pickle.dump((result, os.fspath(out_dir)), file, protocol=pickle.HIGHEST_PROTOCOL)
+            pickle.dump(arguments, file, protocol=pickle.HIGHEST_PROTOCOL)
         # The line, then end of input, straight to the pipe (shorter than PIPE_BUF: one write).
         stdin, process.stdin = process.stdin, None
         try:
             os.write(stdin.fileno(), name.encode() + b"\n")
-        except OSError as failure:  # it died already: collect draws here
-            logger.warning("figure process not reachable: %s", failure)
+        except OSError as failure:  # it died already: collect does the job here
+            logger.warning("%s process not reachable: %s", self.what, failure)
         finally:
             stdin.close()
 
-    def collect(self, result: SimulationResult, out_dir: PathName) -> list[str]:
-        """The names of the figures written. A worker that failed (killed, out of memory, an
-        error) costs the figures' time, not the figures: they are drawn here instead."""
+    def _answer(self) -> list[str] | None:
+        """The names the worker wrote; None (logged) if it failed: killed, out of memory, an
+        error. Raises :class:`OutputError` if it was handed nothing or took too long."""
         process = self._process
         if process is None:
-            raise OutputError("no figures were handed to the figure process (submit first)")
+            raise OutputError(f"nothing was handed to the {self.what} process (submit first)")
         try:
-            output, errors = process.communicate(timeout=FIGURES_TIMEOUT_S)
+            output, errors = process.communicate(timeout=self.timeout_s)
         except subprocess.TimeoutExpired:
             process.kill()
             process.communicate()
             raise OutputError(
-                f"the figures were not drawn within {FIGURES_TIMEOUT_S:g} s"
+                f"the {self.job} was not written within {self.timeout_s:g} s"
             ) from None
         finally:
             self._forget_handed()
         names = _names(output) if process.returncode == 0 else None
-        if names is not None:
-            return names
-        detail = errors.decode(errors="replace").strip().splitlines()[-1:] or ["no message"]
-        logger.warning(
-            "figure process failed (exit %s: %s); drawing the figures here",
-            process.returncode,
-            detail[0],
-        )
-        from .figures import write_figures  # noqa: PLC0415 - matplotlib is slow to import
-
-        return write_figures(result, out_dir)
+        if names is None:
+            detail = errors.decode(errors="replace").strip().splitlines()[-1:] or ["no message"]
+            logger.warning(
+                "%s process failed (exit %s: %s); doing its job here",
+                self.what,
+                process.returncode,
+                detail[0],
+            )
+        return names
 
     def _forget_handed(self) -> None:
         handed, self._handed = self._handed, None
         if handed is not None:
             with contextlib.suppress(FileNotFoundError):
                 handed.unlink()
+
+
+class FigureProcess(_WorkerProcess):
+    """The run's figures, drawn by a worker process of their own."""
+
+    job = "figures"
+    what = "figure"
+
+    def submit(self, result: SimulationResult, out_dir: PathName) -> None:
+        """Hand ``result`` over: its figures are drawn into ``out_dir``; :meth:`collect` them."""
+        self._hand((result, os.fspath(out_dir)))
+
+    def collect(self, result: SimulationResult, out_dir: PathName) -> list[str]:
+        """The names of the figures written. A worker that failed costs the figures' time, not
+        the figures: they are drawn here instead."""
+        names = self._answer()
+        if names is not None:
+            return names
+        from .figures import write_figures  # noqa: PLC0415 - matplotlib is slow to import
+
+        return write_figures(result, out_dir)
+
+
+class RecordingProcess(_WorkerProcess):
+    """The run's MCAP recording, written by a worker process of its own (a flight's 600 steps
+    of four vehicles cost the command's end 1.2 s or more of building Foxglove messages)."""
+
+    job = "recording"
+    what = "recording"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._keywords: dict[str, Any] = {}
+
+    def submit(self, result: SimulationResult, path: PathName, **keywords: Any) -> None:
+        """Hand ``result`` over: :func:`.recording.write_recording` ``(result, path,
+        **keywords)`` in the worker; :meth:`collect` waits for it."""
+        self._keywords = keywords
+        self._hand((result, os.fspath(path), keywords))
+
+    def collect(self, result: SimulationResult, path: PathName) -> None:
+        """Once the recording is written: by the worker or, if it failed, here."""
+        if self._answer() is not None:
+            return
+        from .recording import write_recording  # noqa: PLC0415 - foxglove loads a library
+
+        write_recording(result, path, **self._keywords)
 
 
 def _names(output: bytes) -> list[str] | None:
@@ -153,17 +212,38 @@ def _names(output: bytes) -> list[str] | None:
     return names
 
 
+def _draw(result: SimulationResult, out_dir: str) -> list[str]:
+    from .figures import write_figures  # noqa: PLC0415 - this job's import, not the other's
+
+    return write_figures(result, out_dir)
+
+
+def _record(result: SimulationResult, path: str, keywords: dict[str, Any]) -> list[str]:
+    from .recording import write_recording  # noqa: PLC0415 - this job's import, not the other's
+
+    write_recording(result, path, **keywords)
+    return [Path(path).name]
+
+
+#: Each job: the module it imports before anything is handed over, and what it does.
+_JOBS: dict[str, tuple[str, Callable[..., list[str]]]] = {
+    "figures": ("mission_runner.figures", _draw),
+    "recording": ("mission_runner.recording", _record),
+}
+
+
 def _main() -> int:
     # Ctrl-C reaches the whole process group: the command decides what becomes of the results.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    from .figures import write_figures  # noqa: PLC0415 - imported before the result is in
-
+    job = sys.argv[1] if len(sys.argv) > 1 else "figures"
+    module, work = _JOBS[job]
+    importlib.import_module(module)  # imported before the result is in
     line = sys.stdin.readline().strip()
     if not line:
         return 0  # not handed anything: the run ended without results
     with open(line, "rb") as file:
-        result, out_dir = pickle.load(file)  # our own private file, written by submit
-    sys.stdout.write(json.dumps(write_figures(result, out_dir)))
+        arguments = pickle.load(file)  # our own private file, written by _hand
+    sys.stdout.write(json.dumps(work(*arguments)))
     return 0
 
 

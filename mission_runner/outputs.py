@@ -33,7 +33,7 @@ from .paths import PathName, write_atomic
 
 if TYPE_CHECKING:
     from .config import Scenario
-    from .figure_process import FigureProcess
+    from .figure_process import FigureProcess, RecordingProcess
     from .metrics import SimulationResult
     from .recording import LogLine
     from .records import StepRecord, VehicleRun
@@ -310,12 +310,13 @@ def write_results(
     logs: Sequence[LogLine] = (),
     bus_security: Mapping[str, Any] | None = None,
     figure_process: FigureProcess | None = None,
+    recording_process: RecordingProcess | None = None,
 ) -> dict[str, Any]:
     """Write timeseries.csv, summary.json, recording.mcap and (optionally) the figures into
     ``out_dir``. A flight passes its controllers' ``records`` and ``start_s`` (the mission clock
-    at k = 0) for the recording; ``logs`` are the run's log lines. With ``figure_process`` the
-    figures are drawn there while this writes the rest; summary.json is written last, once they
-    are all in.
+    at k = 0) for the recording; ``logs`` are the run's log lines. With ``figure_process``
+    (``recording_process``) the figures (the recording) are written there while this writes the
+    rest; summary.json is written last, once they are all in.
 
     Returns the summary dict.
     """
@@ -333,17 +334,26 @@ def write_results(
     drawing = figure_process if figures else None
     if drawing is not None:
         drawing.submit(result, out_dir)
-    write_atomic(out_dir / "timeseries.csv", timeseries_csv(result))
     expectations = document["expectations"]
     verdict = None
     if expectations["checked"]:
         verdict = "expectations: " + ("PASS" if expectations["passed"] else "FAIL")
         verdict += "".join(f"; failed: {failure}" for failure in expectations["failures"])
-    write_recording(
-        result, out_dir / RECORDING, records=records, start_s=start_s, logs=logs, verdict=verdict
-    )
+    recording: dict[str, Any] = {
+        "records": records,
+        "start_s": start_s,
+        "logs": logs,
+        "verdict": verdict,
+    }
+    if recording_process is not None:
+        recording_process.submit(result, out_dir / RECORDING, **recording)
+    write_atomic(out_dir / "timeseries.csv", timeseries_csv(result))
+    if recording_process is None:
+        write_recording(result, out_dir / RECORDING, **recording)
     if result.runs > 1:
         write_atomic(out_dir / "batch.csv", batch_csv(result))
+    if recording_process is not None:
+        recording_process.collect(result, out_dir / RECORDING)
     if drawing is not None:
         document["figures"] = drawing.collect(result, out_dir)
     elif figures:
@@ -571,6 +581,7 @@ class RunSummary:
         logs: Sequence[LogLine] = (),
         bus_security: Mapping[str, Any] | None = None,
         figure_process: FigureProcess | None = None,
+        recording_process: RecordingProcess | None = None,
     ) -> dict[str, Any]:
         """:func:`write_results` into this run's folder; returns the summary dict."""
         self.document = write_results(
@@ -585,6 +596,7 @@ class RunSummary:
             logs=logs,
             bus_security=bus_security,
             figure_process=figure_process,
+            recording_process=recording_process,
         )
         return self.document
 

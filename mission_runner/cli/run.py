@@ -47,7 +47,10 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def command(arguments: argparse.Namespace) -> int:
-    from ..figure_process import FigureProcess  # noqa: PLC0415 - fast `--help`
+    from ..figure_process import (  # noqa: PLC0415 - fast `--help`
+        FigureProcess,
+        RecordingProcess,
+    )
     from ..outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415 - fast `--help`
     from ..recording import LogCapture  # noqa: PLC0415 - fast `--help`
     from ..runner.mission import fly  # noqa: PLC0415 - fast `--help`
@@ -60,6 +63,7 @@ def command(arguments: argparse.Namespace) -> int:
     capture = LogCapture()
     with (
         FigureProcess() as figure_process,
+        RecordingProcess() as recording_process,
         RunSummary(out_dir, scenario, config_path=arguments.config) as record,
     ):
         last_step = scenario.timing.steps - 1
@@ -67,9 +71,11 @@ def command(arguments: argparse.Namespace) -> int:
         def on_step(vehicle_id: int, step: StepRecord) -> None:
             record.steps_done = max(record.steps_done, step.step + 1)
             capture.stamp(step.time_s)
-            if step.step == last_step and not arguments.no_figures:
-                # matplotlib's import while the vehicles land (paced: the CPU has time then)
-                figure_process.start()
+            if step.step == last_step:
+                # The workers' imports while the vehicles land (paced: the CPU has time then)
+                recording_process.start()
+                if not arguments.no_figures:
+                    figure_process.start()
 
         step_callbacks: list[Callable[[int, StepRecord], None]] = [on_step]
         progress_callbacks: list[Callable[[Progress], None]] = [view] if view is not None else []
@@ -100,6 +106,7 @@ def command(arguments: argparse.Namespace) -> int:
             logs=capture.lines,
             bus_security=outcome.bus_security,
             figure_process=None if arguments.no_figures else figure_process,
+            recording_process=recording_process,
         )
     if not arguments.quiet:
         _print_flight(scenario, document, outcome, out_dir)
