@@ -592,9 +592,12 @@ async def _land_everyone(
 
 async def _enter_offboard(vehicle: MavsdkVehicle, altitude_m: float) -> None:
     """OFFBOARD, then the climb to the vehicle's own altitude (its controller's altitude hold):
-    ranges are 3-D, and a height difference cancels out of the estimator only while constant."""
+    ranges are 3-D, and a height difference cancels out of the estimator only while constant.
+    Then the streams nobody reads stop, as in a vehicle process (each message costs the
+    autopilot's encoding, MAVSDK's parsing and, in lockstep, this process's time)."""
     await vehicle.start_offboard()
     await vehicle.wait_altitude(altitude_m)
+    await vehicle.quiet_unread_streams()
 
 
 async def _prepare(
