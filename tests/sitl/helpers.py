@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import math
 import random
 from collections.abc import Callable, Iterator
@@ -368,9 +369,13 @@ class RawClient:
         *params: float,
         timeout_s: float = 5.0,
         target_component: int = 1,
+        retry_s: float = 1.0,
     ) -> int:
+        """COMMAND_LONG ``command`` and the result of its COMMAND_ACK. Like every MAVLink
+        client (MAVSDK, QGroundControl), it sends the command again, confirmation counted up,
+        while no ACK has come within ``retry_s``: a datagram may be lost (UDP on a loaded
+        machine drops what a full socket buffer cannot take)."""
         p = [*params, *([0.0] * (7 - len(params)))]
-        msg = mavlink.MAVLink_command_long_message(sysid, target_component, command, 0, *p)
         with self.matching(
             lambda m: (
                 m.get_type() == "COMMAND_ACK"
@@ -378,9 +383,16 @@ class RawClient:
                 and m.get_srcSystem() == sysid
             )
         ) as ack:
-            self.send(msg, sysid)
-            reply = await asyncio.wait_for(ack, timeout_s)
-        return reply.result
+            async with asyncio.timeout(timeout_s):
+                for confirmation in itertools.count():
+                    msg = mavlink.MAVLink_command_long_message(
+                        sysid, target_component, command, min(confirmation, 255), *p
+                    )
+                    self.send(msg, sysid)
+                    done, _ = await asyncio.wait([ack], timeout=retry_s)
+                    if done:
+                        break
+        return ack.result().result
 
     def heartbeat(self, sysid: int = 1) -> None:
         self.send(mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3), sysid)
