@@ -117,10 +117,11 @@ class DaskExecutor:
         except BaseException:
             self._close()
             raise
-        log.info(
-            "runs on the Dask cluster at %s",
-            self.address if self.cluster is None else self.cluster.scheduler_address,
-        )
+        scheduler = self.address if self.cluster is None else self.cluster.scheduler_address
+        workers = len(self._client.scheduler_info().get("workers", {}))
+        log.info("runs on the Dask cluster at %s (%d workers)", scheduler, workers)
+        if workers == 0:  # not an error: workers may join later, and the runs wait for them
+            log.warning("the scheduler at %s has no workers yet: the runs wait for one", scheduler)
         return self
 
     def __exit__(
