@@ -103,6 +103,9 @@ class DaskExecutor:
                     threads_per_worker=1,
                     processes=True,
                     dashboard_address=":0",  # a free port: 8787 may be taken
+                    # Its workers log heartbeats lost at Ctrl-C as tracebacks; a run's own
+                    # failure comes back as a RunError naming it, so they have nothing to add.
+                    silence_logs=logging.CRITICAL,
                 )
             self._client = distributed.Client(
                 self.cluster or self.address, timeout=self.timeout_s, set_as_default=False
