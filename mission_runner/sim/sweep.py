@@ -5,6 +5,8 @@ A path is the YAML path a user edits (``algorithm.forgetting_factor``,
 ``vehicles[0].speed_limit_m_s``, ``vehicles[*].speed_limit_m_s`` for every vehicle); a value is
 read as YAML (``0.98``, ``ekf``, ``null``). Each combination is validated like a scenario file,
 so a bad value is reported at its path before anything runs.
+Each combination is then one pure function call (:func:`combination_metrics`), run here or on a
+Dask cluster by an executor (``executors.py``).
 """
 
 from __future__ import annotations
