@@ -7,6 +7,9 @@ Exception tree::
     ├── OutputError          an output folder cannot be used (a file, not writable)
     ├── SimulationError      the numeric simulator cannot run a valid scenario (e.g. all
     │                        target-sensing vehicles lost)
+    ├── RunError             one run of a sweep failed, here or on a cluster's worker (names the
+    │                        run: its parameters and seed; the run's own error is its cause)
+    ├── ClusterError         a Dask cluster cannot be reached or started (names the address)
     └── ReplayError          a folder cannot be replayed (no recording, or no truth to draw)
 """
 
@@ -36,6 +39,26 @@ class OutputError(MissionRunnerError):
 
 class SimulationError(MissionRunnerError):
     """A valid scenario reached a state the simulator cannot continue from."""
+
+
+class RunError(MissionRunnerError):
+    """One run of a sweep failed. ``run`` names it (the combination's values and seed);
+    ``__cause__`` is the run's own error, raised where it ran (here or on a worker)."""
+
+    def __init__(self, run: str, error: BaseException) -> None:
+        self.run = run
+        self.error = error
+        super().__init__(f"{run}: {type(error).__name__}: {error}")
+
+    @property
+    def bad_input(self) -> bool:
+        """Whether the run failed on a scenario it cannot run (an error of ours), not a fault."""
+        return isinstance(self.error, MissionRunnerError)
+
+
+class ClusterError(MissionRunnerError):
+    """A Dask cluster cannot be reached or started; the message names the address and what to
+    check."""
 
 
 class ReplayError(MissionRunnerError):

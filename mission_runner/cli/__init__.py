@@ -47,7 +47,7 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from ..errors import MissionRunnerError, leaf_errors
+from ..errors import ClusterError, MissionRunnerError, RunError, leaf_errors
 from .common import (
     EXIT_BAD_INPUT,
     EXIT_EXPECTATION_FAILED,
@@ -93,6 +93,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except emulator_errors() as error:  # e.g. a port already taken: one line naming the setting
         print(f"error: {error}", file=sys.stderr)
         return EXIT_RUNTIME_FAILURE
+    except ClusterError as error:  # no scheduler at the address: one line naming it
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_RUNTIME_FAILURE
+    except RunError as error:  # a sweep's run failed, here or on a worker: which, and why
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT if error.bad_input else EXIT_RUNTIME_FAILURE
     except MissionRunnerError as error:
         print(f"error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT

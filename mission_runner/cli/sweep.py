@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import argparse
-import math
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .. import argtypes
 from .common import EXIT_BAD_INPUT, EXIT_OK
 from .output import ProgressBar
+
+if TYPE_CHECKING:
+    from ..metrics import SweepPoint
 
 
 def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -38,6 +41,27 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     sweeper.add_argument(
         "--out", type=Path, default=None, help="output folder (default: out/<name>-sweep)"
     )
+    sweeper.add_argument(
+        "--cluster",
+        default=None,
+        metavar="ADDRESS",
+        help="where the combinations run: a Dask scheduler (tcp://host:8786), 'local' (a Dask "
+        "LocalCluster on this machine) or 'none' (here, one after another); default: a "
+        "LocalCluster for 4000 simulator steps in all or more when Dask is installed, else here",
+    )
+    sweeper.add_argument(
+        "--workers",
+        type=argtypes.positive_int,
+        default=None,
+        help="a LocalCluster's worker processes (default: the cores, at most the combinations)",
+    )
+    sweeper.add_argument(
+        "--connect-timeout",
+        type=argtypes.positive_float,
+        default=10.0,
+        metavar="S",
+        help="how long a --cluster scheduler has to answer (default 10 s)",
+    )
     sweeper.add_argument("--no-figures", action="store_true", help="skip sweep.png")
     sweeper.add_argument("--quiet", action="store_true", help="no progress, no table")
     sweeper.set_defaults(handler=command)
@@ -55,13 +79,12 @@ def _axis(text: str) -> Any:
 
 
 def command(arguments: argparse.Namespace) -> int:
-    import numpy as np  # noqa: PLC0415 - fast `--help`
-
     from ..checks import load_scenario  # noqa: PLC0415 - fast `--help`
     from ..config import METRICS  # noqa: PLC0415 - fast `--help`
     from ..outputs import prepare_out_dir  # noqa: PLC0415 - fast `--help`
     from ..paths import write_atomic  # noqa: PLC0415 - fast `--help`
-    from ..sim.sweep import sweep, sweep_csv  # noqa: PLC0415 - fast `--help`
+    from ..sim.executors import open_executor  # noqa: PLC0415 - fast `--help`
+    from ..sim.sweep import combinations, run_sweep, sweep_csv  # noqa: PLC0415 - fast `--help`
 
     if arguments.metric not in METRICS:
         print(f"error: --metric must be one of {', '.join(METRICS)}", file=sys.stderr)
@@ -70,16 +93,14 @@ def command(arguments: argparse.Namespace) -> int:
     out_dir = prepare_out_dir(
         arguments.out or Path("out") / f"{scenario.name}-sweep", ("sweep.csv", "sweep.png")
     )
-    total = math.prod(len(axis.values) for axis in arguments.axes)
-    progress = ProgressBar(total, arguments.quiet, f"{scenario.name} sweep")
+    found = combinations(scenario, arguments.axes, arguments.runs, source=str(arguments.config))
+    steps = sum(combination.steps for combination in found)
+    progress = ProgressBar(len(found), arguments.quiet, f"{scenario.name} sweep")
     try:
-        points = sweep(
-            scenario,
-            arguments.axes,
-            arguments.runs,
-            source=str(arguments.config),
-            on_point=progress.update_to,
-        )
+        with open_executor(
+            arguments.cluster, arguments.workers, steps, len(found), arguments.connect_timeout
+        ) as executor:
+            points = run_sweep(found, executor, on_point=progress.update_to)
     finally:
         progress.close()
     write_atomic(out_dir / "sweep.csv", sweep_csv(points))
@@ -88,11 +109,19 @@ def command(arguments: argparse.Namespace) -> int:
 
         write_sweep_figure(points, arguments.metric, out_dir / "sweep.png")
     if not arguments.quiet:
-        print(f"{arguments.metric}: median [p5, p95] over {arguments.runs} runs")
-        for point in points:
-            values = np.asarray(point.metrics[arguments.metric], dtype=float)
-            low, median, high = np.percentile(values, [5, 50, 95])
-            label = ", ".join(f"{path}={value}" for path, value in point.values.items())
-            print(f"  {label}: {median:.4g} [{low:.4g}, {high:.4g}]")
+        print(_table(points, arguments.metric, arguments.runs))
         print(f"results in {out_dir}/ (sweep.csv{'' if arguments.no_figures else ', sweep.png'})")
     return EXIT_OK
+
+
+def _table(points: Sequence[SweepPoint], metric: str, runs: int) -> str:
+    """``metric``'s median and 5-95 % range per combination, a line each."""
+    import numpy as np  # noqa: PLC0415 - fast `--help`
+
+    lines = [f"{metric}: median [p5, p95] over {runs} runs"]
+    for point in points:
+        values = np.asarray(point.metrics[metric], dtype=float)
+        low, median, high = np.percentile(values, [5, 50, 95])
+        label = ", ".join(f"{path}={value}" for path, value in point.values.items())
+        lines.append(f"  {label}: {median:.4g} [{low:.4g}, {high:.4g}]")
+    return "\n".join(lines)

@@ -5,6 +5,8 @@ A path is the YAML path a user edits (``algorithm.forgetting_factor``,
 ``vehicles[0].speed_limit_m_s``, ``vehicles[*].speed_limit_m_s`` for every vehicle); a value is
 read as YAML (``0.98``, ``ekf``, ``null``). Each combination is validated like a scenario file,
 so a bad value is reported at its path before anything runs.
+Each combination is then one pure function call (:func:`combination_metrics`), run here or on a
+Dask cluster by an executor (``executors.py``).
 """
 
 from __future__ import annotations
@@ -20,11 +22,13 @@ from typing import Any
 
 import numpy as np
 import yaml
+from numpy.typing import NDArray
 
 from ..checks import validate_scenario
 from ..config import Scenario
 from ..errors import ConfigError
 from ..metrics import SweepPoint, run_metrics
+from .executors import Executor, InProcess
 from .simulator import check_memory, simulate
 
 _PART = re.compile(r"([^.\[\]]+)|\[(\d+|\*)\]")
@@ -90,19 +94,29 @@ def set_path(data: dict[str, Any], path: str, value: Any) -> None:
     walk(data, parts)
 
 
-def sweep(
-    scenario: Scenario,
-    axes: Sequence[Axis],
-    runs: int,
-    source: str = "<scenario>",
-    on_point: Callable[[int, int], None] | None = None,
-) -> list[SweepPoint]:
-    """Simulate every combination of ``axes`` values ``runs`` times. Every combination is
-    validated first (a :class:`ConfigError` names the path and the combination)."""
+@dataclass(frozen=True)
+class Combination:
+    """One combination of a sweep's values, ready to run: the validated scenario and how many
+    runs to batch. What it computes depends on nothing else (the seed is in the scenario)."""
+
+    values: dict[str, Any]
+    scenario: Scenario
+    runs: int
+    name: str  # its file, values and seed, for an error about it
+
+    @property
+    def steps(self) -> int:
+        return self.scenario.timing.steps
+
+
+def combinations(
+    scenario: Scenario, axes: Sequence[Axis], runs: int, source: str = "<scenario>"
+) -> list[Combination]:
+    """Every combination of ``axes`` values applied to ``scenario``, each validated as a file
+    would be (a :class:`ConfigError` names the path and the combination) and its memory checked."""
     base = scenario.model_dump(mode="json")
-    combinations = list(itertools.product(*(axis.values for axis in axes)))
-    scenarios = []
-    for combination in combinations:
+    found = []
+    for combination in itertools.product(*(axis.values for axis in axes)):
         data = copy.deepcopy(base)
         values = {axis.path: value for axis, value in zip(axes, combination, strict=True)}
         for path, value in values.items():
@@ -110,16 +124,44 @@ def sweep(
                 set_path(data, path, value)
             except KeyError as error:
                 raise ConfigError(source, [(path, str(error.args[0]))]) from None
-        label = ", ".join(f"{path}={value}" for path, value in values.items())
-        point = validate_scenario(data, f"{source} with {label}")
+        label = f"{source} with " + ", ".join(f"{path}={value}" for path, value in values.items())
+        point = validate_scenario(data, label)
         check_memory(point, runs, source)
-        scenarios.append((values, point))
-    points = []
-    for index, (values, point) in enumerate(scenarios):
-        points.append(SweepPoint(values, run_metrics(simulate(point, runs=runs))))
-        if on_point is not None:
-            on_point(index + 1, len(scenarios))
-    return points
+        found.append(Combination(values, point, runs, f"{label} (seed {point.seed})"))
+    return found
+
+
+def combination_metrics(combination: Combination) -> dict[str, NDArray[Any]]:
+    """Every metric of ``combination``'s runs, ``{name: (runs,)}``: a pure function of it, so
+    that a worker elsewhere computes what this process would."""
+    return run_metrics(simulate(combination.scenario, runs=combination.runs))
+
+
+def run_sweep(
+    found: Sequence[Combination],
+    executor: Executor | None = None,
+    on_point: Callable[[int, int], None] | None = None,
+) -> list[SweepPoint]:
+    """Simulate every combination on ``executor`` (default: here, one after another); the
+    points come in ``found``'s order wherever and in whatever order they ran."""
+    metrics = (executor or InProcess()).map_in_order(
+        combination_metrics, found, [c.name for c in found], on_point
+    )
+    return [SweepPoint(c.values, m) for c, m in zip(found, metrics, strict=True)]
+
+
+def sweep(
+    scenario: Scenario,
+    axes: Sequence[Axis],
+    runs: int,
+    source: str = "<scenario>",
+    *,
+    on_point: Callable[[int, int], None] | None = None,
+    executor: Executor | None = None,
+) -> list[SweepPoint]:
+    """Simulate every combination of ``axes`` values ``runs`` times. Every combination is
+    validated first (a :class:`ConfigError` names the path and the combination)."""
+    return run_sweep(combinations(scenario, axes, runs, source), executor, on_point)
 
 
 def sweep_csv(points: Sequence[SweepPoint]) -> str:
