@@ -355,85 +355,13 @@ class Emulator:
 
     def _build_world(self) -> None:
         config = self.config
-        n = config.vehicles
-        start = np.zeros((n, 3))
-        yaw = np.zeros(n)
-        placement = config.placement
-        for i in range(n):
-            if i < len(placement.positions):
-                p = placement.positions[i]
-                start[i] = (p.north_m, p.east_m, 0.0)
-                yaw[i] = math.radians(p.yaw_deg)
-            else:
-                k = i - len(placement.positions)
-                row, col = divmod(k, placement.grid_columns)
-                start[i] = (row * placement.grid_spacing_m, col * placement.grid_spacing_m, 0.0)
-        wind_cfg = config.wind
-        wind = ph.Wind(
-            n,
-            (wind_cfg.north_m_s, wind_cfg.east_m_s, 0.0),
-            wind_cfg.gust_std_m_s,
-            wind_cfg.gust_time_constant_s,
-            rng=np.random.default_rng([config.seed, 0x317D]),
-        )
-        self._physics = ph.MulticopterPhysics(
-            start,
-            yaw,
-            time_constant_s=config.physics.velocity_time_constant_s,
-            position_gain_1_s=config.physics.position_gain_1_s,
-            wind=wind if wind.active else None,
-            wind_rejection_time_s=wind_cfg.rejection_time_s,
-            drag_1_s=wind_cfg.drag_1_s,
-            airspeed_drag_1_s=config.physics.airspeed_drag_1_s,
-            velocity_integral_gain_1_s2=config.physics.velocity_integral_gain_1_s2,
-            tilt_time_constant_s=config.physics.tilt_time_constant_s,
-        )
-        odo = config.odometry
-        self._odometry = Odometry(
-            start,
-            position_noise_std_m=odo.position_noise_std_m,
-            velocity_noise_std_m_s=odo.velocity_noise_std_m_s,
-            drift_bias_std_m_s=odo.drift_bias_std_m_s,
-            drift_random_walk_m_s_per_sqrt_s=odo.drift_random_walk_m_s_per_sqrt_s,
-            seed=config.seed,
-        )
-        gps = config.gps_error
-        self._gnss = GnssError(
-            n,
-            bias_std_m=gps.bias_std_m,
-            bias_time_constant_s=gps.bias_time_constant_s,
-            noise_std_m=gps.noise_std_m,
-            rng=np.random.default_rng([config.seed, 0x6E55]),
-        )
-        self._boot_offsets_s = self._boot_offsets(n)
+        start, yaw = _start_poses(config)
+        self._physics = _physics_model(config, start, yaw)
+        self._odometry = _odometry_model(config, start)
+        self._gnss = _gnss_model(config)
+        self._boot_offsets_s = self._boot_offsets(config.vehicles)
         self._snapshot.refresh(self._physics, self._odometry, self._gnss)
-        unix_time_us = None
-        if config.clock.unix_time == "host" and self.clock.mode == "realtime":
-            # PX4's SYSTEM_TIME reads the host's clock (CLOCK_REALTIME) when it sends.
-            def unix_time_us(now_s: float) -> int:
-                return int(time.time() * 1e6)
-
-        self._autopilots = [
-            Px4Autopilot(
-                i,
-                physics=self._physics,
-                odometry=self._odometry,
-                snapshot=self._snapshot,
-                projection=self.projection,
-                ground_amsl_m=config.home.altitude_amsl_m,
-                param_overrides=config.params,
-                preflight_ready_after_s=config.preflight_ready_after_s,
-                battery_drain_percent_per_min=config.battery_drain_percent_per_min,
-                unix_time_us=unix_time_us,
-                boot_offset_s=float(self._boot_offsets_s[i]),
-                ftp_ardupilot_extensions=config.ftp.ardupilot_extensions,
-                flight_logs=config.flight_logs,
-            )
-            for i in range(n)
-        ]
-        for ap in self._autopilots:
-            ap.on_statustext = self._statustext_observer(ap.index)
-            ap.telemetry.truth_fields = config.truth_stream.fields
+        self._autopilots = self._build_autopilots(self._physics, self._odometry)
         initial_key = config.signing.initial_key()
         self._signing = [
             VehicleSigning(
@@ -447,6 +375,41 @@ class Emulator:
         ]
         for fault in config.faults:
             self._schedule_fault(fault)
+
+    def _build_autopilots(
+        self, physics: ph.MulticopterPhysics, odometry: Odometry
+    ) -> list[Px4Autopilot]:
+        """One autopilot per vehicle on the shared physics, odometry and snapshot, each on its
+        boot clock, its STATUSTEXTs observed by the emulator."""
+        config = self.config
+        unix_time_us = None
+        if config.clock.unix_time == "host" and self.clock.mode == "realtime":
+            # PX4's SYSTEM_TIME reads the host's clock (CLOCK_REALTIME) when it sends.
+            def unix_time_us(now_s: float) -> int:
+                return int(time.time() * 1e6)
+
+        autopilots = [
+            Px4Autopilot(
+                i,
+                physics=physics,
+                odometry=odometry,
+                snapshot=self._snapshot,
+                projection=self.projection,
+                ground_amsl_m=config.home.altitude_amsl_m,
+                param_overrides=config.params,
+                preflight_ready_after_s=config.preflight_ready_after_s,
+                battery_drain_percent_per_min=config.battery_drain_percent_per_min,
+                unix_time_us=unix_time_us,
+                boot_offset_s=float(self._boot_offsets_s[i]),
+                ftp_ardupilot_extensions=config.ftp.ardupilot_extensions,
+                flight_logs=config.flight_logs,
+            )
+            for i in range(config.vehicles)
+        ]
+        for ap in autopilots:
+            ap.on_statustext = self._statustext_observer(ap.index)
+            ap.telemetry.truth_fields = config.truth_stream.fields
+        return autopilots
 
     def _boot_offsets(self, n: int) -> npt.NDArray[np.float64]:
         boot = self.config.boot_clock
@@ -1010,6 +973,78 @@ class Emulator:
             action()
 
         heapq.heappush(self._schedule, (at_s, next(self._schedule_ids), what, logged))
+
+
+def _start_poses(
+    config: EmulatorConfig,
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Where the vehicles stand at start: NED positions (n, 3) [m] on the ground and yaws (n,)
+    [rad]; the configured placements first, the rest on the grid."""
+    n = config.vehicles
+    start = np.zeros((n, 3))
+    yaw = np.zeros(n)
+    placement = config.placement
+    for i in range(n):
+        if i < len(placement.positions):
+            p = placement.positions[i]
+            start[i] = (p.north_m, p.east_m, 0.0)
+            yaw[i] = math.radians(p.yaw_deg)
+        else:
+            k = i - len(placement.positions)
+            row, col = divmod(k, placement.grid_columns)
+            start[i] = (row * placement.grid_spacing_m, col * placement.grid_spacing_m, 0.0)
+    return start, yaw
+
+
+def _physics_model(
+    config: EmulatorConfig, start: npt.NDArray[np.float64], yaw: npt.NDArray[np.float64]
+) -> ph.MulticopterPhysics:
+    """The vehicles' kinematic model from ``config.physics`` and ``config.wind`` (seeded)."""
+    wind_cfg = config.wind
+    wind = ph.Wind(
+        config.vehicles,
+        (wind_cfg.north_m_s, wind_cfg.east_m_s, 0.0),
+        wind_cfg.gust_std_m_s,
+        wind_cfg.gust_time_constant_s,
+        rng=np.random.default_rng([config.seed, 0x317D]),
+    )
+    return ph.MulticopterPhysics(
+        start,
+        yaw,
+        time_constant_s=config.physics.velocity_time_constant_s,
+        position_gain_1_s=config.physics.position_gain_1_s,
+        wind=wind if wind.active else None,
+        wind_rejection_time_s=wind_cfg.rejection_time_s,
+        drag_1_s=wind_cfg.drag_1_s,
+        airspeed_drag_1_s=config.physics.airspeed_drag_1_s,
+        velocity_integral_gain_1_s2=config.physics.velocity_integral_gain_1_s2,
+        tilt_time_constant_s=config.physics.tilt_time_constant_s,
+    )
+
+
+def _odometry_model(config: EmulatorConfig, start: npt.NDArray[np.float64]) -> Odometry:
+    """The vehicles' odometry (noise and drift of ``config.odometry``, seeded)."""
+    odo = config.odometry
+    return Odometry(
+        start,
+        position_noise_std_m=odo.position_noise_std_m,
+        velocity_noise_std_m_s=odo.velocity_noise_std_m_s,
+        drift_bias_std_m_s=odo.drift_bias_std_m_s,
+        drift_random_walk_m_s_per_sqrt_s=odo.drift_random_walk_m_s_per_sqrt_s,
+        seed=config.seed,
+    )
+
+
+def _gnss_model(config: EmulatorConfig) -> GnssError:
+    """The vehicles' GPS error (``config.gps_error``, seeded)."""
+    gps = config.gps_error
+    return GnssError(
+        config.vehicles,
+        bias_std_m=gps.bias_std_m,
+        bias_time_constant_s=gps.bias_time_constant_s,
+        noise_std_m=gps.noise_std_m,
+        rng=np.random.default_rng([config.seed, 0x6E55]),
+    )
 
 
 def _armed_flag(ap: Px4Autopilot) -> Callable[[], bool]:
