@@ -41,7 +41,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -461,82 +461,87 @@ class Emulator:
             self._tlogs.append(tlog)
 
     async def _bind_all(self) -> None:
-        loop = asyncio.get_running_loop()
-        config = self.config
-        ports = config.ports
-        phase_step = self._dt_s
-        # Like PX4's custom-mode MAVLink instance on SIH's port: HEARTBEAT and the ground truth.
-        truth_rates = StreamRates(
-            **{
-                **dict.fromkeys(StreamRates.model_fields, 0.0),
-                "heartbeat_hz": 1.0,
-                "hil_state_quaternion_hz": config.truth_stream.rate_hz,
-            }
-        )
+        truth_rates = _truth_stream_rates(self.config)
+        # Spread the vehicles' telemetry over the steps of a 0.1 s period.
+        phases = max(round(0.1 / self._dt_s), 1)
         for ap in self._autopilots:
             i = ap.index
-            tlog = self._tlogs[i] if self._tlogs else None
-            # Spread the vehicles' telemetry over the steps of a 0.1 s period.
-            phase = (i % max(round(0.1 / phase_step), 1)) * phase_step
-            specs = [
-                (
-                    "api",
-                    ports.api_local_port(i, config.vehicles),
-                    (ports.remote_host, ports.api_remote_port(i)),
-                    config.telemetry.api,
-                    "ports.api_local_base (--api-local-port-base)",
-                )
-            ]
-            if ports.gcs_enabled:
-                specs.append(
-                    (
-                        "gcs",
-                        ports.gcs_local_port(i),
-                        (ports.remote_host, ports.gcs_remote_port),
-                        config.telemetry.gcs,
-                        "ports.gcs_local_base (--gcs-port-base)",
-                    )
-                )
-            truth = config.truth_stream
-            if truth.enabled:
-                specs.append(
-                    (
-                        "truth",
-                        truth.local_base + i,
-                        (ports.remote_host, truth.remote_base + i),
-                        truth_rates,
-                        "truth_stream.local_base (--truth-port-base)",
-                    )
-                )
             links: list[VehicleLink] = []
-            for name, local_port, remote, rates, setting in specs:
-                link = VehicleLink(
-                    name,
-                    sysid=ap.sysid,
-                    local_port=local_port,
-                    remote_address=remote,
-                    rates=rates,
-                    deliver=self._deliver_to(ap),
-                    stream_phase_s=phase,
-                    step_s=self._dt_s,
-                    # 25 Hz of ground truth would swamp the tlogs; PX4 logs none of it either.
-                    tlog=tlog if name != "truth" else None,
-                    now_us=self._tlog_time_us,
-                    signing=self._signing[i],
-                )
-                try:
-                    await loop.create_datagram_endpoint(
-                        functools.partial(_protocol, link), local_addr=(ports.bind_host, local_port)
-                    )
-                except OSError as exc:
-                    if exc.errno in (errno.EADDRINUSE, errno.EACCES):
-                        raise PortInUseError(local_port, setting, i, exc.strerror or "") from exc
-                    raise
+            for spec in self._link_specs(i, truth_rates):
+                link = await self._bind_link(ap, spec, stream_phase_s=(i % phases) * self._dt_s)
                 links.append(link)
                 self._all_links.append(link)
             self._links.append(links)
             ap.links = list(links)
             ap.link_switch = self._mavlink_signal_switch(i)
+
+    def _link_specs(self, index: int, truth_rates: StreamRates) -> list[_LinkSpec]:
+        """Vehicle ``index``'s links: the API's, the ground station's and the ground truth's
+        where enabled."""
+        config = self.config
+        ports = config.ports
+        specs = [
+            _LinkSpec(
+                "api",
+                ports.api_local_port(index, config.vehicles),
+                (ports.remote_host, ports.api_remote_port(index)),
+                config.telemetry.api,
+                "ports.api_local_base (--api-local-port-base)",
+            )
+        ]
+        if ports.gcs_enabled:
+            specs.append(
+                _LinkSpec(
+                    "gcs",
+                    ports.gcs_local_port(index),
+                    (ports.remote_host, ports.gcs_remote_port),
+                    config.telemetry.gcs,
+                    "ports.gcs_local_base (--gcs-port-base)",
+                )
+            )
+        truth = config.truth_stream
+        if truth.enabled:
+            specs.append(
+                _LinkSpec(
+                    "truth",
+                    truth.local_base + index,
+                    (ports.remote_host, truth.remote_base + index),
+                    truth_rates,
+                    "truth_stream.local_base (--truth-port-base)",
+                )
+            )
+        return specs
+
+    async def _bind_link(
+        self, ap: Px4Autopilot, spec: _LinkSpec, *, stream_phase_s: float
+    ) -> VehicleLink:
+        """``ap``'s link ``spec`` on its UDP port; PortInUseError names the setting to change."""
+        i = ap.index
+        tlog = self._tlogs[i] if self._tlogs else None
+        link = VehicleLink(
+            spec.name,
+            sysid=ap.sysid,
+            local_port=spec.local_port,
+            remote_address=spec.remote,
+            rates=spec.rates,
+            deliver=self._deliver_to(ap),
+            stream_phase_s=stream_phase_s,
+            step_s=self._dt_s,
+            # 25 Hz of ground truth would swamp the tlogs; PX4 logs none of it either.
+            tlog=tlog if spec.name != "truth" else None,
+            now_us=self._tlog_time_us,
+            signing=self._signing[i],
+        )
+        try:
+            await asyncio.get_running_loop().create_datagram_endpoint(
+                functools.partial(_protocol, link),
+                local_addr=(self.config.ports.bind_host, spec.local_port),
+            )
+        except OSError as exc:
+            if exc.errno in (errno.EADDRINUSE, errno.EACCES):
+                raise PortInUseError(spec.local_port, spec.setting, i, exc.strerror or "") from exc
+            raise
+        return link
 
     def _mavlink_signal_switch(self, index: int) -> Callable[[bool], None]:
         """The mavlink_signal failure of vehicle ``index``: all of its links, from the next
@@ -973,6 +978,28 @@ class Emulator:
             action()
 
         heapq.heappush(self._schedule, (at_s, next(self._schedule_ids), what, logged))
+
+
+class _LinkSpec(NamedTuple):
+    """One UDP link of a vehicle: its name, local port, remote (host, port), the streams it
+    sends, and the setting that moves its port (for a port already in use)."""
+
+    name: str
+    local_port: int
+    remote: tuple[str, int]
+    rates: StreamRates
+    setting: str
+
+
+def _truth_stream_rates(config: EmulatorConfig) -> StreamRates:
+    """Like PX4's custom-mode MAVLink instance on SIH's port: HEARTBEAT and the ground truth."""
+    return StreamRates(
+        **{
+            **dict.fromkeys(StreamRates.model_fields, 0.0),
+            "heartbeat_hz": 1.0,
+            "hil_state_quaternion_hz": config.truth_stream.rate_hz,
+        }
+    )
 
 
 def _start_poses(
