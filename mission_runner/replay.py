@@ -131,21 +131,31 @@ def _track_from_tables(out_dir: Path) -> Track:
 
 
 def _track_from_recording(path: Path) -> Track:
-    metrics: dict[int, dict[str, Any]] = {}
     messages = list(read_recording(path))
-    for message in messages:
-        if message.topic == "/mission/metrics":
-            metrics[message.log_time_ns] = message.message
-    if not metrics:
+    step_of = {
+        message.log_time_ns: message.message["step"]
+        for message in messages
+        if message.topic == "/mission/metrics"
+    }
+    if not step_of:
         raise ReplayError(f"{path} has no /mission/metrics: not a mission's recording")
-    step_of = {time_ns: document["step"] for time_ns, document in metrics.items()}
-    steps = max(step_of.values())
     ids = sorted({int(m.topic.split("/")[2]) for m in messages if m.topic.startswith("/vehicles/")})
-    column = {vehicle_id: index for index, vehicle_id in enumerate(ids)}
-    slot_of = {0: 0, **{vehicle_id: index + 1 for index, vehicle_id in enumerate(ids)}}
-    n, samples = len(ids), steps + 1
-    track = Track(
-        name=recording_metadata(path).get("scenario", {}).get("name", path.parent.name),
+    name = recording_metadata(path).get("scenario", {}).get("name", path.parent.name)
+    builder = _TrackBuilder(_empty_track(name, ids, max(step_of.values()) + 1))
+    for message in messages:
+        k = step_of.get(message.log_time_ns)
+        if k is not None:
+            builder.add(k, message.topic, message.message)
+    if np.isnan(builder.track.positions_m).all():
+        raise ReplayError(f"{path} has no true positions to draw (a vehicle process's own?)")
+    return builder.finish()
+
+
+def _empty_track(name: str, ids: list[int], samples: int) -> Track:
+    """A track of ``samples`` samples of the vehicles ``ids``, nothing known yet."""
+    n = len(ids)
+    return Track(
+        name=name,
         vehicle_ids=ids,
         times_s=np.full(samples, np.nan),
         target_m=np.full((samples, 2), np.nan),
@@ -159,13 +169,22 @@ def _track_from_recording(path: Path) -> Track:
         localization_error_m=np.full(samples, np.nan),
         phase_spacing_error_rad=np.full(samples, np.nan),
     )
-    circles: dict[int, NDArray[np.float64]] = {}
-    relative: list[tuple[int, int, int, float, float]] = []
-    for message in messages:
-        k = step_of.get(message.log_time_ns)
-        if k is None:
-            continue
-        topic, body = message.topic, message.message
+
+
+class _TrackBuilder:
+    """Fills a :class:`Track` from a recording's messages, each at its step k: what depends on
+    other messages of the step (estimates need the true position; the circle's size is known
+    at the first) is kept until :meth:`finish`."""
+
+    def __init__(self, track: Track) -> None:
+        self.track = track
+        self._column = {vehicle_id: index for index, vehicle_id in enumerate(track.vehicle_ids)}
+        self._slot_of = {0: 0, **{vehicle_id: i + 1 for vehicle_id, i in self._column.items()}}
+        self._circles: dict[int, NDArray[np.float64]] = {}
+        self._relative: list[tuple[int, int, int, float, float]] = []
+
+    def add(self, k: int, topic: str, body: Any) -> None:
+        track = self.track
         if topic == "/mission/metrics":
             track.times_s[k] = body["time_s"]
             track.tracking_error_m[k] = _number(body["tracking_error_m"])
@@ -176,37 +195,42 @@ def _track_from_recording(path: Path) -> Track:
         elif topic == "/formation/scene":
             for entity in body.entities:
                 if entity.id == "circle" and entity.lines:
-                    circles[k] = np.array([(p.y, p.x) for p in entity.lines[0].points])
+                    self._circles[k] = np.array([(p.y, p.x) for p in entity.lines[0].points])
         elif topic.startswith("/vehicles/"):
-            vehicle_id, leaf = int(topic.split("/")[2]), topic.split("/")[3]
-            index = column[vehicle_id]
-            if leaf == "pose":
-                track.positions_m[k, index] = _north_east(body.pose.position)
-            elif leaf == "slot":
-                track.slots_m[k, index] = _north_east(body.pose.position)
-            elif leaf == "state":
-                track.states[k, index] = body["state"]
-                track.live[k, index] = body["live"]
-                for estimate in body["estimates"]:
-                    slot = slot_of.get(estimate["peer"])
-                    if slot is not None:
-                        relative.append((k, index, slot, estimate["north_m"], estimate["east_m"]))
-    if np.isnan(track.positions_m).all():
-        raise ReplayError(f"{path} has no true positions to draw (a vehicle process's own?)")
-    # A final sample without a state message keeps the step before's membership.
-    no_state = (track.states == "").all(axis=1)
-    for k in np.flatnonzero(no_state):
-        if k > 0:
-            track.live[k] = track.live[k - 1]
-    for k, index, slot, north, east in relative:
-        track.estimates_m[k, index, slot] = track.positions_m[k, index] - (north, east)
-    if circles:
-        points = len(next(iter(circles.values())))
-        track.circle_m = np.full((samples, points, 2), np.nan)
-        for k, circle in circles.items():
-            track.circle_m[k] = circle
-    track.states = track.states.astype(str)
-    return track
+            self._add_vehicle(k, topic, body)
+
+    def _add_vehicle(self, k: int, topic: str, body: Any) -> None:
+        track = self.track
+        vehicle_id, leaf = int(topic.split("/")[2]), topic.split("/")[3]
+        index = self._column[vehicle_id]
+        if leaf == "pose":
+            track.positions_m[k, index] = _north_east(body.pose.position)
+        elif leaf == "slot":
+            track.slots_m[k, index] = _north_east(body.pose.position)
+        elif leaf == "state":
+            track.states[k, index] = body["state"]
+            track.live[k, index] = body["live"]
+            for estimate in body["estimates"]:
+                slot = self._slot_of.get(estimate["peer"])
+                if slot is not None:
+                    self._relative.append((k, index, slot, estimate["north_m"], estimate["east_m"]))
+
+    def finish(self) -> Track:
+        track = self.track
+        # A final sample without a state message keeps the step before's membership.
+        no_state = (track.states == "").all(axis=1)
+        for k in np.flatnonzero(no_state):
+            if k > 0:
+                track.live[k] = track.live[k - 1]
+        for step, index, slot, north, east in self._relative:
+            track.estimates_m[step, index, slot] = track.positions_m[step, index] - (north, east)
+        if self._circles:
+            points = len(next(iter(self._circles.values())))
+            track.circle_m = np.full((len(track.times_s), points, 2), np.nan)
+            for step, circle in self._circles.items():
+                track.circle_m[step] = circle
+        track.states = track.states.astype(str)
+        return track
 
 
 class Replay:

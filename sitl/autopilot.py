@@ -106,7 +106,6 @@ class Px4Autopilot:
     ) -> None:
         self.index = index
         self.ground_amsl_m = ground_amsl_m
-        self.battery_drain_percent_per_min = battery_drain_percent_per_min
         self.unix_epoch_start_us = unix_epoch_start_us
         self._unix_time_us = unix_time_us
         self.boot_offset_s = float(boot_offset_s)
@@ -126,13 +125,28 @@ class Px4Autopilot:
         self.compid = self._vehicle.compid
         self.params.set_silently("MAV_SYS_ID", self.sysid)
         self.telemetry = TelemetryBuilder(self)
-        home_latitude_deg, _ = projection.to_global(*self._state.home_ned_m[:2])
-        self._earth_field_ned_gauss = imu.earth_field_ned_gauss(home_latitude_deg)
+        self._init_battery_and_sensors(battery_drain_percent_per_min)
+        self._init_flight_modes()
+        self._init_commander(preflight_ready_after_s)
+        self._init_flight_logs(flight_logs)
+        self._init_mavlink(ftp_ardupilot_extensions)
+        self._navigator.apply_limits()
+        self._commander.command_physics()
+
+    def _init_battery_and_sensors(self, battery_drain_percent_per_min: float) -> None:
+        """The battery (drained by :meth:`update`), the magnetometer's earth field at home and
+        the per-step cache of the global position."""
+        self.battery_drain_percent_per_min = battery_drain_percent_per_min
         self._battery_pct = 100.0
         self._last_update_s = 0.0
+        home_latitude_deg, _ = self._vehicle.projection.to_global(*self._state.home_ned_m[:2])
+        self._earth_field_ned_gauss = imu.earth_field_ned_gauss(home_latitude_deg)
         self._cache_step = -1
         self._cache_global: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
+    def _init_flight_modes(self) -> None:
+        """What flies each mode: offboard, the navigator's modes (and its mission), the stick
+        modes, orbit and follow target; the flight tasks pick the one of the mode in force."""
         vehicle = self._vehicle
         self._offboard = Offboard(vehicle)
         self._land_detector = LandDetector(vehicle)
@@ -142,10 +156,6 @@ class Px4Autopilot:
         stick_flight = StickFlight(vehicle, self._manual_control)
         self.orbit = Orbit(vehicle, set_mode=self._set_mode)
         self.follow_target = FollowTarget(vehicle)
-        #: External vision (ODOMETRY) received: how many, and the last. PX4 hands it to EKF2 when
-        #: EKF2_EV_CTRL asks; the emulator's odometry model does not fuse it (kept for checks).
-        self.external_vision_received = 0
-        self.external_vision: mavlink.MAVLink_odometry_message | None = None
         self._flight_tasks = FlightModeManager(
             vehicle,
             {
@@ -157,6 +167,11 @@ class Px4Autopilot:
                 FlightMode.FOLLOW_TARGET: self.follow_target,
             },
         )
+
+    def _init_commander(self, preflight_ready_after_s: float) -> None:
+        """The commander over the flight modes (arming, mode switches, failsafes), calibration
+        and failure injection."""
+        vehicle = self._vehicle
         self._commander = Commander(
             vehicle,
             navigator=self._navigator,
@@ -174,6 +189,9 @@ class Px4Autopilot:
             manual_control=self._manual_control,
             on_motors=self._motors_changed,
         )
+
+    def _init_flight_logs(self, flight_logs: FlightLogConfig | None) -> None:
+        """The flight log store (listed over FTP) and its logger, if logs are recorded."""
         self.flight_logs = FlightLogStore(flight_logs.max_logs if flight_logs else 1)
         self._flight_logger = (
             FlightLogger(
@@ -186,10 +204,18 @@ class Px4Autopilot:
             if flight_logs is not None and flight_logs.enabled
             else None
         )
+
+    def _init_mavlink(self, ftp_ardupilot_extensions: bool) -> None:
+        """The MAVLink side: the receiver that routes every message to the part it is for, the
+        STATUSTEXT observer, and the external vision received."""
+        #: External vision (ODOMETRY) received: how many, and the last. PX4 hands it to EKF2 when
+        #: EKF2_EV_CTRL asks; the emulator's odometry model does not fuse it (kept for checks).
+        self.external_vision_received = 0
+        self.external_vision: mavlink.MAVLink_odometry_message | None = None
         self._statustext_observer: Callable[[float, int, str], None] | None = None
         self._vehicle.on_statustext = self._on_statustext
         self._receiver = MavlinkReceiver(
-            vehicle,
+            self._vehicle,
             commander=self._commander,
             navigator=self._navigator,
             offboard=self._offboard,
@@ -210,8 +236,6 @@ class Px4Autopilot:
             ],
         )
         self._receiver.shell.pxh.commands["failure"] = self._failures.shell_command
-        self._navigator.apply_limits()
-        self._commander.command_physics()
 
     # ================================================================ state
     @property

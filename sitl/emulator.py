@@ -41,7 +41,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -358,85 +358,13 @@ class Emulator:
 
     def _build_world(self) -> None:
         config = self.config
-        n = config.vehicles
-        start = np.zeros((n, 3))
-        yaw = np.zeros(n)
-        placement = config.placement
-        for i in range(n):
-            if i < len(placement.positions):
-                p = placement.positions[i]
-                start[i] = (p.north_m, p.east_m, 0.0)
-                yaw[i] = math.radians(p.yaw_deg)
-            else:
-                k = i - len(placement.positions)
-                row, col = divmod(k, placement.grid_columns)
-                start[i] = (row * placement.grid_spacing_m, col * placement.grid_spacing_m, 0.0)
-        wind_cfg = config.wind
-        wind = ph.Wind(
-            n,
-            (wind_cfg.north_m_s, wind_cfg.east_m_s, 0.0),
-            wind_cfg.gust_std_m_s,
-            wind_cfg.gust_time_constant_s,
-            rng=np.random.default_rng([config.seed, 0x317D]),
-        )
-        self._physics = ph.MulticopterPhysics(
-            start,
-            yaw,
-            time_constant_s=config.physics.velocity_time_constant_s,
-            position_gain_1_s=config.physics.position_gain_1_s,
-            wind=wind if wind.active else None,
-            wind_rejection_time_s=wind_cfg.rejection_time_s,
-            drag_1_s=wind_cfg.drag_1_s,
-            airspeed_drag_1_s=config.physics.airspeed_drag_1_s,
-            velocity_integral_gain_1_s2=config.physics.velocity_integral_gain_1_s2,
-            tilt_time_constant_s=config.physics.tilt_time_constant_s,
-        )
-        odo = config.odometry
-        self._odometry = Odometry(
-            start,
-            position_noise_std_m=odo.position_noise_std_m,
-            velocity_noise_std_m_s=odo.velocity_noise_std_m_s,
-            drift_bias_std_m_s=odo.drift_bias_std_m_s,
-            drift_random_walk_m_s_per_sqrt_s=odo.drift_random_walk_m_s_per_sqrt_s,
-            seed=config.seed,
-        )
-        gps = config.gps_error
-        self._gnss = GnssError(
-            n,
-            bias_std_m=gps.bias_std_m,
-            bias_time_constant_s=gps.bias_time_constant_s,
-            noise_std_m=gps.noise_std_m,
-            rng=np.random.default_rng([config.seed, 0x6E55]),
-        )
-        self._boot_offsets_s = self._boot_offsets(n)
+        start, yaw = _start_poses(config)
+        self._physics = _physics_model(config, start, yaw)
+        self._odometry = _odometry_model(config, start)
+        self._gnss = _gnss_model(config)
+        self._boot_offsets_s = self._boot_offsets(config.vehicles)
         self._snapshot.refresh(self._physics, self._odometry, self._gnss)
-        unix_time_us = None
-        if config.clock.unix_time == "host" and self.clock.mode == "realtime":
-            # PX4's SYSTEM_TIME reads the host's clock (CLOCK_REALTIME) when it sends.
-            def unix_time_us(now_s: float) -> int:
-                return int(time.time() * 1e6)
-
-        self._autopilots = [
-            Px4Autopilot(
-                i,
-                physics=self._physics,
-                odometry=self._odometry,
-                snapshot=self._snapshot,
-                projection=self.projection,
-                ground_amsl_m=config.home.altitude_amsl_m,
-                param_overrides=config.params,
-                preflight_ready_after_s=config.preflight_ready_after_s,
-                battery_drain_percent_per_min=config.battery_drain_percent_per_min,
-                unix_time_us=unix_time_us,
-                boot_offset_s=float(self._boot_offsets_s[i]),
-                ftp_ardupilot_extensions=config.ftp.ardupilot_extensions,
-                flight_logs=config.flight_logs,
-            )
-            for i in range(n)
-        ]
-        for ap in self._autopilots:
-            ap.on_statustext = self._statustext_observer(ap.index)
-            ap.telemetry.truth_fields = config.truth_stream.fields
+        self._autopilots = self._build_autopilots(self._physics, self._odometry)
         initial_key = config.signing.initial_key()
         self._signing = [
             VehicleSigning(
@@ -450,6 +378,41 @@ class Emulator:
         ]
         for fault in config.faults:
             self._schedule_fault(fault)
+
+    def _build_autopilots(
+        self, physics: ph.MulticopterPhysics, odometry: Odometry
+    ) -> list[Px4Autopilot]:
+        """One autopilot per vehicle on the shared physics, odometry and snapshot, each on its
+        boot clock, its STATUSTEXTs observed by the emulator."""
+        config = self.config
+        unix_time_us = None
+        if config.clock.unix_time == "host" and self.clock.mode == "realtime":
+            # PX4's SYSTEM_TIME reads the host's clock (CLOCK_REALTIME) when it sends.
+            def unix_time_us(now_s: float) -> int:
+                return int(time.time() * 1e6)
+
+        autopilots = [
+            Px4Autopilot(
+                i,
+                physics=physics,
+                odometry=odometry,
+                snapshot=self._snapshot,
+                projection=self.projection,
+                ground_amsl_m=config.home.altitude_amsl_m,
+                param_overrides=config.params,
+                preflight_ready_after_s=config.preflight_ready_after_s,
+                battery_drain_percent_per_min=config.battery_drain_percent_per_min,
+                unix_time_us=unix_time_us,
+                boot_offset_s=float(self._boot_offsets_s[i]),
+                ftp_ardupilot_extensions=config.ftp.ardupilot_extensions,
+                flight_logs=config.flight_logs,
+            )
+            for i in range(config.vehicles)
+        ]
+        for ap in autopilots:
+            ap.on_statustext = self._statustext_observer(ap.index)
+            ap.telemetry.truth_fields = config.truth_stream.fields
+        return autopilots
 
     def _boot_offsets(self, n: int) -> npt.NDArray[np.float64]:
         boot = self.config.boot_clock
@@ -501,82 +464,87 @@ class Emulator:
             self._tlogs.append(tlog)
 
     async def _bind_all(self) -> None:
-        loop = asyncio.get_running_loop()
-        config = self.config
-        ports = config.ports
-        phase_step = self._dt_s
-        # Like PX4's custom-mode MAVLink instance on SIH's port: HEARTBEAT and the ground truth.
-        truth_rates = StreamRates(
-            **{
-                **dict.fromkeys(StreamRates.model_fields, 0.0),
-                "heartbeat_hz": 1.0,
-                "hil_state_quaternion_hz": config.truth_stream.rate_hz,
-            }
-        )
+        truth_rates = _truth_stream_rates(self.config)
+        # Spread the vehicles' telemetry over the steps of a 0.1 s period.
+        phases = max(round(0.1 / self._dt_s), 1)
         for ap in self._autopilots:
             i = ap.index
-            tlog = self._tlogs[i] if self._tlogs else None
-            # Spread the vehicles' telemetry over the steps of a 0.1 s period.
-            phase = (i % max(round(0.1 / phase_step), 1)) * phase_step
-            specs = [
-                (
-                    "api",
-                    ports.api_local_port(i, config.vehicles),
-                    (ports.remote_host, ports.api_remote_port(i)),
-                    config.telemetry.api,
-                    "ports.api_local_base (--api-local-port-base)",
-                )
-            ]
-            if ports.gcs_enabled:
-                specs.append(
-                    (
-                        "gcs",
-                        ports.gcs_local_port(i),
-                        (ports.remote_host, ports.gcs_remote_port),
-                        config.telemetry.gcs,
-                        "ports.gcs_local_base (--gcs-port-base)",
-                    )
-                )
-            truth = config.truth_stream
-            if truth.enabled:
-                specs.append(
-                    (
-                        "truth",
-                        truth.local_base + i,
-                        (ports.remote_host, truth.remote_base + i),
-                        truth_rates,
-                        "truth_stream.local_base (--truth-port-base)",
-                    )
-                )
             links: list[VehicleLink] = []
-            for name, local_port, remote, rates, setting in specs:
-                link = VehicleLink(
-                    name,
-                    sysid=ap.sysid,
-                    local_port=local_port,
-                    remote_address=remote,
-                    rates=rates,
-                    deliver=self._deliver_to(ap),
-                    stream_phase_s=phase,
-                    step_s=self._dt_s,
-                    # 25 Hz of ground truth would swamp the tlogs; PX4 logs none of it either.
-                    tlog=tlog if name != "truth" else None,
-                    now_us=self._tlog_time_us,
-                    signing=self._signing[i],
-                )
-                try:
-                    await loop.create_datagram_endpoint(
-                        functools.partial(_protocol, link), local_addr=(ports.bind_host, local_port)
-                    )
-                except OSError as exc:
-                    if exc.errno in (errno.EADDRINUSE, errno.EACCES):
-                        raise PortInUseError(local_port, setting, i, exc.strerror or "") from exc
-                    raise
+            for spec in self._link_specs(i, truth_rates):
+                link = await self._bind_link(ap, spec, stream_phase_s=(i % phases) * self._dt_s)
                 links.append(link)
                 self._all_links.append(link)
             self._links.append(links)
             ap.links = list(links)
             ap.link_switch = self._mavlink_signal_switch(i)
+
+    def _link_specs(self, index: int, truth_rates: StreamRates) -> list[_LinkSpec]:
+        """Vehicle ``index``'s links: the API's, the ground station's and the ground truth's
+        where enabled."""
+        config = self.config
+        ports = config.ports
+        specs = [
+            _LinkSpec(
+                "api",
+                ports.api_local_port(index, config.vehicles),
+                (ports.remote_host, ports.api_remote_port(index)),
+                config.telemetry.api,
+                "ports.api_local_base (--api-local-port-base)",
+            )
+        ]
+        if ports.gcs_enabled:
+            specs.append(
+                _LinkSpec(
+                    "gcs",
+                    ports.gcs_local_port(index),
+                    (ports.remote_host, ports.gcs_remote_port),
+                    config.telemetry.gcs,
+                    "ports.gcs_local_base (--gcs-port-base)",
+                )
+            )
+        truth = config.truth_stream
+        if truth.enabled:
+            specs.append(
+                _LinkSpec(
+                    "truth",
+                    truth.local_base + index,
+                    (ports.remote_host, truth.remote_base + index),
+                    truth_rates,
+                    "truth_stream.local_base (--truth-port-base)",
+                )
+            )
+        return specs
+
+    async def _bind_link(
+        self, ap: Px4Autopilot, spec: _LinkSpec, *, stream_phase_s: float
+    ) -> VehicleLink:
+        """``ap``'s link ``spec`` on its UDP port; PortInUseError names the setting to change."""
+        i = ap.index
+        tlog = self._tlogs[i] if self._tlogs else None
+        link = VehicleLink(
+            spec.name,
+            sysid=ap.sysid,
+            local_port=spec.local_port,
+            remote_address=spec.remote,
+            rates=spec.rates,
+            deliver=self._deliver_to(ap),
+            stream_phase_s=stream_phase_s,
+            step_s=self._dt_s,
+            # 25 Hz of ground truth would swamp the tlogs; PX4 logs none of it either.
+            tlog=tlog if spec.name != "truth" else None,
+            now_us=self._tlog_time_us,
+            signing=self._signing[i],
+        )
+        try:
+            await asyncio.get_running_loop().create_datagram_endpoint(
+                functools.partial(_protocol, link),
+                local_addr=(self.config.ports.bind_host, spec.local_port),
+            )
+        except OSError as exc:
+            if exc.errno in (errno.EADDRINUSE, errno.EACCES):
+                raise PortInUseError(spec.local_port, spec.setting, i, exc.strerror or "") from exc
+            raise
+        return link
 
     def _mavlink_signal_switch(self, index: int) -> Callable[[bool], None]:
         """The mavlink_signal failure of vehicle ``index``: all of its links, from the next
@@ -1014,6 +982,100 @@ class Emulator:
             action()
 
         heapq.heappush(self._schedule, (at_s, next(self._schedule_ids), what, logged))
+
+
+class _LinkSpec(NamedTuple):
+    """One UDP link of a vehicle: its name, local port, remote (host, port), the streams it
+    sends, and the setting that moves its port (for a port already in use)."""
+
+    name: str
+    local_port: int
+    remote: tuple[str, int]
+    rates: StreamRates
+    setting: str
+
+
+def _truth_stream_rates(config: EmulatorConfig) -> StreamRates:
+    """Like PX4's custom-mode MAVLink instance on SIH's port: HEARTBEAT and the ground truth."""
+    return StreamRates(
+        **{
+            **dict.fromkeys(StreamRates.model_fields, 0.0),
+            "heartbeat_hz": 1.0,
+            "hil_state_quaternion_hz": config.truth_stream.rate_hz,
+        }
+    )
+
+
+def _start_poses(
+    config: EmulatorConfig,
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Where the vehicles stand at start: NED positions (n, 3) [m] on the ground and yaws (n,)
+    [rad]; the configured placements first, the rest on the grid."""
+    n = config.vehicles
+    start = np.zeros((n, 3))
+    yaw = np.zeros(n)
+    placement = config.placement
+    for i in range(n):
+        if i < len(placement.positions):
+            p = placement.positions[i]
+            start[i] = (p.north_m, p.east_m, 0.0)
+            yaw[i] = math.radians(p.yaw_deg)
+        else:
+            k = i - len(placement.positions)
+            row, col = divmod(k, placement.grid_columns)
+            start[i] = (row * placement.grid_spacing_m, col * placement.grid_spacing_m, 0.0)
+    return start, yaw
+
+
+def _physics_model(
+    config: EmulatorConfig, start: npt.NDArray[np.float64], yaw: npt.NDArray[np.float64]
+) -> ph.MulticopterPhysics:
+    """The vehicles' kinematic model from ``config.physics`` and ``config.wind`` (seeded)."""
+    wind_cfg = config.wind
+    wind = ph.Wind(
+        config.vehicles,
+        (wind_cfg.north_m_s, wind_cfg.east_m_s, 0.0),
+        wind_cfg.gust_std_m_s,
+        wind_cfg.gust_time_constant_s,
+        rng=np.random.default_rng([config.seed, 0x317D]),
+    )
+    return ph.MulticopterPhysics(
+        start,
+        yaw,
+        time_constant_s=config.physics.velocity_time_constant_s,
+        position_gain_1_s=config.physics.position_gain_1_s,
+        wind=wind if wind.active else None,
+        wind_rejection_time_s=wind_cfg.rejection_time_s,
+        drag_1_s=wind_cfg.drag_1_s,
+        airspeed_drag_1_s=config.physics.airspeed_drag_1_s,
+        velocity_integral_gain_1_s2=config.physics.velocity_integral_gain_1_s2,
+        tilt_time_constant_s=config.physics.tilt_time_constant_s,
+    )
+
+
+def _odometry_model(config: EmulatorConfig, start: npt.NDArray[np.float64]) -> Odometry:
+    """The vehicles' odometry (noise and drift of ``config.odometry``, seeded)."""
+    odo = config.odometry
+    return Odometry(
+        start,
+        position_noise_std_m=odo.position_noise_std_m,
+        velocity_noise_std_m_s=odo.velocity_noise_std_m_s,
+        drift_bias_std_m_s=odo.drift_bias_std_m_s,
+        drift_random_walk_m_s_per_sqrt_s=odo.drift_random_walk_m_s_per_sqrt_s,
+        seed=config.seed,
+    )
+
+
+def _gnss_model(config: EmulatorConfig) -> GnssError:
+    """The vehicles' GPS error (``config.gps_error``, seeded)."""
+    gps = config.gps_error
+    return GnssError(
+        config.vehicles,
+        bias_std_m=gps.bias_std_m,
+        bias_time_constant_s=gps.bias_time_constant_s,
+        noise_std_m=gps.noise_std_m,
+        rng=np.random.default_rng([config.seed, 0x6E55]),
+    )
 
 
 def _armed_flag(ap: Px4Autopilot) -> Callable[[], bool]:

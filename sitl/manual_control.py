@@ -159,91 +159,113 @@ class StickFlight:
     def update(self, dt: float) -> None:
         """Fly one autopilot step of the current stick mode, ``dt`` after the last."""
         vehicle = self._vehicle
-        p = vehicle.params
         mode = vehicle.state.mode
         shaped = self._manual.shaped()
         raw = self._manual.raw()
         pos = vehicle.position_ned()
-        vel = vehicle.velocity_ned()
         yaw = vehicle.attitude()[2]
-        c, s = math.cos(yaw), math.sin(yaw)
-
         if vehicle.state.landed and raw.throttle <= _TAKEOFF_THROTTLE:
-            # PX4 keeps a landed vehicle on the ground until the throttle asks for a take-off.
-            self._velocity_sp_ne = [0.0, 0.0]
-            self._velocity_sp_down = 0.0
-            self._hold_ne = [pos[0], pos[1]]
-            self._hold_down = pos[2]
-            self._write([0.0, 0.0, 0.0], math.nan, yaw)
+            self._stay_landed(pos, yaw)
             return
-
-        # Horizontal.
         if mode is FlightMode.POSCTL:
-            forward, right = shaped.pitch, shaped.roll
-            norm = math.hypot(forward, right)
-            if norm > 1.0:
-                forward, right = forward / norm, right / norm
-            acc_scale = 2.0 * p["MPC_ACC_HOR"]
-            drag = acc_scale / p["MPC_VEL_MANUAL"]
-            centred = norm == 0.0
-            if centred:
-                drag *= max(2.0, math.sqrt(p["MPC_VEL_MANUAL"]))  # PX4's brake boost
-            acc = [acc_scale * (forward * c - right * s), acc_scale * (forward * s + right * c)]
-            vsp = self._velocity_sp_ne
-            for k in range(2):
-                vsp[k] += (acc[k] - drag * vsp[k]) * dt
-            if centred and math.hypot(*vsp) < _LOCK_SPEED_M_S:
-                vsp[0] = vsp[1] = 0.0
-                if self._hold_ne is None:
-                    self._hold_ne = [pos[0], pos[1]]
-            elif not centred:
-                self._hold_ne = None
-            if self._hold_ne is not None:
-                v_ne = [_HOLD_GAIN_1_S * (self._hold_ne[k] - pos[k]) for k in range(2)]
-            else:
-                v_ne = list(vsp)
+            v_ne = self._horizontal_by_acceleration(shaped, pos, yaw, dt)
         else:
-            forward, right = raw.pitch, raw.roll
-            norm = math.hypot(forward, right)
-            if norm > 1.0:
-                forward, right = forward / norm, right / norm
-            tilt = math.radians(max(0.0, min(89.0, p["MPC_MAN_TILT_MAX"])))
-            acc_max = min(math.tan(tilt), 3.0) * ph.GRAVITY_M_S2
-            acc = [acc_max * (forward * c - right * s), acc_max * (forward * s + right * c)]
-            vsp = self._velocity_sp_ne
-            for k in range(2):
-                vsp[k] += (acc[k] - _AIR_DRAG_1_S * vsp[k]) * dt
-            self._hold_ne = None
-            v_ne = list(vsp)
-
-        # Vertical (down positive).
+            v_ne = self._horizontal_by_tilt(raw, yaw, dt)
         if mode in (FlightMode.POSCTL, FlightMode.ALTCTL):
-            throttle = shaped.throttle
-            if throttle != 0.0:
-                limit = p["MPC_Z_VEL_MAX_UP"] if throttle > 0 else p["MPC_Z_VEL_MAX_DN"]
-                v_down = -throttle * limit
-                self._hold_down = None
-            else:
-                if self._hold_down is None:
-                    # Lock where a braking vehicle comes to rest.
-                    accel = max(p["MPC_ACC_UP_MAX"], p["MPC_ACC_DOWN_MAX"], 0.1)
-                    self._hold_down = pos[2] + vel[2] * abs(vel[2]) / (2.0 * accel)
-                v_down = _HOLD_GAIN_1_S * (self._hold_down - pos[2])
+            v_down = self._vertical_by_climb_rate(
+                shaped.throttle, pos[2], vehicle.velocity_ned()[2]
+            )
         else:
-            self._velocity_sp_down += (
-                -raw.throttle * ph.GRAVITY_M_S2 - _AIR_DRAG_1_S * self._velocity_sp_down
-            ) * dt
-            v_down = self._velocity_sp_down
+            v_down = self._vertical_by_thrust(raw.throttle, dt)
+        yaw_rate, yaw_sp = self._heading(shaped.yaw, yaw)
+        self._write([v_ne[0], v_ne[1], v_down], yaw_rate, yaw_sp)
 
-        # Heading: the yaw stick turns, centred it holds.
-        yaw_rate = shaped.yaw * math.radians(p["MPC_MAN_Y_MAX"])
+    def _stay_landed(self, pos: list[float], yaw: float) -> None:
+        """PX4 keeps a landed vehicle on the ground until the throttle asks for a take-off."""
+        self._velocity_sp_ne = [0.0, 0.0]
+        self._velocity_sp_down = 0.0
+        self._hold_ne = [pos[0], pos[1]]
+        self._hold_down = pos[2]
+        self._write([0.0, 0.0, 0.0], math.nan, yaw)
+
+    def _horizontal_by_acceleration(
+        self, shaped: Sticks, pos: list[float], yaw: float, dt: float
+    ) -> list[float]:
+        """POSCTL's north-east velocity [m/s]: the sticks accelerate against a drag; centred,
+        they brake harder and then hold the position where the vehicle stopped."""
+        p = self._vehicle.params
+        c, s = math.cos(yaw), math.sin(yaw)
+        forward, right = shaped.pitch, shaped.roll
+        norm = math.hypot(forward, right)
+        if norm > 1.0:
+            forward, right = forward / norm, right / norm
+        acc_scale = 2.0 * p["MPC_ACC_HOR"]
+        drag = acc_scale / p["MPC_VEL_MANUAL"]
+        centred = norm == 0.0
+        if centred:
+            drag *= max(2.0, math.sqrt(p["MPC_VEL_MANUAL"]))  # PX4's brake boost
+        acc = [acc_scale * (forward * c - right * s), acc_scale * (forward * s + right * c)]
+        vsp = self._velocity_sp_ne
+        for k in range(2):
+            vsp[k] += (acc[k] - drag * vsp[k]) * dt
+        if centred and math.hypot(*vsp) < _LOCK_SPEED_M_S:
+            vsp[0] = vsp[1] = 0.0
+            if self._hold_ne is None:
+                self._hold_ne = [pos[0], pos[1]]
+        elif not centred:
+            self._hold_ne = None
+        if self._hold_ne is not None:
+            return [_HOLD_GAIN_1_S * (self._hold_ne[k] - pos[k]) for k in range(2)]
+        return list(vsp)
+
+    def _horizontal_by_tilt(self, raw: Sticks, yaw: float, dt: float) -> list[float]:
+        """ALTCTL's, STABILIZED's and MANUAL's north-east velocity [m/s]: the sticks tilt the
+        vehicle (linearly, full stick MPC_MAN_TILT_MAX) and the air's drag limits the speed."""
+        c, s = math.cos(yaw), math.sin(yaw)
+        forward, right = raw.pitch, raw.roll
+        norm = math.hypot(forward, right)
+        if norm > 1.0:
+            forward, right = forward / norm, right / norm
+        tilt = math.radians(max(0.0, min(89.0, self._vehicle.params["MPC_MAN_TILT_MAX"])))
+        acc_max = min(math.tan(tilt), 3.0) * ph.GRAVITY_M_S2
+        acc = [acc_max * (forward * c - right * s), acc_max * (forward * s + right * c)]
+        vsp = self._velocity_sp_ne
+        for k in range(2):
+            vsp[k] += (acc[k] - _AIR_DRAG_1_S * vsp[k]) * dt
+        self._hold_ne = None
+        return list(vsp)
+
+    def _vertical_by_climb_rate(self, throttle: float, down_m: float, down_m_s: float) -> float:
+        """POSCTL's and ALTCTL's down velocity [m/s]: the throttle stick commands the climb
+        rate; centred, the altitude where a braking vehicle comes to rest is held."""
+        p = self._vehicle.params
+        if throttle != 0.0:
+            limit = p["MPC_Z_VEL_MAX_UP"] if throttle > 0 else p["MPC_Z_VEL_MAX_DN"]
+            self._hold_down = None
+            return -throttle * limit
+        if self._hold_down is None:
+            accel = max(p["MPC_ACC_UP_MAX"], p["MPC_ACC_DOWN_MAX"], 0.1)
+            self._hold_down = down_m + down_m_s * abs(down_m_s) / (2.0 * accel)
+        return _HOLD_GAIN_1_S * (self._hold_down - down_m)
+
+    def _vertical_by_thrust(self, throttle: float, dt: float) -> float:
+        """STABILIZED's and MANUAL's down velocity [m/s]: the throttle is thrust around hover
+        (up to 1 g of vertical acceleration), against the air's drag."""
+        self._velocity_sp_down += (
+            -throttle * ph.GRAVITY_M_S2 - _AIR_DRAG_1_S * self._velocity_sp_down
+        ) * dt
+        return self._velocity_sp_down
+
+    def _heading(self, yaw_stick: float, yaw: float) -> tuple[float, float]:
+        """The yaw stick turns, centred it holds the heading: (yaw rate [rad/s], yaw [rad]),
+        NaN for the one not commanded."""
+        yaw_rate = yaw_stick * math.radians(self._vehicle.params["MPC_MAN_Y_MAX"])
         if yaw_rate != 0.0:
             self._hold_yaw = math.nan
-            self._write([v_ne[0], v_ne[1], v_down], yaw_rate, math.nan)
-            return
+            return yaw_rate, math.nan
         if math.isnan(self._hold_yaw):
             self._hold_yaw = yaw
-        self._write([v_ne[0], v_ne[1], v_down], math.nan, self._hold_yaw)
+        return math.nan, self._hold_yaw
 
     def _write(self, velocity_ned: list[float], yaw_rate: float, yaw: float) -> None:
         vehicle = self._vehicle

@@ -176,33 +176,37 @@ class MulticopterPhysics:
         if _any(self.motor_failure):
             mode = np.where(self.motor_failure, np.int8(MOTORS_OFF), mode)
         modes = mode.tolist()
-        pos = self.position_ned_m
-        vel = self.velocity_ned_m_s
+        v_cmd = self._velocity_command(mode, modes)
+        accel = self._acceleration(v_cmd, mode, modes, dt)
+        wind = self.wind
+        if wind is not None and wind.active:
+            self._push_by_wind(wind, accel, dt)
+        self._hold_on_ground(v_cmd, accel, mode)
+        self._integrate(accel, dt)
+        self._attitude(accel, dt, mode, modes)
 
-        # 1. Velocity command per control mode.
+    # ------------------------------------------------------------ step's stages
+    def _velocity_command(self, mode: npt.NDArray[np.int8], modes: list[int]) -> FloatArray:
+        """1. The velocity command (n, 3) per control mode, within the speed limits."""
         if modes.count(VELOCITY) == self.n:
             v_cmd = self.velocity_setpoint_ned_m_s.copy()
         else:
-            v_cmd = np.where((mode == VELOCITY)[:, None], self.velocity_setpoint_ned_m_s, vel)
+            v_cmd = np.where(
+                (mode == VELOCITY)[:, None], self.velocity_setpoint_ned_m_s, self.velocity_ned_m_s
+            )
         if POSITION in modes:
             positional = mode == POSITION
             v_cmd[positional] = self._position_controller(positional)
-        v_cmd = self._limit_velocity(v_cmd)
+        return self._limit_velocity(v_cmd)
 
-        # 2. Acceleration: first-order lag towards the command, then the limits. A PX4-like
-        # velocity loop with an integral term fighting horizontal drag is optional: PX4 SIH
-        # (velocity P 1.8, I 0.4, drag ~1/s) reaches only ~65 % of a commanded speed for seconds.
-        accel = (v_cmd - vel) / max(self.time_constant_s, dt)
+    def _acceleration(
+        self, v_cmd: FloatArray, mode: npt.NDArray[np.int8], modes: list[int], dt: float
+    ) -> FloatArray:
+        """2. Acceleration (n, 3): first-order lag towards the command, then the limits; the
+        setpoint where one is commanded, gravity alone where the motors are off."""
+        accel = (v_cmd - self.velocity_ned_m_s) / max(self.time_constant_s, dt)
         if self.airspeed_drag_1_s > 0 or self.velocity_integral_gain_1_s2 > 0:
-            flying = (mode == VELOCITY) | (mode == POSITION)
-            error = np.where(flying[:, None], v_cmd - vel, 0.0)
-            error[:, 2] = 0.0
-            self.velocity_integral_ned_m_s2 += self.velocity_integral_gain_1_s2 * error * dt
-            self.velocity_integral_ned_m_s2[~flying] = 0.0
-            accel += self.velocity_integral_ned_m_s2
-            drag = self.airspeed_drag_1_s * vel
-            drag[:, 2] = 0.0
-            accel[flying] -= drag[flying]
+            self._velocity_loop(accel, v_cmd, mode, dt)
         if self.tilt_time_constant_s > 0:
             # The horizontal acceleration comes from tilting, which takes time (PX4 SIH: a
             # velocity step starts to show ~0.2 s later).
@@ -217,28 +221,53 @@ class MulticopterPhysics:
         accel = self._limit_acceleration(accel)
         if MOTORS_OFF in modes:
             accel[mode == MOTORS_OFF] = (0.0, 0.0, GRAVITY_M_S2)
+        return accel
 
-        # 3. Wind pushes flying vehicles by the part the controller has not learnt yet.
-        wind = self.wind
-        if wind is not None and wind.active:
-            wind.step(dt)
-            learn = dt / (self.wind_rejection_time_s + dt)
-            self.wind_learnt_ned_m_s += learn * (wind.velocity_ned_m_s - self.wind_learnt_ned_m_s)
-            push = self.drag_1_s * (wind.velocity_ned_m_s - self.wind_learnt_ned_m_s)
-            push[:, 2] = 0.0
-            airborne = ~self.on_ground()
-            accel[airborne] += push[airborne]
+    def _velocity_loop(
+        self, accel: FloatArray, v_cmd: FloatArray, mode: npt.NDArray[np.int8], dt: float
+    ) -> None:
+        """The optional PX4-like velocity loop, added to ``accel`` in place: an integral term
+        fighting horizontal airspeed drag. PX4 SIH (velocity P 1.8, I 0.4, drag ~1/s) reaches
+        only ~65 % of a commanded speed for seconds."""
+        vel = self.velocity_ned_m_s
+        flying = (mode == VELOCITY) | (mode == POSITION)
+        error = np.where(flying[:, None], v_cmd - vel, 0.0)
+        error[:, 2] = 0.0
+        self.velocity_integral_ned_m_s2 += self.velocity_integral_gain_1_s2 * error * dt
+        self.velocity_integral_ned_m_s2[~flying] = 0.0
+        accel += self.velocity_integral_ned_m_s2
+        drag = self.airspeed_drag_1_s * vel
+        drag[:, 2] = 0.0
+        accel[flying] -= drag[flying]
 
-        # 4. Skids do not slide: a vehicle resting on the ground stays put unless told to climb.
-        resting = pos[:, 2] >= 0.0
+    def _push_by_wind(self, wind: Wind, accel: FloatArray, dt: float) -> None:
+        """3. Wind pushes flying vehicles by the part the controller has not learnt yet (added
+        to ``accel`` in place)."""
+        wind.step(dt)
+        learn = dt / (self.wind_rejection_time_s + dt)
+        self.wind_learnt_ned_m_s += learn * (wind.velocity_ned_m_s - self.wind_learnt_ned_m_s)
+        push = self.drag_1_s * (wind.velocity_ned_m_s - self.wind_learnt_ned_m_s)
+        push[:, 2] = 0.0
+        airborne = ~self.on_ground()
+        accel[airborne] += push[airborne]
+
+    def _hold_on_ground(
+        self, v_cmd: FloatArray, accel: FloatArray, mode: npt.NDArray[np.int8]
+    ) -> None:
+        """4. Skids do not slide: a vehicle resting on the ground stays put unless told to
+        climb (its velocity and ``accel`` zeroed in place)."""
+        resting = self.position_ned_m[:, 2] >= 0.0
         if _any(resting):
             climbing = (mode != MOTORS_OFF) & (v_cmd[:, 2] < -0.05)
             climbing |= (mode == ACCELERATION) & (accel[:, 2] < 0.0)
             held = resting & ~climbing
-            vel[held] = 0.0
+            self.velocity_ned_m_s[held] = 0.0
             accel[held] = 0.0
 
-        # 5. Integrate (semi-implicit Euler) and keep everything above the ground.
+    def _integrate(self, accel: FloatArray, dt: float) -> None:
+        """5. Integrate (semi-implicit Euler) and keep everything above the ground."""
+        pos = self.position_ned_m
+        vel = self.velocity_ned_m_s
         vel += accel * dt
         pos += vel * dt
         grounded = pos[:, 2] >= 0.0
@@ -246,8 +275,6 @@ class MulticopterPhysics:
             pos[grounded, 2] = 0.0
             vel[grounded, 2] = np.minimum(vel[grounded, 2], 0.0)
         self.acceleration_ned_m_s2[:] = accel
-
-        self._attitude(accel, dt, mode, modes)
 
     # ---------------------------------------------------------------- internals
     def _position_controller(self, mask: npt.NDArray[np.bool_]) -> FloatArray:

@@ -232,7 +232,6 @@ def write_broker_config(
         "ranges",
         *(user for i in vehicle_ids for user in (str(Sender.vehicle(i)), flight_user(i))),
     )
-    passwords = {user: secrets.token_urlsafe(24) for user in users}
     files = BrokerFiles(
         config=out_dir / "mosquitto.conf",
         passwords=out_dir / "passwords",
@@ -241,6 +240,22 @@ def write_broker_config(
         bus_key=out_dir / "bus.key",
         users=users,
     )
+    _write_logins(files)
+    if write_bus_key:
+        _write_private(files.bus_key, secrets.token_hex(32) + "\n")
+    files.acl.write_text(acl_text(topics, vehicle_ids), encoding="utf-8")
+    lines = _mosquitto_conf_lines(
+        files, port=port, bind_address=bind_address, tls=tls, max_message_bytes=max_message_bytes
+    )
+    files.config.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return files
+
+
+def _write_logins(files: BrokerFiles) -> None:
+    """A fresh password for every user: mosquitto's hashes in ``files.passwords``, the logins
+    themselves in ``files.credentials``."""
+    users = files.users
+    passwords = {user: secrets.token_urlsafe(24) for user in users}
     # The hashes are not secret the way the passwords are, but mosquitto 2 warns about a
     # world-readable password file, and nobody else needs to read it.
     _write_private(
@@ -252,9 +267,18 @@ def write_broker_config(
         "# broker logins, one per role: give each machine only its own line\n"
         + "".join(f"{user}:{passwords[user]}\n" for user in users),
     )
-    if write_bus_key:
-        _write_private(files.bus_key, secrets.token_hex(32) + "\n")
-    files.acl.write_text(acl_text(topics, vehicle_ids), encoding="utf-8")
+
+
+def _mosquitto_conf_lines(
+    files: BrokerFiles,
+    *,
+    port: int,
+    bind_address: str | None,
+    tls: TlsListener | None,
+    max_message_bytes: int,
+) -> list[str]:
+    """The lines of ``mosquitto.conf``: one listener (with TLS if given), logins and ACL from
+    ``files``, client ids bound to logins, no Nagle delay, the size limits."""
     listener = f"listener {port}" + (f" {bind_address}" if bind_address else "")
     lines = [
         "# mosquitto configuration of a mission-runner mission (mission-runner broker-config).",
@@ -283,5 +307,4 @@ def write_broker_config(
             '# switch to the user "mosquitto" and fail to read them. Run as another user: drop it.',
             "user root",
         ]
-    files.config.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return files
+    return lines

@@ -84,22 +84,72 @@ def guard_reader(
             "this paho-mqtt has no packet reader to guard against oversized packets",
             hint="install paho-mqtt 2.x (pip install 'paho-mqtt>=2,<3')",
         )
-    read_packet = paho_client._packet_read
-    receive = paho_client._sock_recv
-    scratch = memoryview(bytearray(SKIP_CHUNK_BYTES))
+    reader = _GuardedReader(paho_client, max_packet_bytes, on_skipped, packets_per_turn)
+    paho_client._sock_recv = reader.receive
+    paho_client._packet_read = reader.read
+    if admits is not None:
+        _filter_messages(paho_client, admits)
 
-    def oversized() -> bool:
-        packet = paho_client._in_packet
-        return bool(packet["have_remaining"]) and packet["remaining_length"] > max_packet_bytes
 
-    def guarded_receive(bufsize: int) -> bytes:
-        if oversized():
-            # The length just became known: leave the body to skip_body (paho takes this as
+class _GuardedReader:
+    """paho's reader (``_packet_read``, ``_sock_recv``) wrapped: a packet over
+    ``max_packet_bytes`` is skipped from the socket into a small scratch buffer, and each call
+    reads up to ``packets_per_turn`` packets. :func:`guard_reader` installs it."""
+
+    __slots__ = (
+        "_client",
+        "_max_packet_bytes",
+        "_on_skipped",
+        "_packets_per_turn",
+        "_read_packet",
+        "_receive",
+        "_scratch",
+    )
+
+    def __init__(
+        self,
+        paho_client: Any,
+        max_packet_bytes: int,
+        on_skipped: Callable[[int], None],
+        packets_per_turn: int,
+    ) -> None:
+        self._client = paho_client
+        self._max_packet_bytes = max_packet_bytes
+        self._on_skipped = on_skipped
+        self._packets_per_turn = packets_per_turn
+        self._read_packet = paho_client._packet_read
+        self._receive = paho_client._sock_recv
+        self._scratch = memoryview(bytearray(SKIP_CHUNK_BYTES))
+
+    def read(self) -> MQTTErrorCode:
+        """paho's ``_packet_read``: up to ``packets_per_turn`` packets, as long as whole ones
+        are waiting."""
+        for _ in range(self._packets_per_turn):
+            rc = self._skip_body() if self._oversized() else self._read_packet()
+            if rc != _SUCCESS:
+                return rc  # nothing more waiting (AGAIN), or an error paho handles
+            if self._client._in_packet["command"] != 0:
+                return _SUCCESS  # within a packet: the rest when the socket is readable again
+        return _SUCCESS
+
+    def receive(self, bufsize: int) -> bytes:
+        """paho's ``_sock_recv``: never a buffer the size of the rest of a packet."""
+        if self._oversized():
+            # The length just became known: leave the body to _skip_body (paho takes this as
             # "no data yet" and keeps its state).
             raise BlockingIOError
-        return receive(min(bufsize, SKIP_CHUNK_BYTES))  # never a buffer the size of the rest
+        return self._receive(min(bufsize, SKIP_CHUNK_BYTES))
 
-    def skip_body() -> MQTTErrorCode:
+    def _oversized(self) -> bool:
+        packet = self._client._in_packet
+        return (
+            bool(packet["have_remaining"]) and packet["remaining_length"] > self._max_packet_bytes
+        )
+
+    def _skip_body(self) -> MQTTErrorCode:
+        """Up to ``SKIP_CHUNKS_PER_TURN`` chunks of an oversized packet's body read and dropped;
+        once all of it is, paho's reader starts afresh and ``on_skipped`` hears the length."""
+        paho_client = self._client
         packet = paho_client._in_packet
         sock = paho_client._sock
         if sock is None:
@@ -109,7 +159,7 @@ def guard_reader(
             if wanted == 0:
                 break
             try:
-                count = sock.recv_into(scratch, wanted)
+                count = sock.recv_into(self._scratch, wanted)
             except (BlockingIOError, InterruptedError):
                 return _SUCCESS  # more when the socket is readable again
             except OSError:
@@ -122,30 +172,16 @@ def guard_reader(
             return _SUCCESS
         length = packet["remaining_length"]
         paho_client._in_packet = _fresh_packet()
-        on_skipped(length)
+        self._on_skipped(length)
         return _SUCCESS
 
-    def read_one() -> MQTTErrorCode:
-        if oversized():
-            return skip_body()
-        return read_packet()
 
-    def guarded_read() -> MQTTErrorCode:
-        for _ in range(packets_per_turn):
-            rc = read_one()
-            if rc != _SUCCESS:
-                return rc  # nothing more waiting (AGAIN), or an error paho handles
-            if paho_client._in_packet["command"] != 0:
-                return _SUCCESS  # within a packet: the rest when the socket is readable again
-        return _SUCCESS
+def _filter_messages(paho_client: Any, admits: Callable[[str, bytes], bool]) -> None:
+    """Only messages that ``admits(topic, payload)`` go on to ``paho_client.on_message``."""
+    deliver = paho_client.on_message
 
-    paho_client._sock_recv = guarded_receive
-    paho_client._packet_read = guarded_read
-    if admits is not None:
-        deliver = paho_client.on_message
+    def on_message(client: Any, userdata: Any, message: Any) -> None:
+        if admits(message.topic, message.payload):
+            deliver(client, userdata, message)
 
-        def on_message(client: Any, userdata: Any, message: Any) -> None:
-            if admits(message.topic, message.payload):
-                deliver(client, userdata, message)
-
-        paho_client.on_message = on_message
+    paho_client.on_message = on_message

@@ -53,6 +53,8 @@ its neighbours' step messages; never ground truth. Shapes: any leading batch dim
 m neighbours.
 """
 
+from typing import NamedTuple
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -158,6 +160,69 @@ def separation_guard(
     Returns ``(..., 2)``; unchanged where no condition binds.
     """
     command = np.asarray(velocity_m_s, dtype=float)
+    pairs = _pairs(command, relative_m, distance_m, own_command_m_s, neighbour_command_m_s)
+    if margin_m is None:
+        margin_m = RANGE_SIGMAS * range_noise_std_m
+    clearance = pairs.clearance_m(min_separation_m + margin_m, latency_s)
+    closing = allowed_closing_m_s(
+        clearance, step_s=step_s, gain_1_s=gain_1_s, braking_m_s2=braking_m_s2
+    )
+    bound, speed_cap, cone_rad = _conditions(pairs, closing, bearing_std_rad)
+    normal = pairs.normal
+    if cone_rad is not None:
+        normal, bound = _cone_conditions(normal, bound, cone_rad)
+
+    cut = np.maximum(bound - np.sum(normal * command[..., None, :], axis=-1), 0.0)
+    if not (np.any(cut > 0) or np.any(_norm(command) > speed_cap)):
+        return command
+    if cone_rad is not None:  # the turn works on each neighbour's own line and worst cut
+        m = cut.shape[-1] // 3
+        normal, cut = normal[..., :m, :], np.max(np.reshape(cut, (*cut.shape[:-1], 3, m)), -2)
+    wanted = _turned_right(
+        command, normal, cut, clearance, pairs.theirs, min_separation_m=min_separation_m
+    )
+    if cone_rad is not None:  # the cone again, around the centre conditions' bounds
+        normal, bound = _cone_conditions(normal, bound[..., :m], cone_rad)
+    x = _project(wanted, normal, bound, speed_cap)
+    return _inside(x, normal, bound, speed_cap)
+
+
+class _Pairs(NamedTuple):
+    """What a vehicle knows of each neighbour's line, all ``(..., m)`` but ``normal``.
+
+    normal: ``(..., m, 2)`` n_j, the unit vector from j to this vehicle by the estimate (0 where
+    the estimate gives none). usable: the estimate gives a direction. length: |estimate| [m].
+    distance: the measured range, else ``length`` [m]. present: ``distance`` is known.
+    own, theirs: n_j . u_i' and n_j . u_j', the commands in force along the line [m/s].
+    """
+
+    normal: NDArray[np.float64]
+    usable: NDArray[np.bool_]
+    length: NDArray[np.float64]
+    distance: NDArray[np.float64]
+    present: NDArray[np.bool_]
+    own: NDArray[np.float64]
+    theirs: NDArray[np.float64]
+
+    def clearance_m(self, kept_m: float, latency_s: float) -> NDArray[np.float64]:
+        """h_j: the distance beyond ``kept_m`` (inf where no distance is known), less what the
+        commands in force still close in ``latency_s``, before the new ones act."""
+        clearance = np.where(self.present, self.distance, np.inf) - kept_m
+        if latency_s > 0:
+            clearance = clearance - latency_s * np.maximum(self.theirs - self.own, 0.0)
+        return clearance
+
+
+def _pairs(
+    command: NDArray[np.float64],
+    relative_m: NDArray[np.float64],
+    distance_m: NDArray[np.float64],
+    own_command_m_s: NDArray[np.float64] | None,
+    neighbour_command_m_s: NDArray[np.float64] | None,
+) -> _Pairs:
+    """Each neighbour's line from the estimates ``relative_m`` ``(..., m, 2)`` and ranges
+    ``distance_m`` ``(..., m)``, and the commands in force along it (see
+    :func:`separation_guard` for the arguments)."""
     length = _norm(relative_m)
     usable = np.isfinite(length) & (length > 1e-9)
     normal = np.where(usable[..., None], relative_m / np.where(usable, length, 1.0)[..., None], 0.0)
@@ -165,48 +230,61 @@ def separation_guard(
     present = np.isfinite(distance)
     own = np.sum(normal * _known(own_command_m_s, command.shape)[..., None, :], axis=-1)
     theirs = np.sum(normal * _known(neighbour_command_m_s, normal.shape), axis=-1)
-    along = own + theirs  # n . (u_i' + u_j')
-    if margin_m is None:
-        margin_m = RANGE_SIGMAS * range_noise_std_m
-    clearance = np.where(present, distance, np.inf) - (min_separation_m + margin_m)
-    if latency_s > 0:  # what the commands in force still close before the new ones act
-        clearance = clearance - latency_s * np.maximum(theirs - own, 0.0)
-    closing = allowed_closing_m_s(
-        clearance, step_s=step_s, gain_1_s=gain_1_s, braking_m_s2=braking_m_s2
-    )
-    half = 0.5 * np.where(present, closing, np.inf)
+    return _Pairs(normal, usable, length, distance, present, own, theirs)
+
+
+def _conditions(
+    pairs: _Pairs, closing: NDArray[np.float64], bearing_std_rad: NDArray[np.float64] | None
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None]:
+    """The conditions n_j . u >= b_j, from the pairs' allowed closing speeds w_j ``(..., m)``.
+
+    Returns b_j ``(..., m)`` (-inf where the direction is not trusted), the speed cap
+    ``(...)`` that the neighbours without a trusted direction set (inf: none), and the
+    half-angle of each trusted direction's cone ``(..., m)`` [rad] (0 where not trusted; None
+    without ``bearing_std_rad``: directions taken as exact).
+    """
+    half = 0.5 * np.where(pairs.present, closing, np.inf)
+    along = pairs.own + pairs.theirs  # n . (u_i' + u_j')
     reference = np.clip(0.5 * along, -np.maximum(half, 0.0), np.maximum(half, 0.0))
     # Directions come from the estimates; one that disagrees with the measured range (an
     # estimator still converging) gives none, and the vehicle keeps below half the pair's
     # allowed closing speed whatever the direction.
-    trusted = usable & present & (np.abs(length - distance) <= TRUST_FRACTION * distance)
+    distance = pairs.distance
+    trusted = (
+        pairs.usable
+        & pairs.present
+        & (np.abs(pairs.length - distance) <= TRUST_FRACTION * distance)
+    )
     cone = None
     if bearing_std_rad is not None:
         cone = CONE_SIGMAS * np.asarray(bearing_std_rad, dtype=float)
         trusted &= cone <= MAX_CONE_RAD  # NaN (unknown spread) is not
     bound = np.where(trusted, reference - half, -np.inf)
-    blind = present & ~trusted
+    blind = pairs.present & ~trusted
     speed_cap = np.min(np.where(blind, np.maximum(half, 0.0), np.inf), axis=-1)
-    if cone is not None:
-        normal, bound = _cone_conditions(normal, bound, np.where(trusted, cone, 0.0))
+    cone_rad = None if cone is None else np.where(trusted, cone, 0.0)
+    return bound, speed_cap, cone_rad
 
-    cut = np.maximum(bound - np.sum(normal * command[..., None, :], axis=-1), 0.0)
-    if not (np.any(cut > 0) or np.any(_norm(command) > speed_cap)):
-        return command
-    if cone is not None:  # the turn below works on each neighbour's own line and worst cut
-        m = cut.shape[-1] // 3
-        normal, cut = normal[..., :m, :], np.max(np.reshape(cut, (*cut.shape[:-1], 3, m)), -2)
-    # Turn right when stuck: the vehicle heads to j along -n, whose right is (n_east, -n_north);
-    # j, doing the same, turns the other way, and they pass left side to left side.
+
+def _turned_right(
+    command: NDArray[np.float64],
+    normal: NDArray[np.float64],
+    cut: NDArray[np.float64],
+    clearance: NDArray[np.float64],
+    theirs: NDArray[np.float64],
+    *,
+    min_separation_m: float,
+) -> NDArray[np.float64]:
+    """``command`` ``(..., 2)`` with part of what the conditions ``cut`` ``(..., m)`` of its
+    approach given back to the right of each line ``normal`` ``(..., m, 2)``, where the pair is
+    stuck (near the distance kept, ``clearance`` ``(..., m)``, and the neighbour not moving
+    away, ``theirs``). The vehicle heads to j along -n, whose right is (n_east, -n_north); j,
+    doing the same, turns the other way, and they pass left side to left side."""
     stuck = np.clip(1.0 - clearance / (STUCK_FRACTION * min_separation_m), 0.0, 1.0)
     approach = np.minimum(cut, np.maximum(-np.sum(normal * command[..., None, :], axis=-1), 0.0))
     turn = TURN_FRACTION * approach * np.where(theirs >= 0.0, stuck, 0.0)
     right = np.stack([normal[..., 1], -normal[..., 0]], axis=-1)
-    wanted = command + np.sum(turn[..., None] * right, axis=-2)
-    if cone is not None:
-        normal, bound = _cone_conditions(normal, bound[..., :m], np.where(trusted, cone, 0.0))
-    x = _project(wanted, normal, bound, speed_cap)
-    return _inside(x, normal, bound, speed_cap)
+    return command + np.sum(turn[..., None] * right, axis=-2)
 
 
 def _cone_conditions(

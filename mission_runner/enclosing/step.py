@@ -177,7 +177,10 @@ class StepOutputs:
 def enclosing_step(
     params: EnclosingParams, row_slots: ArrayLike, state: EnclosingState, inputs: StepInputs
 ) -> tuple[EnclosingState, StepOutputs]:
-    """Advance the rows ``row_slots`` ``(R,)`` from step k to k+1. Returns ``(state, outputs)``."""
+    """Advance the rows ``row_slots`` ``(R,)`` from step k to k+1. Returns ``(state, outputs)``.
+
+    The four stages of the module docstring, in order; each is a function of its own below.
+    """
     row_slots = np.asarray(row_slots)
     n_slots = inputs.phase_rad.shape[-1]
     if state.edges.anchored.shape[-1] != n_slots:
@@ -187,69 +190,27 @@ def enclosing_step(
     slot_index = np.arange(n_slots)
     not_self = slot_index != row_slots[:, None]  # (R, S)
 
-    # 1. Relative localization, on north and east planes ``(..., R, S)``. Self edges carry no
-    # range, so they never anchor and never estimate.
-    odometry_north, odometry_east = inputs.odometry_m[..., 0], inputs.odometry_m[..., 1]
-    relative_north = odometry_north[..., row_slots, None] - odometry_north[..., None, :]
-    relative_east = odometry_east[..., row_slots, None] - odometry_east[..., None, :]
-    range_m = np.where(not_self, inputs.range_m, np.nan)
-    readings: NDArray[np.float64] | None = None  # one range per edge
-    if params.shared_ranges and inputs.reverse_range_m is not None:
-        range_m, readings = pair_ranges(range_m, np.where(not_self, inputs.reverse_range_m, np.nan))
-    edges: EdgeEstimates | FilterEdges
-    if isinstance(state.edges, FilterEdges):
-        if params.filter is None:
-            raise EnclosingError("the state carries filter edges but params have no filter")
-        edges, gated = filter_update(
-            state.edges,
-            range_m,
-            relative_north,
-            relative_east,
-            step=state.step,
-            settings=params.filter,
-            initial_gain=params.initial_gain,
-            readings=readings,
-        )
-    else:
-        edges = rlse_update(
-            state.edges,
-            range_m,
-            relative_north,
-            relative_east,
-            params.forgetting_factor,
-            range_noise_std_m=params.bound_range_noise_std_m,
-            min_displacement_m=MIN_DISPLACEMENT_SIGMAS * (params.bound_range_noise_std_m or 0.0),
-        )
-        gated = np.zeros(range_m.shape, dtype=bool)
-    estimate_north, estimate_east = edges.current(relative_north, relative_east)
-
-    # 2. Oscillator over the vehicles heard this step.
-    phase = inputs.phase_rad.copy()
-    phase[..., row_slots] = state.phase_rad
-    phase[..., TARGET_SLOT] = np.nan
-    heard = np.isfinite(phase) & inputs.member
-    n_live = inputs.member[..., 1:].sum(axis=-1)
-    gains = harmonic_gains(n_live, n_slots - 1, params.coupling_gain, params.coupling_gain_last)
-    coupling = coupling_rate(phase, row_slots, heard, gains)
-    phase_next = advance_phase(state.phase_rad, inputs.omega_rad_s, coupling, params.step_s)
-
-    # 3. Desired offsets; the target's is 0 whatever the shape.
-    offsets = desired_offsets(phase, params.radius_m, inputs.shape_now)
-    offsets[..., TARGET_SLOT, :] = 0.0
-    row_offsets = desired_offsets(state.phase_rad, params.radius_m, inputs.shape_now)
-    row_offsets_next = desired_offsets(phase_next, params.radius_m, inputs.shape_next)
-    error_north = estimate_north - (row_offsets[..., :, None, 0] - offsets[..., None, :, 0])
-    error_east = estimate_east - (row_offsets[..., :, None, 1] - offsets[..., None, :, 1])
-
-    # 4. Saturated consensus plus feed-forward.
-    weights = row_normalised(not_self & np.isfinite(error_north + error_east))
-    consensus = saturate(
-        consensus_velocity(error_north, error_east, weights, params.beta),
-        params.saturation_m_s,
+    edges, gated, estimate_north, estimate_east = _localize(
+        params, row_slots, not_self, state, inputs
     )
-    target_velocity = np.nan_to_num(inputs.target_velocity_m_s, nan=0.0)
-    feed_forward = (row_offsets_next - row_offsets) / params.step_s
-    velocity = consensus + feed_forward + target_velocity[..., None, :]
+    phase, phase_next = _advance_oscillators(params, row_slots, state, inputs)
+    error_north, error_east, feed_forward = _formation_errors(
+        params,
+        inputs,
+        phase,
+        state.phase_rad,
+        phase_next,
+        estimate_north=estimate_north,
+        estimate_east=estimate_east,
+    )
+    velocity, consensus, weights = _command(
+        params,
+        not_self,
+        error_north,
+        error_east,
+        feed_forward=feed_forward,
+        target_velocity_m_s=inputs.target_velocity_m_s,
+    )
 
     next_state = EnclosingState(step=state.step + 1, phase_rad=phase_next, edges=edges)
     outputs = StepOutputs(
@@ -262,6 +223,134 @@ def enclosing_step(
         bearing_std_rad=_bearing_std_rad(edges, estimate_north),
     )
     return next_state, outputs
+
+
+def _localize(
+    params: EnclosingParams,
+    row_slots: NDArray[np.intp],
+    not_self: NDArray[np.bool_],
+    state: EnclosingState,
+    inputs: StepInputs,
+) -> tuple[
+    EdgeEstimates | FilterEdges, NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]
+]:
+    """Stage 1, relative localization: every edge's estimator updated from the ranges and
+    odometries at k, then phat_ij(k) carried to now. Returns the updated edges, the ranges the
+    estimator gated, and phat_ij(k) north and east, all on ``(..., R, S)`` planes.
+
+    Self edges carry no range, so they never anchor and never estimate.
+    """
+    odometry_north, odometry_east = inputs.odometry_m[..., 0], inputs.odometry_m[..., 1]
+    relative_north = odometry_north[..., row_slots, None] - odometry_north[..., None, :]
+    relative_east = odometry_east[..., row_slots, None] - odometry_east[..., None, :]
+    range_m = np.where(not_self, inputs.range_m, np.nan)
+    readings: NDArray[np.float64] | None = None  # one range per edge
+    if params.shared_ranges and inputs.reverse_range_m is not None:
+        range_m, readings = pair_ranges(range_m, np.where(not_self, inputs.reverse_range_m, np.nan))
+    edges, gated = _update_edges(
+        params, state, range_m, relative_north, relative_east, readings=readings
+    )
+    estimate_north, estimate_east = edges.current(relative_north, relative_east)
+    return edges, gated, estimate_north, estimate_east
+
+
+def _update_edges(
+    params: EnclosingParams,
+    state: EnclosingState,
+    range_m: NDArray[np.float64],
+    relative_north: NDArray[np.float64],
+    relative_east: NDArray[np.float64],
+    *,
+    readings: NDArray[np.float64] | None,
+) -> tuple[EdgeEstimates | FilterEdges, NDArray[np.bool_]]:
+    """One update by the estimator the state carries (the filter or the paper's RLSE). Returns
+    the edges and the ranges gated as outliers ``(..., R, S)`` (none, for the RLSE)."""
+    if isinstance(state.edges, FilterEdges):
+        if params.filter is None:
+            raise EnclosingError("the state carries filter edges but params have no filter")
+        return filter_update(
+            state.edges,
+            range_m,
+            relative_north,
+            relative_east,
+            step=state.step,
+            settings=params.filter,
+            initial_gain=params.initial_gain,
+            readings=readings,
+        )
+    edges = rlse_update(
+        state.edges,
+        range_m,
+        relative_north,
+        relative_east,
+        params.forgetting_factor,
+        range_noise_std_m=params.bound_range_noise_std_m,
+        min_displacement_m=MIN_DISPLACEMENT_SIGMAS * (params.bound_range_noise_std_m or 0.0),
+    )
+    return edges, np.zeros(range_m.shape, dtype=bool)
+
+
+def _advance_oscillators(
+    params: EnclosingParams, row_slots: NDArray[np.intp], state: EnclosingState, inputs: StepInputs
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Stage 2, the oscillator over the vehicles heard this step. Returns every slot's phase at k
+    as this row sees it ``(..., S)`` (the row's own from the state, the target's NaN) and the
+    rows' theta_i(k+1) ``(..., R)``."""
+    n_slots = inputs.phase_rad.shape[-1]
+    phase = inputs.phase_rad.copy()
+    phase[..., row_slots] = state.phase_rad
+    phase[..., TARGET_SLOT] = np.nan
+    heard = np.isfinite(phase) & inputs.member
+    n_live = inputs.member[..., 1:].sum(axis=-1)
+    gains = harmonic_gains(n_live, n_slots - 1, params.coupling_gain, params.coupling_gain_last)
+    coupling = coupling_rate(phase, row_slots, heard, gains)
+    phase_next = advance_phase(state.phase_rad, inputs.omega_rad_s, coupling, params.step_s)
+    return phase, phase_next
+
+
+def _formation_errors(
+    params: EnclosingParams,
+    inputs: StepInputs,
+    phase: NDArray[np.float64],
+    row_phase: NDArray[np.float64],
+    phase_next: NDArray[np.float64],
+    *,
+    estimate_north: NDArray[np.float64],
+    estimate_east: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Stage 3, desired offsets r(k), r_i(k+1) through the affine shape. Returns the formation
+    error phat_ij - (r_i - r_j) north and east ``(..., R, S)`` and the feed-forward delta_r_i / T
+    ``(..., R, 2)``. The target's offset is 0 whatever the shape."""
+    offsets = desired_offsets(phase, params.radius_m, inputs.shape_now)
+    offsets[..., TARGET_SLOT, :] = 0.0
+    row_offsets = desired_offsets(row_phase, params.radius_m, inputs.shape_now)
+    row_offsets_next = desired_offsets(phase_next, params.radius_m, inputs.shape_next)
+    error_north = estimate_north - (row_offsets[..., :, None, 0] - offsets[..., None, :, 0])
+    error_east = estimate_east - (row_offsets[..., :, None, 1] - offsets[..., None, :, 1])
+    feed_forward = (row_offsets_next - row_offsets) / params.step_s
+    return error_north, error_east, feed_forward
+
+
+def _command(
+    params: EnclosingParams,
+    not_self: NDArray[np.bool_],
+    error_north: NDArray[np.float64],
+    error_east: NDArray[np.float64],
+    *,
+    feed_forward: NDArray[np.float64],
+    target_velocity_m_s: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Stage 4, u_i(k) = sat(ubar_i) + delta_r_i / T + u_0: saturated consensus plus
+    feed-forward. Returns u_i ``(..., R, 2)``, the saturated term ``(..., R, 2)`` and the weights
+    abar_ij ``(..., R, S)`` over the neighbours with an error this step."""
+    weights = row_normalised(not_self & np.isfinite(error_north + error_east))
+    consensus = saturate(
+        consensus_velocity(error_north, error_east, weights, params.beta),
+        params.saturation_m_s,
+    )
+    target_velocity = np.nan_to_num(target_velocity_m_s, nan=0.0)
+    velocity = consensus + feed_forward + target_velocity[..., None, :]
+    return velocity, consensus, weights
 
 
 def pair_ranges(

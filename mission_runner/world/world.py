@@ -370,12 +370,44 @@ def step_measurements(
     uwb: the mission's radios (:class:`mission_runner.sensors.UwbRanging`, stepped to ``k``).
     """
     positions_m = np.asarray(positions_m, dtype=float)
+    # Ranges first: the radios draw from ``rng`` before the trackers do.
+    range_sets = _range_sets(
+        k, t_k, ids=ids, topics=topics, positions_m=positions_m, ranging=ranging, rng=rng, uwb=uwb
+    )
+    observations = _target_observations(
+        t_k,
+        ids=ids,
+        topics=topics,
+        positions_m=positions_m,
+        tracking=tracking,
+        target_m=target_m,
+        target_velocity_m_s=target_velocity_m_s,
+        sensors=sensors,
+        rng=rng,
+        target_hidden=target_hidden,
+    )
+    return observations + range_sets
+
+
+def _range_sets(
+    k: int,
+    t_k: float,
+    *,
+    ids: Sequence[int],
+    topics: Topics,
+    positions_m: NDArray[np.float64],
+    ranging: ArrayLike,
+    rng: Rng,
+    uwb: UwbRanging,
+) -> Measured:
+    """A :class:`RangeSet` per vehicle whose radio works or that read a range (see
+    :func:`step_measurements`)."""
     ranging = np.asarray(ranging, dtype=bool)
     gaps = positions_m[:, None, :] - positions_m[None, :, :]
     distances = np.sqrt(np.sum(gaps * gaps, axis=-1))
     ranges = uwb.read(distances, rng, k=k, measured=ranging[:, None] & ranging[None, :])
     read = np.isfinite(ranges)
-    range_sets: Measured = [
+    return [
         (
             topics.ranges(ids[i]),
             RangeSet(
@@ -388,6 +420,23 @@ def step_measurements(
         for i in range(len(ids))
         if ranging[i] or read[i].any()
     ]
+
+
+def _target_observations(
+    t_k: float,
+    *,
+    ids: Sequence[int],
+    topics: Topics,
+    positions_m: NDArray[np.float64],
+    tracking: ArrayLike,
+    target_m: ArrayLike,
+    target_velocity_m_s: ArrayLike,
+    sensors: SensorConfig,
+    rng: Rng,
+    target_hidden: ArrayLike | None,
+) -> Measured:
+    """A :class:`TargetObservation` per tracking vehicle: the target's horizontal range and
+    velocity where its tracker sees it, "not seen" where not (see :func:`step_measurements`)."""
     tracking = np.asarray(tracking, dtype=bool)
     hidden = np.zeros_like(tracking) if target_hidden is None else np.asarray(target_hidden, bool)
     sensing = np.flatnonzero(tracking)
@@ -398,7 +447,7 @@ def step_measurements(
         np.sqrt(np.sum(gap * gap, axis=-1)), sensors, rng, looking=~hidden[sensing]
     ) & np.isfinite(horizontal)
     north_m_s, east_m_s = (float(v) for v in np.asarray(target_velocity_m_s, dtype=float))
-    observations: Measured = [
+    return [
         (
             topics.target(ids[i]),
             TargetObservation(ids[i], t_k, float(r), north_m_s, east_m_s)
@@ -407,4 +456,3 @@ def step_measurements(
         )
         for i, r, visible in zip(sensing.tolist(), horizontal, seen.tolist(), strict=True)
     ]
-    return observations + range_sets
