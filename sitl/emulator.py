@@ -75,10 +75,7 @@ LinkName = Literal["api", "gcs", "all"]
 SensorName = Literal["flow", "gps"]
 _SENSOR_UNITS: dict[str, str] = {"flow": "optical_flow", "gps": "gps"}
 
-#: Simulated time run back to back in lockstep before datagrams get a turn: 10 steps at the
-#: default 50 Hz. In steps it was a quarter of that at the 200 Hz flights use, and every batch
-#: ends with a datagram per link: three per link and control period of 0.125 s instead of one.
-_LOCKSTEP_BATCH_S = 0.2
+_LOCKSTEP_BATCH_STEPS = 10
 #: Steps run back to back before datagrams get a turn, when real time has run ahead.
 _CATCH_UP_BATCH_STEPS = 25
 #: Mode logic, failsafes and timers need no more than this (PX4's commander runs slower);
@@ -582,11 +579,10 @@ class Emulator:
         clock = self.clock
         dt = self._dt_s
         lockstep = clock.mode == "lockstep"
-        lockstep_batch = max(1, round(_LOCKSTEP_BATCH_S / dt))
         while True:
             allowed = clock.allowed_time_s()
             if allowed == math.inf:
-                due = lockstep_batch
+                due = _LOCKSTEP_BATCH_STEPS
             else:
                 due = math.floor((allowed - self.time_s) / dt + 1e-9)
             if due <= 0:
@@ -598,7 +594,7 @@ class Emulator:
                     await asyncio.sleep(0)
                 continue
             if lockstep:
-                batch = min(due, lockstep_batch)
+                batch = min(due, _LOCKSTEP_BATCH_STEPS)
             else:
                 batch = min(due, _CATCH_UP_BATCH_STEPS)
                 if due > 1:
