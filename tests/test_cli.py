@@ -811,6 +811,20 @@ def test_control_with_a_reason_too_long_to_be_received_is_bad_input(tmp_path, ca
     )
 
 
+def test_without_a_prepare_control_says_whether_one_came_under_another_key(tmp_path):
+    """The verdict of the test below (which needs a broker) from the bus's counters alone."""
+    from mission_runner.bus import AuthCounters
+    from mission_runner.runner.process import _no_prepare
+
+    scenario = load_scenario(mqtt_scenario(tmp_path, 1883))
+    topics = scenario.bus.topics(scenario.name)
+    none = _no_prepare(scenario, topics, AuthCounters(), 5.0)
+    assert none.startswith("no mission of paper_tracking is running")
+    forged = _no_prepare(scenario, topics, AuthCounters(forged=2), 5.0)
+    assert forged.startswith("the bus key does not match the mission's: 2 message(s) on ")
+
+
+@pytest.mark.mqtt  # a broker: the fast lane's promise is none (the test above has its verdict)
 @pytest.mark.timeout(60)
 def test_control_with_another_key_says_the_key_does_not_match(tmp_path, mosquitto, capsys):
     import asyncio
