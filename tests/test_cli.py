@@ -4,6 +4,7 @@ import csv
 import fnmatch
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -379,17 +380,28 @@ def test_out_that_is_not_writable_exits_2(tmp_path, capsys):
     assert "cannot be written: Permission denied" in capsys.readouterr().err
 
 
-def test_a_second_run_removes_the_first_runs_files_and_nothing_else(tmp_path):
-    # Which files a run leaves is plumbing: a few steps write the same set as the full 600.
-    config = str(tiny_scenario_file(tmp_path))
+@pytest.fixture(scope="module")
+def batch_run(tmp_path_factory):
+    """A tiny scenario file and the folder its batch of three runs with figures wrote (to be
+    read; a test that changes it changes a copy). Which files a run leaves is plumbing: a few
+    steps write the same set as the full 600."""
+    folder = tmp_path_factory.mktemp("batch_run")
+    config, out = tiny_scenario_file(folder), folder / "out"
+    assert main(["simulate", str(config), "--out", str(out), "--runs", "3", "--quiet"]) == EXIT_OK
+    return config, out
+
+
+def test_a_second_run_removes_the_first_runs_files_and_nothing_else(tmp_path, batch_run):
+    config, first_run = batch_run
     out = tmp_path / "out"
-    assert main(["simulate", config, "--out", str(out), "--runs", "3", "--quiet"]) == EXIT_OK
+    shutil.copytree(first_run, out)
     (out / "notes.txt").write_text("mine")
     (out / "tlogs").mkdir()
     (out / "tlogs" / "vehicle_1.tlog").write_bytes(b"old flight")
     first = {path.name for path in out.iterdir()}
     assert {"batch.csv", "batch_tracking_error.png", "xy.png"} <= first
-    assert main(["simulate", config, "--out", str(out), "--no-figures", "--quiet"]) == EXIT_OK
+    code = main(["simulate", str(config), "--out", str(out), "--no-figures", "--quiet"])
+    assert code == EXIT_OK
     assert {path.name for path in out.iterdir()} == {
         "notes.txt",
         "tlogs",
@@ -401,10 +413,8 @@ def test_a_second_run_removes_the_first_runs_files_and_nothing_else(tmp_path):
     assert (out / "notes.txt").read_text() == "mine"
 
 
-def test_every_file_a_run_writes_is_one_the_next_run_removes(tmp_path):
-    out = tmp_path / "out"
-    config = str(tiny_scenario_file(tmp_path))
-    assert main(["simulate", config, "--out", str(out), "--runs", "2", "--quiet"]) == EXIT_OK
+def test_every_file_a_run_writes_is_one_the_next_run_removes(batch_run):
+    _, out = batch_run
     written = [path.relative_to(out).as_posix() for path in out.rglob("*") if path.is_file()]
     assert written
     for name in written:
