@@ -8,6 +8,9 @@ import sys
 import tomllib
 from pathlib import Path
 from types import ModuleType
+from typing import Any
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -26,8 +29,13 @@ def _import_graph() -> ModuleType:
 graph = _import_graph()
 
 
-def test_the_graph_sees_every_kind_of_import() -> None:
-    arrows = graph.imports(ROOT)
+@pytest.fixture(scope="module")
+def arrows() -> list[Any]:
+    """Every import of both packages (their every source parsed: read once, only read)."""
+    return list(graph.imports(ROOT))
+
+
+def test_the_graph_sees_every_kind_of_import(arrows: list[Any]) -> None:
     kinds = {arrow.kind for arrow in arrows}
     assert kinds == {"module", "function", "type-checking"}
     assert {arrow.source.split(".")[0] for arrow in arrows} == {"mission_runner", "sitl"}
@@ -45,18 +53,14 @@ def test_a_circle_through_a_function_and_type_checking_import_is_found(tmp_path:
     assert graph.circles(arrows) == [["mission_runner.high", "mission_runner.low"]]
 
 
-def test_no_import_circle_in_either_package() -> None:
-    arrows = graph.imports(ROOT)
+def test_no_import_circle_in_either_package(arrows: list[Any]) -> None:
     for package in ("mission_runner", "sitl"):
         mine = [arrow for arrow in arrows if arrow.source.split(".")[0] == package]
         assert graph.circles(mine) == [], package
 
 
-def test_no_arrow_goes_up_and_every_module_has_a_layer() -> None:
-    up = [
-        f"{a.source} -> {a.target} ({a.kind}, line {a.line})"
-        for a in graph.arrows_up(graph.imports(ROOT))
-    ]
+def test_no_arrow_goes_up_and_every_module_has_a_layer(arrows: list[Any]) -> None:
+    up = [f"{a.source} -> {a.target} ({a.kind}, line {a.line})" for a in graph.arrows_up(arrows)]
     assert up == []
     names = graph.module_names(ROOT, ("mission_runner",))
     assert [

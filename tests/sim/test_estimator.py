@@ -15,12 +15,12 @@ CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 NOISY = {"range_noise_std_m": 0.1, "displacement_noise_std_m": 0.005}
 
 
-def short_run(estimator, **sensors):
+def short_run(estimator, *, steps=320, runs=6, **sensors):
     data = load_scenario(CONFIGS / "paper_tracking.yaml").model_dump(mode="json")
-    data["timing"]["steps"] = 320
+    data["timing"]["steps"] = steps
     data["sensors"] = {**data["sensors"], **sensors}
     data["algorithm"]["estimator"] = estimator
-    return run_metrics(simulate(validate_scenario(data), runs=6))
+    return run_metrics(simulate(validate_scenario(data), runs=runs))
 
 
 @pytest.fixture(scope="module")
@@ -28,6 +28,7 @@ def clean():
     return short_run("ekf", **NOISY)
 
 
+@pytest.mark.slow  # two batches of 6 runs: a statistical claim (test_ekf has it on one edge)
 def test_the_filter_is_near_the_noise_floor_where_the_papers_rlse_is_not(clean):
     paper = short_run("rlse", **NOISY)
     # Measured over 100 full runs: 0.044 m (filter) and 0.44 m (RLSE, beta_f = 0.7).
@@ -35,6 +36,17 @@ def test_the_filter_is_near_the_noise_floor_where_the_papers_rlse_is_not(clean):
     assert np.median(paper["tail_localization_error_rms_m"]) > 0.3
 
 
+def test_outliers_in_a_simulated_run_reach_the_gate_and_its_count():
+    """The path of the claim below on two short runs: every run's outliers are gated and
+    counted in its metrics, and a run without outliers gates none of its exact ranges."""
+    independent = {"range_outlier_probability": 0.05, "range_nlos_duration_s": 0.0}
+    hit = short_run("ekf", steps=80, runs=2, **NOISY, **independent)
+    # 13 edges x 80 steps x 5 %: about 50 outliers a run (66 and 54 gated).
+    assert (hit["gated_ranges"] > 25).all()
+    assert (short_run("ekf", steps=80, runs=2)["gated_ranges"] == 0).all()
+
+
+@pytest.mark.slow  # two batches of 6 runs: a statistical claim; its path is the test above
 def test_independent_outliers_are_gated_and_barely_cost_anything(clean):
     # Outliers drawn independently at every step (range_nlos_duration_s: 0): the gate's case.
     hit = short_run("ekf", **NOISY, range_outlier_probability=0.05, range_nlos_duration_s=0.0)

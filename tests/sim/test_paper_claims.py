@@ -89,7 +89,18 @@ def test_a_vehicle_joining_late_is_taken_into_the_pattern():
     assert result.tracking_error_m[0, -1] < 0.05
 
 
-@pytest.mark.parametrize("sensing", [[1], [2], [3], [1, 3], [1, 2, 3, 4]])
+# One subset in the fast lane (two sensing, neither alone), the rest with the slow tests: each
+# is a full 600-step run, and vehicle 1 alone is also tracking_batch's.
+@pytest.mark.parametrize(
+    "sensing",
+    [
+        pytest.param([1], marks=pytest.mark.slow),
+        pytest.param([2], marks=pytest.mark.slow),
+        pytest.param([3], marks=pytest.mark.slow),
+        [1, 3],
+        pytest.param([1, 2, 3, 4], marks=pytest.mark.slow),
+    ],
+)
 def test_any_subset_of_sensing_vehicles_drives_the_centroid_to_the_target(sensing):
     data = scenario_data()
     for vehicle in data["vehicles"]:
@@ -109,6 +120,7 @@ def test_losing_the_only_sensing_vehicle_is_predicted_then_lost():
     # Nobody senses the target from step 10: every vehicle predicts it for target_lost_after_s,
     # then the formation declares it lost (it used to be an error of the simulator).
     data = scenario_data()
+    data["timing"]["steps"] = 40  # lost at 26, and lost it stays
     data["events"] = [{"kind": "vehicle_lost", "vehicle": 1, "at_step": 10}]
     data["algorithm"]["target_lost_after_s"] = 2.0
     result = simulate(validate_scenario(data))
