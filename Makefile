@@ -26,9 +26,9 @@ test: install
 ## The fast lane while developing: lint, types and every test that flies nothing, needs no broker
 ## and is not marked slow, on two pytest workers (pytest-xdist; benchmarks off, as xdist turns
 ## them off with a warning). `make test` (what CI runs) adds the rest, on one. Measured with
-## `/usr/bin/time make -o install check`, mypy's cache warm, on 2 shared cores (2026-12-04):
-## 1207 tests, 95 s CPU (user+sys), 70 s wall at load 2.7 (before plumbing tests ran on tiny
-## scenarios and statistical batches went slow: 138 s CPU, 90 s wall quiet); the target is 60 s.
+## `/usr/bin/time make -o install check`, mypy's cache warm, on 2 shared cores: 2026-12-05 quiet
+## (load 0.2-1.2), 1216 tests: 52.8 s wall, 74 s CPU (user+sys); the target is 60 s. Before
+## plumbing tests ran on tiny scenarios and statistical batches went slow: 138 s CPU, 90 s wall.
 ## Each worker spends 9 s CPU collecting where PYTHONDONTWRITEBYTECODE is set (3.5 s with a
 ## bytecode cache). --dist load kept: worksteal, loadscope, loadfile and -n 3 measured no better.
 ## The fast lane's tests on one worker (`python -m pytest -q -m "not slow and not mavsdk and not
