@@ -51,6 +51,7 @@ NEVER_IS_NO_VALUE = (
     "localization_converged_step",
     "phase_converged_step",
     "target_lost_step",
+    "graph_disconnected_step",
 )
 
 
@@ -89,6 +90,8 @@ def run_metrics(result: SimulationResult) -> dict[str, NDArray[Any]]:
             result.tracking_error_m, tolerances.tracking_tolerance_m
         ),
     }
+    if result.graph_disconnected_step is not None:  # a sparse graph's (a complete one stays whole)
+        metrics["graph_disconnected_step"] = result.graph_disconnected_step
     # Flight-only metrics (e.g. vehicles disarmed at the end) come with the result; a simulated
     # run has none, and an expectation on them then fails with "no value".
     for name in FLIGHT_METRICS:
@@ -245,6 +248,9 @@ class SimulationResult:
     #: Flight-only metrics, ``{name: (B,) array}`` (see ``config.FLIGHT_METRICS``).
     extra_metrics: dict[str, NDArray[Any]] = field(default_factory=dict)
     estimates_m: NDArray[np.float64] | None = None
+    #: Simulated with a sparse ``algorithm.graph`` only, ``(B,)``: the first step at which the
+    #: live vehicles' graph is disconnected (a loss cut it), -1 if never.
+    graph_disconnected_step: NDArray[np.int_] | None = None
 
     @property
     def runs(self) -> int:
