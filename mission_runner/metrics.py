@@ -150,13 +150,20 @@ def check_expectations(
     expect: the scenario's ``expect`` mapping; metrics: ``{name: scalar}`` of one run. A
     convergence step of -1 (never) fails any bound on it. A run that lost its target
     (``target_lost_step`` >= 0) fails unless ``expect`` bounds ``target_lost_step``: losing the
-    target is a failure of the mission unless the scenario sets out to show it.
+    target is a failure of the mission unless the scenario sets out to show it. So does a run
+    whose losses disconnected a sparse neighbourhood graph (``graph_disconnected_step``).
     """
     failures = []
     lost_at = metrics.get("target_lost_step")
     if "target_lost_step" not in expect and lost_at is not None and lost_at >= 0:
         failures.append(
             f"target lost at step {int(lost_at)} (bound target_lost_step in expect: to accept it)"
+        )
+    cut_at = metrics.get("graph_disconnected_step")
+    if "graph_disconnected_step" not in expect and cut_at is not None and cut_at >= 0:
+        failures.append(
+            f"neighbourhood graph disconnected at step {int(cut_at)} "
+            "(bound graph_disconnected_step in expect: to accept it)"
         )
     for name, bound in expect.items():
         value = metrics.get(name)

@@ -54,13 +54,10 @@ def coupling_rate(
     """
     # Unheard phases (NaN) have zero weight; 0 keeps them from poisoning the sums.
     phase_slots = np.where(np.isfinite(phase_slots), phase_slots, 0.0)
-    if neighbours is not None:
-        heard_by_row = heard[..., None, :] & neighbours  # (..., R, S)
-        if phase_slots.shape[-1] <= PRODUCT_MAX_SLOTS:
-            return _product_coupling(phase_slots, row_slots, heard_by_row, gains)
-        return _edge_coupling(phase_slots, row_slots, heard_by_row, gains)
     if phase_slots.shape[-1] <= PRODUCT_MAX_SLOTS:
-        return _product_coupling(phase_slots, row_slots, heard[..., None, :], gains)
+        return _product_coupling(phase_slots, row_slots, heard, gains, neighbours=neighbours)
+    if neighbours is not None:
+        return _edge_coupling(phase_slots, row_slots, heard[..., None, :] & neighbours, gains)
     return _summed_coupling(phase_slots, row_slots, heard, gains)
 
 
@@ -101,16 +98,20 @@ def _product_coupling(
     row_slots: NDArray[np.intp],
     heard: NDArray[np.bool_],
     gains: NDArray[np.float64],
+    *,
+    neighbours: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.float64]:
     """:func:`coupling_rate` as ``sin(l theta_i) (A cos(l theta))_i - cos(l theta_i) (A sin(l
-    theta))_i`` with one matrix product ``A @ [cos, sin]``; phases finite, ``heard`` the slots
-    heard by every row ``(..., 1, S)`` or by each ``(..., R, S)``."""
+    theta))_i`` with one matrix product ``A @ [cos, sin]``; phases finite."""
     n_harmonics = gains.shape[-1]
     order = np.arange(1, n_harmonics + 1)
     slots = phase_slots[..., :, None] * order  # (..., S, L)
     cos_slots, sin_slots = np.cos(slots), np.sin(slots)
     not_self = np.arange(heard.shape[-1]) != row_slots[:, None]  # (R, S)
-    weights = row_normalised(not_self & heard)
+    mask = not_self & heard[..., None, :]
+    if neighbours is not None:
+        mask = mask & neighbours
+    weights = row_normalised(mask)
     mixed = weights @ np.concatenate([cos_slots, sin_slots], axis=-1)  # (..., R, 2L)
     # The rows' sines and cosines are their slots' (the same floats).
     cos_rows, sin_rows = cos_slots[..., row_slots, :], sin_slots[..., row_slots, :]  # (..., R, L)

@@ -168,6 +168,17 @@ class _GraphSchedule:
             self._cache[key] = (adjacency, slot_mask(adjacency), connected)
         return self._cache[key]
 
+    def frame(self, steps: int) -> Adjacency | None:
+        """Every edge the run's live graphs have over steps 0..steps ``(N, N)``: the pairs the
+        ranging schedule serves (a ring's closing edges included); None for the complete
+        graph."""
+        if self.graph is None:
+            return None
+        union = np.zeros_like(self.graph)
+        for k in range(steps + 1):
+            union |= self.at(k)[0]  # type: ignore[index]  # not None with a graph
+        return union
+
     def disconnected_step(self, steps: int) -> int:
         """The first step in 0..steps at which the live graph is disconnected, -1 if none."""
         for k in range(steps + 1):
@@ -348,7 +359,13 @@ class _State:
             swarm=swarm,
             noise=noise,
             drift=drift,
-            uwb=UwbRanging(scenario.sensors, n, scenario.timing.step_s, batch=(runs,)),
+            uwb=UwbRanging(
+                scenario.sensors,
+                n,
+                scenario.timing.step_s,
+                batch=(runs,),
+                graph=plan.graph.frame(scenario.timing.steps),
+            ),
             odometry_error=np.zeros((runs, n, 2)),
             in_force=np.full((runs, n, 2), np.nan),
             # One track of the target per run: every vehicle hears every observation at once
