@@ -165,7 +165,10 @@ class _GraphSchedule:
         if key not in self._cache:
             adjacency = live_adjacency(self.graph, live, ring=self.ring)
             connected = len(components(adjacency, live)) <= 1
-            self._cache[key] = (adjacency, slot_mask(adjacency), connected)
+            # A lost vehicle's row keeps its own neighbours: its phase goes on as with the
+            # complete graph's (recorded, though nobody hears it).
+            rows = np.where(live[:, None], adjacency, self.graph)
+            self._cache[key] = (adjacency, slot_mask(rows), connected)
         return self._cache[key]
 
     def frame(self, steps: int) -> Adjacency | None:
