@@ -132,9 +132,10 @@ def flight_problems(scenario: Scenario) -> list[Problem]:
         graph.append(
             (
                 "algorithm.graph",
-                f"kind {scenario.algorithm.graph.kind} cannot be flown yet: the flight "
-                "controllers couple with and range to every vehicle; simulate it with "
-                "'mission-runner simulate', or fly with kind complete",
+                f"kind {scenario.algorithm.graph.kind} cannot be flown yet: the controllers "
+                "keep to their neighbours, but the world and the range aid still range every "
+                "pair and no flight with it has been tested; simulate it with 'mission-runner "
+                "simulate', or fly with kind complete",
             )
         )
     return graph + [
@@ -435,6 +436,15 @@ def _graph_problems(scenario: Scenario) -> list[Problem]:
     if graph.kind == "complete" and graph.k is None and graph.edges is None:
         return []
     problems: list[Problem] = []
+    if graph.kind != "complete" and scenario.safety.min_separation_m is not None:
+        problems.append(
+            (
+                "algorithm.graph",
+                "the separation guard (safety.min_separation_m) needs ranges to and estimates "
+                "of every vehicle, a sparse graph gives only its neighbours': use kind "
+                "complete, or no guard",
+            )
+        )
     if (graph.kind == "k_nearest") != (graph.k is not None):
         problems.append(("algorithm.graph.k", "give k for kind k_nearest, and only there"))
     if (graph.kind == "edges") != (graph.edges is not None):

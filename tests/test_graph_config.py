@@ -79,6 +79,15 @@ def test_connected_graphs_load(graph):
     assert scenario.algorithm.graph.kind == graph["kind"]
 
 
+def test_a_sparse_graph_with_the_separation_guard_is_refused():
+    data = with_graph({"kind": "ring"})
+    data["safety"] = {"min_separation_m": 0.5}
+    problems = problems_of(data)
+    assert any(
+        where == "algorithm.graph" and "separation guard" in message for where, message in problems
+    ), problems
+
+
 def test_a_sparse_graph_is_refused_for_flight_at_its_path():
     ring = parse_scenario((CONFIGS / "ring_enclosing.yaml").read_text(), source="ring.yaml")
     problems = flight_problems(ring)

@@ -4,7 +4,14 @@ the step's masks (a sparse coupling equals the dense one over the same neighbour
 import numpy as np
 import pytest
 
-from mission_runner.enclosing import IDENTITY, EnclosingError, SwarmEnclosing
+from mission_runner.enclosing import (
+    IDENTITY,
+    EnclosingError,
+    NeighbourReport,
+    SwarmEnclosing,
+    TargetReport,
+    VehicleEnclosing,
+)
 from mission_runner.enclosing.graph import (
     complete_graph,
     components,
@@ -166,3 +173,63 @@ def test_the_step_couples_estimates_and_agrees_over_graph_neighbours_only():
     assert full.consensus_weights[0, 3] > 0
     # The coupling too: the phases part from the complete graph's.
     assert np.abs(ring.phase_rad - complete.phase_rad).max() > 1e-3
+
+
+def test_a_flying_vehicle_with_the_graph_computes_its_row_of_the_swarm():
+    # Every vehicle hears every message and ranges every pair: the graph alone keeps the
+    # non-neighbours out, on the vehicle face as on the swarm face; vehicle 3 (index 2) is lost
+    # at step 40 and the ring closes over it on both.
+    ids = [1, 2, 3, 4, 5]
+    angles = np.linspace(0, 2 * np.pi, 5, endpoint=False)
+    world = World(5.0 * np.stack([np.cos(angles), np.sin(angles)], axis=-1))
+    phases, omega, graph = angles * 0.9, np.full(5, 1.5), ring_graph(5)
+    swarm = SwarmEnclosing(PAPER, phases, omega)
+    vehicles = [
+        VehicleEnclosing(PAPER, i, ids, phases[n], 1.5, graph=graph, ring=True)
+        for n, i in enumerate(ids)
+    ]
+    for k in range(80):
+        live = np.array([k < 40 or i != 3 for i in ids])
+        rows = np.where(live[:, None], live_adjacency(graph, live, ring=True), graph)
+        together = swarm.step(
+            odometry_m=world.odometry(),
+            range_m=world.ranges(),
+            live=live,
+            target_velocity_m_s=world.target_velocity,
+            shape_now=IDENTITY,
+            shape_next=IDENTITY,
+            neighbours=slot_mask(rows),
+        )
+        alone = vehicle_steps([v for v, up in zip(vehicles, live, strict=True) if up], world, live)
+        velocities = np.array([command.velocity_m_s for command in alone])
+        np.testing.assert_allclose(velocities, together.velocity_m_s[live], rtol=0, atol=1e-12)
+        world.advance(np.where(live[:, None], together.velocity_m_s, 0.0))
+    assert set(alone[1].neighbours_used) == {1, 4}  # vehicle 2: 1, and 4 across the lost 3
+
+
+def vehicle_steps(vehicles, world, live):
+    """Each live vehicle's step from every message and range (as test_step's, with losses)."""
+    odometry, ranges = world.odometry(), world.ranges()
+    ids = [i + 1 for i in range(len(live))]
+    members = [i for i, up in zip(ids, live, strict=True) if up]
+    phases = {v.vehicle_id: v.phase_rad for v in vehicles}
+    commands = []
+    for vehicle in vehicles:
+        row = vehicle.vehicle_id - 1
+        heard = {
+            peer: NeighbourReport(phases[peer], tuple(odometry[peer]))
+            for peer in members
+            if peer != vehicle.vehicle_id
+        }
+        measured = {peer: ranges[row, peer] for peer in [0, *members]}
+        measured = {peer: value for peer, value in measured.items() if np.isfinite(value)}
+        commands.append(
+            vehicle.step(
+                own_odometry_m=odometry[row + 1],
+                neighbours=heard,
+                ranges_m=measured,
+                target=TargetReport(tuple(odometry[0]), tuple(world.target_velocity)),
+                members=members,
+            )
+        )
+    return commands
