@@ -14,6 +14,13 @@ from typing import TYPE_CHECKING, Any
 from .config import Scenario, SensorConfig, VehicleConfig
 from .enclosing import EnclosingParams
 from .enclosing.ekf import FilterSettings
+from .enclosing.graph import (
+    Adjacency,
+    complete_graph,
+    edge_graph,
+    k_nearest_graph,
+    ring_graph,
+)
 from .sensors import SPEED_OF_LIGHT_M_S
 
 if TYPE_CHECKING:
@@ -45,6 +52,21 @@ def algorithm_params(scenario: Scenario, *, flown: bool = False) -> EnclosingPar
             None if scenario.safety.min_separation_m is None else scenario.sensors.range_noise_std_m
         ),
     )
+
+
+def neighbour_graph(scenario: Scenario) -> Adjacency:
+    """The scenario's neighbourhood graph ``(N, N)`` (``algorithm.graph``), fixed at load: the
+    k nearest by the vehicles' initial positions. Assumes a validated scenario (the edges'
+    problems are :func:`.checks.load_scenario`'s to report)."""
+    graph, n = scenario.algorithm.graph, len(scenario.vehicles)
+    if graph.kind == "ring":
+        return ring_graph(n)
+    if graph.kind == "k_nearest":
+        positions = [vehicle.initial_position_m for vehicle in scenario.vehicles]
+        return k_nearest_graph(positions, graph.k or 1)
+    if graph.kind == "edges":
+        return edge_graph(n, graph.edges or [])
+    return complete_graph(n)
 
 
 def range_error_std_m(sensors: SensorConfig) -> float:
