@@ -8,6 +8,8 @@
    checking both fly the same trajectory.
 2. A complete graph of 256 vehicles: steps per second and memory.
 3. A 1000-run batch of the paper's scenario (vectorised over runs), wall time.
+4. A k-nearest graph (k = 6) of 1000 vehicles: steps per second and memory
+   (``--graph`` runs this part alone).
 """
 
 import argparse
@@ -29,6 +31,7 @@ from baseline_loop import simulate_loop  # noqa: E402
 
 from mission_runner.checks import load_scenario, validate_scenario  # noqa: E402
 from mission_runner.sim.simulator import simulate  # noqa: E402
+from mission_runner.wiring import neighbour_graph  # noqa: E402
 
 
 def timings(function, repeat):
@@ -51,7 +54,7 @@ def best_of(function, repeat):
     return min(timings(function, repeat))
 
 
-def ring_scenario(n, steps, radius_m=4.0, omega_rad_s=np.pi / 2):
+def ring_scenario(n, steps, radius_m=4.0, omega_rad_s=np.pi / 2, graph=None):
     """The paper's tracking scenario with n vehicles on a ring (vehicle 1 senses the target)."""
     angles = np.linspace(0, 2 * np.pi, n, endpoint=False)
     data = load_scenario(ROOT / "configs" / "paper_tracking.yaml").model_dump(mode="json")
@@ -69,6 +72,8 @@ def ring_scenario(n, steps, radius_m=4.0, omega_rad_s=np.pi / 2):
         for i, a in enumerate(angles)
     ]
     data["expect"] = {}
+    if graph is not None:
+        data["algorithm"]["graph"] = graph
     return validate_scenario(data)
 
 
@@ -124,6 +129,39 @@ def large_swarm(n, steps):
     return {"vehicles": n, "steps_per_s": steps / elapsed, "peak_traced_mib": peak / 2**20}
 
 
+def sparse_swarm(n, k, steps):
+    """Steps/s and memory of ``n`` vehicles on a k-nearest graph (on the start ring: k / 2 each
+    side). The step keeps its dense ``(N, N+1)`` planes; coupling and ranging go by edges."""
+    graph = {"kind": "k_nearest", "k": k}
+
+    def scenario(count):
+        return ring_scenario(n, count, radius_m=400.0, omega_rad_s=0.005, graph=graph)
+
+    simulate(scenario(2))  # warm-up
+    timed = scenario(steps)
+    elapsed = median_of(lambda: simulate(timed), 3)
+    tracemalloc.start()
+    simulate(scenario(5))
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    edges = int(np.sum(simulate_graph_degree(timed)))
+    print(f"4. k-nearest graph (k = {k}), {n} vehicles ({edges} estimated edges), {steps} steps")
+    print(
+        f"   {steps / elapsed:.1f} steps/s, {elapsed / steps * 1e3:.1f} ms/step, median of 3 "
+        "(target >= 50 steps/s)"
+    )
+    print(
+        f"   memory: peak traced {peak / 2**20:.0f} MiB over a 5-step run; process max RSS "
+        f"{max_rss_mib():.0f} MiB"
+    )
+    return {"vehicles": n, "steps_per_s": steps / elapsed, "peak_traced_mib": peak / 2**20}
+
+
+def simulate_graph_degree(scenario):
+    """Each vehicle's number of graph neighbours ``(N,)``."""
+    return neighbour_graph(scenario).sum(axis=1)
+
+
 def max_rss_mib():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
@@ -145,11 +183,16 @@ def big_batch(runs):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
+    parser.add_argument("--graph", action="store_true", help="only the sparse graph (part 4)")
     arguments = parser.parse_args()
+    if arguments.graph:
+        sparse_swarm(1000, 6, 10 if arguments.quick else 30)
+        return
     repeat = 3 if arguments.quick else 9
     paper_speedup(repeat)
     large_swarm(256, 50 if arguments.quick else 200)
     big_batch(1000)
+    sparse_swarm(1000, 6, 10 if arguments.quick else 30)
 
 
 if __name__ == "__main__":

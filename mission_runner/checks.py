@@ -33,11 +33,12 @@ from .config import (
     Scenario,
     ShapeConfig,
 )
+from .enclosing.graph import components, edge_problems
 from .errors import ConfigError
 from .expressions import compile_expression
 from .limits import MAX_MAVLINK_ID
 from .scenario import shape_matrices, signal_values, target_positions
-from .wiring import emulator_settings
+from .wiring import emulator_settings, neighbour_graph
 
 if TYPE_CHECKING:
     from .paths import PathName
@@ -124,8 +125,20 @@ def _read_bounded(file: Path, timeout_s: float) -> bytes | None:
 
 
 def flight_problems(scenario: Scenario) -> list[Problem]:
-    """What a scenario valid for the numeric model cannot fly: vehicle ids beyond MAVLink's."""
-    return [
+    """What a scenario valid for the numeric model cannot fly: vehicle ids beyond MAVLink's, a
+    graph other than the complete one (the flight controllers hear and range to everyone)."""
+    graph: list[Problem] = []
+    if scenario.algorithm.graph.kind != "complete":
+        graph.append(
+            (
+                "algorithm.graph",
+                f"kind {scenario.algorithm.graph.kind} cannot be flown yet: the controllers "
+                "keep to their neighbours, but the world and the range aid still range every "
+                "pair and no flight with it has been tested; simulate it with 'mission-runner "
+                "simulate', or fly with kind complete",
+            )
+        )
+    return graph + [
         (
             f"vehicles[{index}].id",
             f"{vehicle.id} is not a MAVLink system id (1..{MAX_MAVLINK_ID}); a flying vehicle's "
@@ -412,6 +425,47 @@ def _rule_problems(scenario: Scenario) -> list[Problem]:
     problems += _start_problems(scenario)
     problems += _emulator_problems(scenario)
     problems += _separation_problems(scenario)
+    problems += _graph_problems(scenario)
+    return problems
+
+
+def _graph_problems(scenario: Scenario) -> list[Problem]:
+    """The neighbourhood graph's settings fit its kind, its edges are well formed and it is
+    connected (the paper's analysis needs a connected graph; a complete one is)."""
+    graph, n = scenario.algorithm.graph, len(scenario.vehicles)
+    if graph.kind == "complete" and graph.k is None and graph.edges is None:
+        return []
+    problems: list[Problem] = []
+    if graph.kind != "complete" and scenario.safety.min_separation_m is not None:
+        problems.append(
+            (
+                "algorithm.graph",
+                "the separation guard (safety.min_separation_m) needs ranges to and estimates "
+                "of every vehicle, a sparse graph gives only its neighbours': use kind "
+                "complete, or no guard",
+            )
+        )
+    if (graph.kind == "k_nearest") != (graph.k is not None):
+        problems.append(("algorithm.graph.k", "give k for kind k_nearest, and only there"))
+    if (graph.kind == "edges") != (graph.edges is not None):
+        problems.append(("algorithm.graph.edges", "give edges for kind edges, and only there"))
+    if graph.kind == "edges" and graph.edges is not None:
+        problems += [
+            (f"algorithm.graph.edges[{index}]", problem)
+            for index, problem in edge_problems(n, graph.edges)
+        ]
+    if problems:
+        return problems
+    parts = components(neighbour_graph(scenario))
+    if len(parts) > 1:
+        named = "vehicles " + " and ".join("{" + ",".join(map(str, part)) + "}" for part in parts)
+        problems.append(
+            (
+                "algorithm.graph",
+                f"is not connected: {named} are not connected (indices in vehicles:); "
+                "the formation needs every vehicle linked to every other through neighbours",
+            )
+        )
     return problems
 
 

@@ -21,7 +21,9 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    SerializerFunctionWrapHandler,
     field_validator,
+    model_serializer,
     model_validator,
 )
 
@@ -242,6 +244,29 @@ class ShapeConfig(Model):
     shear_b: Signal = Field(0.0, title="H_b", description="Shear of east by north.")
 
 
+class GraphConfig(Model):
+    """The neighbourhood graph (``algorithm.graph``): one graph for the oscillator coupling, the
+    consensus and the ranging schedule. Vehicle indices are positions in ``vehicles:`` from 0."""
+
+    kind: Literal["complete", "ring", "k_nearest", "edges"] = Field(
+        "complete",
+        title="Kind",
+        description="complete: every vehicle a neighbour of every other (the paper); ring: "
+        "the two adjacent in the order of vehicles:, the last next to the first (a lost "
+        "vehicle's two neighbours become neighbours); k_nearest: the k nearest at the start "
+        "(vehicles' initial_position_m, made symmetric, fixed for the run); edges: the "
+        "undirected edges given. The graph must be connected.",
+    )
+    k: Annotated[int, Field(ge=1, le=4096)] | None = Field(
+        None, title="k", description="Neighbours of each vehicle for k_nearest (>= 1)."
+    )
+    edges: Annotated[list[list[int]], Field(max_length=100_000)] | None = Field(
+        None,
+        title="Edges",
+        description="Undirected edges [i, j] between vehicle indices for kind edges.",
+    )
+
+
 class EstimatorSettingsConfig(Model):
     """The filter estimator's noise model and outlier gate (``algorithm.estimator: ekf``).
 
@@ -366,6 +391,11 @@ class AlgorithmConfig(Model):
         "per pair both ends already read one number. false: the paper's own ranges.",
     )
     shape: ShapeConfig = Field(ShapeConfig(), title="Shape", description="Affine shaping.")
+    graph: GraphConfig = Field(
+        GraphConfig(),
+        title="Neighbourhood graph",
+        description="Who couples, ranges and reaches consensus with whom (default: complete).",
+    )
     target_lost_after_s: Annotated[float, Field(gt=0, le=MAX_DURATION_S)] = Field(
         10.0,
         title="Target lost after",
@@ -379,6 +409,15 @@ class AlgorithmConfig(Model):
         description="What the formation does once the target is lost: hold (every vehicle "
         "hovers in place) or orbit (the law goes on around the target's last estimate).",
     )
+
+    @model_serializer(mode="wrap")
+    def _without_default_graph(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        """The complete graph (the default) is left out of dumps, so that a scenario without
+        ``graph:`` records (summary.json, the recording) exactly as before the field existed."""
+        data: dict[str, Any] = handler(self)
+        if self.graph == GraphConfig():
+            data.pop("graph", None)
+        return data
 
 
 class TimingConfig(Model):
@@ -638,6 +677,7 @@ SimulationMetricName = Literal[
     "gated_ranges",
     "target_lost_step",
     "max_tracking_error_after_convergence_m",
+    "graph_disconnected_step",
 ]
 FlightMetricName = Literal[
     "vehicles_disarmed_at_end",

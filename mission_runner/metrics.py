@@ -51,6 +51,7 @@ NEVER_IS_NO_VALUE = (
     "localization_converged_step",
     "phase_converged_step",
     "target_lost_step",
+    "graph_disconnected_step",
 )
 
 
@@ -89,6 +90,8 @@ def run_metrics(result: SimulationResult) -> dict[str, NDArray[Any]]:
             result.tracking_error_m, tolerances.tracking_tolerance_m
         ),
     }
+    if result.graph_disconnected_step is not None:  # a sparse graph's (a complete one stays whole)
+        metrics["graph_disconnected_step"] = result.graph_disconnected_step
     # Flight-only metrics (e.g. vehicles disarmed at the end) come with the result; a simulated
     # run has none, and an expectation on them then fails with "no value".
     for name in FLIGHT_METRICS:
@@ -147,13 +150,20 @@ def check_expectations(
     expect: the scenario's ``expect`` mapping; metrics: ``{name: scalar}`` of one run. A
     convergence step of -1 (never) fails any bound on it. A run that lost its target
     (``target_lost_step`` >= 0) fails unless ``expect`` bounds ``target_lost_step``: losing the
-    target is a failure of the mission unless the scenario sets out to show it.
+    target is a failure of the mission unless the scenario sets out to show it. So does a run
+    whose losses disconnected a sparse neighbourhood graph (``graph_disconnected_step``).
     """
     failures = []
     lost_at = metrics.get("target_lost_step")
     if "target_lost_step" not in expect and lost_at is not None and lost_at >= 0:
         failures.append(
             f"target lost at step {int(lost_at)} (bound target_lost_step in expect: to accept it)"
+        )
+    cut_at = metrics.get("graph_disconnected_step")
+    if "graph_disconnected_step" not in expect and cut_at is not None and cut_at >= 0:
+        failures.append(
+            f"neighbourhood graph disconnected at step {int(cut_at)} "
+            "(bound graph_disconnected_step in expect: to accept it)"
         )
     for name, bound in expect.items():
         value = metrics.get(name)
@@ -245,6 +255,9 @@ class SimulationResult:
     #: Flight-only metrics, ``{name: (B,) array}`` (see ``config.FLIGHT_METRICS``).
     extra_metrics: dict[str, NDArray[Any]] = field(default_factory=dict)
     estimates_m: NDArray[np.float64] | None = None
+    #: Simulated with a sparse ``algorithm.graph`` only, ``(B,)``: the first step at which the
+    #: live vehicles' graph is disconnected (a loss cut it), -1 if never.
+    graph_disconnected_step: NDArray[np.int_] | None = None
 
     @property
     def runs(self) -> int:

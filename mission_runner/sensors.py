@@ -149,27 +149,36 @@ def exchanges_per_step(sensors: SensorConfig, step_s: float) -> int | None:
     return math.floor(step_s / sensors.range_exchange_s + 1e-9)
 
 
-def range_slots(n: int, sensors: SensorConfig) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+def range_slots(
+    n: int, sensors: SensorConfig, graph: NDArray[np.bool_] | None = None
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """The exchanges a full round of ranging takes, in the order the channel serves them:
     ``(initiators, responders)``, the pairs i < j with ``one_exchange_per_pair``, both
-    directions of each pair in turn with ``one_exchange_per_direction``."""
-    rows, cols = np.triu_indices(n, 1)
+    directions of each pair in turn with ``one_exchange_per_direction``. ``graph`` ``(n, n)``
+    bool: only its edges are ranged (the neighbourhood graph); None: every pair."""
+    if graph is None:
+        rows, cols = np.triu_indices(n, 1)
+    else:
+        rows, cols = np.nonzero(np.triu(graph, 1))  # the same row-major order
     if sensors.range_scheme == "one_exchange_per_pair":
         return rows, cols
     return np.stack([rows, cols], -1).ravel(), np.stack([cols, rows], -1).ravel()
 
 
-def range_schedule(n: int, sensors: SensorConfig, step_s: float, k: int) -> NDArray[np.bool_]:
+def range_schedule(
+    n: int, sensors: SensorConfig, step_s: float, k: int, graph: NDArray[np.bool_] | None = None
+) -> NDArray[np.bool_]:
     """Which ranges (row i reads column j) the channel carries at step ``k``, ``(n, n)`` bool:
     every pair without ``range_exchange_s``; else a TDMA round: the step's
     :func:`exchanges_per_step` exchanges go to the next :func:`range_slots` after those of step
     k - 1, so that with many vehicles a pair is ranged every few steps. The schedule is fixed
-    by the scenario's vehicles (a lost vehicle's slots stay unused, as a static TDMA frame's)."""
-    everyone = ~np.eye(n, dtype=bool)
+    by the scenario's vehicles (a lost vehicle's slots stay unused, as a static TDMA frame's)
+    and ``graph`` (only its edges, see :func:`range_slots`)."""
+    everyone = ~np.eye(n, dtype=bool) if graph is None else graph
     capacity = exchanges_per_step(sensors, step_s)
     if capacity is None:
         return everyone
-    initiators, responders = range_slots(n, sensors)
+    initiators, responders = range_slots(n, sensors, graph)
     if capacity >= len(initiators):
         return everyone
     served = (k * capacity + np.arange(capacity)) % len(initiators)
@@ -180,14 +189,17 @@ def range_schedule(n: int, sensors: SensorConfig, step_s: float, k: int) -> NDAr
     return carried
 
 
-def ranging_plan(n: int, sensors: SensorConfig, step_s: float) -> str:
+def ranging_plan(
+    n: int, sensors: SensorConfig, step_s: float, graph: NDArray[np.bool_] | None = None
+) -> str:
     """One line saying which ranges a step of ``n`` vehicles has under ``sensors``' scheme and
-    airtime (:func:`range_schedule`)."""
+    airtime (:func:`range_schedule`), over the edges of ``graph`` (None: every pair)."""
     scheme = sensors.range_scheme.replace("_", " ")
-    slots = len(range_slots(n, sensors)[0])
+    slots = len(range_slots(n, sensors, graph)[0])
     capacity = exchanges_per_step(sensors, step_s)
     if capacity is None or capacity >= slots:
-        return f"ranging: {scheme}, {slots} exchanges a round, every pair every step"
+        pairs = "every pair" if graph is None else "every graph edge"
+        return f"ranging: {scheme}, {slots} exchanges a round, {pairs} every step"
     every = math.ceil(slots / capacity)
     return (
         f"ranging: {scheme}, {slots} exchanges a round, {capacity} a step "
@@ -222,10 +234,16 @@ class UwbRanging:
     """
 
     def __init__(
-        self, sensors: SensorConfig, n: int, step_s: float, batch: tuple[int, ...] = ()
+        self,
+        sensors: SensorConfig,
+        n: int,
+        step_s: float,
+        batch: tuple[int, ...] = (),
+        graph: NDArray[np.bool_] | None = None,
     ) -> None:
         self.sensors = sensors
         self.n = n
+        self.graph = graph  # the pairs the schedule serves (:func:`range_slots`); None: all
         self.step_s = step_s
         self.shape = (*batch, n, n)
         self.bias_m = np.zeros(self.shape)
@@ -260,7 +278,7 @@ class UwbRanging:
                 self._age(rng)
         self._step = k
         sensors = self.sensors
-        kept = np.isfinite(true_m) & range_schedule(self.n, sensors, self.step_s, k)
+        kept = np.isfinite(true_m) & range_schedule(self.n, sensors, self.step_s, k, self.graph)
         if measured is not None:
             kept &= measured & np.swapaxes(measured, -1, -2) if self.per_pair else measured
         readings = true_m

@@ -14,6 +14,13 @@ from typing import TYPE_CHECKING, Any
 from .config import Scenario, SensorConfig, VehicleConfig
 from .enclosing import EnclosingParams
 from .enclosing.ekf import FilterSettings
+from .enclosing.graph import (
+    Adjacency,
+    complete_graph,
+    edge_graph,
+    k_nearest_graph,
+    ring_graph,
+)
 from .sensors import SPEED_OF_LIGHT_M_S
 
 if TYPE_CHECKING:
@@ -45,6 +52,21 @@ def algorithm_params(scenario: Scenario, *, flown: bool = False) -> EnclosingPar
             None if scenario.safety.min_separation_m is None else scenario.sensors.range_noise_std_m
         ),
     )
+
+
+def neighbour_graph(scenario: Scenario) -> Adjacency:
+    """The scenario's neighbourhood graph ``(N, N)`` (``algorithm.graph``), fixed at load: the
+    k nearest by the vehicles' initial positions. Assumes a validated scenario (the edges'
+    problems are :func:`.checks.load_scenario`'s to report)."""
+    graph, n = scenario.algorithm.graph, len(scenario.vehicles)
+    if graph.kind == "ring":
+        return ring_graph(n)
+    if graph.kind == "k_nearest":
+        positions = [vehicle.initial_position_m for vehicle in scenario.vehicles]
+        return k_nearest_graph(positions, graph.k or 1)
+    if graph.kind == "edges":
+        return edge_graph(n, graph.edges or [])
+    return complete_graph(n)
 
 
 def range_error_std_m(sensors: SensorConfig) -> float:
@@ -166,14 +188,26 @@ def emulator_config(scenario: Scenario, **overrides: Any) -> EmulatorConfig:
     return EmulatorConfig.model_validate(emulator_settings(scenario, **overrides))
 
 
+#: The physics rate a flight's emulator runs at least at, by clock [Hz]. Real time: PX4's
+#: rate-controller-like 200 Hz, so that a setpoint takes effect within 5 ms as on PX4 and the
+#: 25 Hz odometry and 50 Hz autopilot fall on steps. Lockstep: 40 Hz, a fifth of the work (the
+#: emulator was about half of the demo's CPU at 200 Hz); the velocity and tilt lags are
+#: discretised exactly (sitl/physics.py), so the motion does not depend on the rate.
+MIN_PHYSICS_RATE_HZ = {"realtime": 200.0, "lockstep": 40.0}
+
+
+def physics_rate_hz(step_s: float, clock_mode: str) -> float:
+    """The lowest rate >= the clock's minimum whose step divides T, so that the sensors sample
+    at t_k exactly."""
+    return math.ceil(MIN_PHYSICS_RATE_HZ[clock_mode] * step_s) / step_s
+
+
 def emulator_settings(scenario: Scenario, **overrides: Any) -> dict[str, Any]:
     """What :func:`emulator_config` validates, as plain data."""
     data = {**scenario.flight.emulator, **overrides}
-    # Sensors sample at t_k exactly only if the physics step divides T: >= 200 Hz, a divisor of T.
     physics = dict(data.get("physics") or {})
-    physics.setdefault(
-        "rate_hz", math.ceil(200.0 * scenario.timing.step_s) / scenario.timing.step_s
-    )
+    clock = {"mode": scenario.flight.clock, **(data.get("clock") or {})}
+    physics.setdefault("rate_hz", physics_rate_hz(scenario.timing.step_s, clock["mode"]))
     data["physics"] = physics
     data.setdefault("vehicles", len(scenario.vehicles))
     data.setdefault("seed", scenario.seed)

@@ -283,6 +283,7 @@ class Emulator:
         self._all_links: list[VehicleLink] = []
         self._tlogs: list[TlogWriter] = []
         self._listeners: list[StepListener] = []
+        self._end_batch = False
         self._schedule: list[tuple[float, int, str, Callable[[], None]]] = []
         self._schedule_ids = itertools.count()
         self._steps = 0
@@ -602,6 +603,9 @@ class Emulator:
                     self._max_lag_s = max(self._max_lag_s, (due - 1) * dt)
             for _ in range(batch):
                 self._step(dt)
+                if self._end_batch:
+                    self._end_batch = False
+                    break
             # Once a batch: the steps of a batch run back to back without yielding, so their
             # messages would leave together anyway; a datagram per step was a system call per
             # link per 5 ms (PX4's mavlink module also sends what a loop queued in one datagram).
@@ -689,6 +693,13 @@ class Emulator:
                 self._listeners.remove(listener)
 
         return remove
+
+    def end_batch(self) -> None:
+        """End the running batch of steps after this one (for a step listener that has sampled
+        something to hand over): the event loop runs before the next step, so what the listener
+        queued goes out stamped and sent before later steps' (steps of a batch run back to back
+        and their messages would otherwise leave together)."""
+        self._end_batch = True
 
     @property
     def endpoints(self) -> list[VehicleEndpoints]:

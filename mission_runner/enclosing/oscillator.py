@@ -39,10 +39,13 @@ def coupling_rate(
     row_slots: NDArray[np.intp],
     heard: NDArray[np.bool_],
     gains: NDArray[np.float64],
+    *,
+    neighbours: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.float64]:
     """The coupling term sum_j a_ij sum_l (K_l / l) sin(l (theta_i - theta_j)), in rad/s per unit T,
     with every heard vehicle but itself a neighbour of each row: a_ij = 1 / |N_i| over
-    N_i = heard minus i.
+    N_i = heard minus i (and, with ``neighbours`` ``(..., R, S)`` bool, within the row's graph
+    neighbours).
 
     phase_slots: ``(..., S)`` phases of every slot [rad], the rows' own included; NaN where not
     heard. row_slots: ``(R,)`` the rows' slots. heard: ``(..., S)`` bool, the slots heard this
@@ -52,7 +55,9 @@ def coupling_rate(
     # Unheard phases (NaN) have zero weight; 0 keeps them from poisoning the sums.
     phase_slots = np.where(np.isfinite(phase_slots), phase_slots, 0.0)
     if phase_slots.shape[-1] <= PRODUCT_MAX_SLOTS:
-        return _product_coupling(phase_slots, row_slots, heard, gains)
+        return _product_coupling(phase_slots, row_slots, heard, gains, neighbours=neighbours)
+    if neighbours is not None:
+        return _edge_coupling(phase_slots, row_slots, heard[..., None, :] & neighbours, gains)
     return _summed_coupling(phase_slots, row_slots, heard, gains)
 
 
@@ -93,6 +98,8 @@ def _product_coupling(
     row_slots: NDArray[np.intp],
     heard: NDArray[np.bool_],
     gains: NDArray[np.float64],
+    *,
+    neighbours: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.float64]:
     """:func:`coupling_rate` as ``sin(l theta_i) (A cos(l theta))_i - cos(l theta_i) (A sin(l
     theta))_i`` with one matrix product ``A @ [cos, sin]``; phases finite."""
@@ -101,7 +108,10 @@ def _product_coupling(
     slots = phase_slots[..., :, None] * order  # (..., S, L)
     cos_slots, sin_slots = np.cos(slots), np.sin(slots)
     not_self = np.arange(heard.shape[-1]) != row_slots[:, None]  # (R, S)
-    weights = row_normalised(not_self & heard[..., None, :])
+    mask = not_self & heard[..., None, :]
+    if neighbours is not None:
+        mask = mask & neighbours
+    weights = row_normalised(mask)
     mixed = weights @ np.concatenate([cos_slots, sin_slots], axis=-1)  # (..., R, 2L)
     # The rows' sines and cosines are their slots' (the same floats).
     cos_rows, sin_rows = cos_slots[..., row_slots, :], sin_slots[..., row_slots, :]  # (..., R, L)
@@ -129,6 +139,41 @@ def _summed_coupling(
     rates -= cos_slots @ (scaled * np.swapaxes(sum_sin, -1, -2))  # (..., S, 1)
     n_neighbours = np.sum(heard, axis=-1, keepdims=True) - heard[..., row_slots]  # (..., R)
     return rates[..., row_slots, 0] / np.maximum(n_neighbours, 1)
+
+
+#: Pairs whose harmonics :func:`_edge_coupling` computes at once: its ``(chunk, L)`` arrays stay
+#: in cache. 1000 vehicles on a k = 6 graph (6000 pairs, 1000 harmonics): 51 ms a step in
+#: chunks of 128, 138 ms all at once (the arrays were 48 MB each).
+EDGE_CHUNK = 128
+
+
+def _edge_coupling(
+    phase_slots: NDArray[np.float64],
+    row_slots: NDArray[np.intp],
+    heard: NDArray[np.bool_],
+    gains: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """:func:`coupling_rate` over a sparse graph in O(E L), E the pairs (row, heard neighbour)
+    of ``heard`` ``(..., R, S)``: each pair's sum over the harmonics, then the sums by row. A
+    dense product would be O(R S L), with L ~ S harmonics. Phases finite."""
+    n_harmonics = gains.shape[-1]
+    pairs = (np.arange(heard.shape[-1]) != row_slots[:, None]) & heard
+    *lead, rows, slots = np.nonzero(pairs)
+    difference = phase_slots[(*lead, row_slots[rows])] - phase_slots[(*lead, slots)]
+    # Wrapped to one turn: l times the difference keeps its precision for large l.
+    difference = np.mod(difference + np.pi, 2 * np.pi) - np.pi
+    scaled = gains / np.arange(1, n_harmonics + 1)  # (..., L)
+    per_pair = np.empty(difference.shape)
+    for start in range(0, difference.size, EDGE_CHUNK):
+        part = slice(start, start + EDGE_CHUNK)
+        _, sines = harmonics(difference[part], n_harmonics)  # (chunk, L)
+        weights = scaled[tuple(axis[part] for axis in lead)]  # (chunk, L), or (L,) unbatched
+        per_pair[part] = np.einsum("el,el->e", sines, np.broadcast_to(weights, sines.shape))
+    row_shape = pairs.shape[:-1]
+    flat = np.ravel_multi_index((*lead, rows), row_shape)
+    total = np.bincount(flat, weights=per_pair, minlength=int(np.prod(row_shape)))
+    count = np.sum(pairs, axis=-1)
+    return total.reshape(row_shape) / np.maximum(count, 1)
 
 
 def advance_phase(

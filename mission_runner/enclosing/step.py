@@ -17,6 +17,9 @@ Order of one step k (every k-indexed input refers to the same instant kT):
 
 A neighbour that is not heard at step k (no phase, no odometry) simply drops out of this step's
 sums, whose weights are re-normalised over the neighbours that are there.
+
+Neighbours are every other vehicle (and the target) unless ``StepInputs.neighbours`` restricts
+each row to its graph's (:mod:`.graph`); the three stages that relate slots use the same mask.
 """
 
 from dataclasses import dataclass
@@ -131,6 +134,9 @@ class StepInputs:
     reverse_range_m: ``(..., R, S)`` d_ji(k) [m]: the range vehicle j measured to row i and shared
         in its step message; NaN where not heard (and for the target). None: nothing shared. Used
         only with ``EnclosingParams.shared_ranges``.
+    neighbours: ``(..., R, S)`` bool, the slots each row may couple with, range to and take into
+        its consensus (its graph neighbours and the target, :mod:`.graph`). None: every slot
+        (the complete graph, the paper's Assumption 1).
     """
 
     odometry_m: NDArray[np.float64]
@@ -142,6 +148,7 @@ class StepInputs:
     shape_next: NDArray[np.float64]
     omega_rad_s: NDArray[np.float64]
     reverse_range_m: NDArray[np.float64] | None = None
+    neighbours: NDArray[np.bool_] | None = None
 
 
 @dataclass(frozen=True)
@@ -189,6 +196,8 @@ def enclosing_step(
         )
     slot_index = np.arange(n_slots)
     not_self = slot_index != row_slots[:, None]  # (R, S)
+    if inputs.neighbours is not None:
+        not_self = not_self & inputs.neighbours  # from here on: the row's graph neighbours
 
     edges, gated, estimate_north, estimate_east = _localize(
         params, row_slots, not_self, state, inputs
@@ -303,7 +312,7 @@ def _advance_oscillators(
     heard = np.isfinite(phase) & inputs.member
     n_live = inputs.member[..., 1:].sum(axis=-1)
     gains = harmonic_gains(n_live, n_slots - 1, params.coupling_gain, params.coupling_gain_last)
-    coupling = coupling_rate(phase, row_slots, heard, gains)
+    coupling = coupling_rate(phase, row_slots, heard, gains, neighbours=inputs.neighbours)
     phase_next = advance_phase(state.phase_rad, inputs.omega_rad_s, coupling, params.step_s)
     return phase, phase_next
 

@@ -38,13 +38,16 @@ class SwarmEnclosing:
         target_velocity_m_s: NDArray[np.float64],
         shape_now: NDArray[np.float64],
         shape_next: NDArray[np.float64],
+        neighbours: NDArray[np.bool_] | None = None,
     ) -> StepOutputs:
         """One step for every vehicle.
 
         odometry_m: ``(..., N+1, 2)`` slot 0 the target; NaN for lost vehicles.
         range_m: ``(..., N, N+1)``. live: ``(..., N)`` bool. Lost vehicles' phases are not heard.
         With ``params.shared_ranges`` every vehicle hears every other's ranges to it (the
-        transpose of the vehicle columns). Returns :class:`.step.StepOutputs` with R = N.
+        transpose of the vehicle columns). neighbours: ``(..., N, N+1)`` bool, each vehicle's
+        graph neighbours over slots (:func:`.graph.slot_mask`); None: all. Returns
+        :class:`.step.StepOutputs` with R = N.
         """
         live = np.asarray(live, dtype=bool)
         member = np.concatenate([np.zeros((*live.shape[:-1], 1), dtype=bool), live], axis=-1)
@@ -62,6 +65,7 @@ class SwarmEnclosing:
             shape_next=shape_next,
             omega_rad_s=self.omega_rad_s,
             reverse_range_m=_transposed(range_m) if self.params.shared_ranges else None,
+            neighbours=neighbours,
         )
         self.state, outputs = enclosing_step(self.params, self.rows, self.state, inputs)
         return outputs

@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import EnclosingError
+from .graph import Adjacency, live_adjacency, slot_mask
 from .shape import IDENTITY
 from .step import TARGET_SLOT, EnclosingParams, EnclosingState, StepInputs, enclosing_step
 
@@ -59,7 +60,10 @@ class VehicleEnclosing:
 
     vehicle_ids: every vehicle id the swarm may contain (fixed at start; ids are > 0, 0 is the
     target). The vehicle's own phase at the current step is :attr:`phase_rad`: broadcast it with
-    the odometry before calling :meth:`step`.
+    the odometry before calling :meth:`step`. graph: the neighbourhood graph ``(N, N)`` over
+    ``vehicle_ids`` in their order (:mod:`.graph`), ``ring``: it closes over losses; None: every
+    vehicle is a neighbour. Messages and ranges of vehicles that are not neighbours among the
+    step's ``members`` are ignored, as the simulator's rows do.
     """
 
     def __init__(
@@ -69,6 +73,9 @@ class VehicleEnclosing:
         vehicle_ids: Iterable[int],
         initial_phase_rad: float,
         omega_rad_s: float,
+        *,
+        graph: Adjacency | None = None,
+        ring: bool = False,
     ) -> None:
         ids = list(vehicle_ids)
         if vehicle_id not in ids:
@@ -83,6 +90,9 @@ class VehicleEnclosing:
         self._n_slots = len(ids) + 1
         self._omega = np.array([float(omega_rad_s)])
         self.state = EnclosingState.initial(params, [initial_phase_rad], self._n_slots)
+        if graph is not None and graph.shape != (len(ids), len(ids)):
+            raise EnclosingError(f"graph is {graph.shape}, the swarm has {len(ids)} vehicles")
+        self._graph, self._ring = graph, ring
 
     @property
     def phase_rad(self) -> float:
@@ -149,6 +159,7 @@ class VehicleEnclosing:
             shape_next=np.asarray(shape_next, dtype=float),
             omega_rad_s=self._omega,
             reverse_range_m=reverse,
+            neighbours=self._neighbours(member),
         )
         self.state, out = enclosing_step(self.params, self._row, self.state, inputs)
         peers = {slot: peer for peer, slot in self._slot_of.items()}
@@ -163,6 +174,20 @@ class VehicleEnclosing:
             gated=tuple(peers[s] for s in np.flatnonzero(out.gated[0]).tolist()),
             bearing_std_rad={peers[s]: float(out.bearing_std_rad[0, s]) for s in estimated},
         )
+
+    def _neighbours(self, member: NDArray[np.bool_]) -> NDArray[np.bool_] | None:
+        """This vehicle's neighbours over slots ``(1, S)`` among the live ``member`` ``(S,)``
+        (its own row of the simulator's mask); None without a graph."""
+        if self._graph is None:
+            return None
+        live = member[1:]
+        own = self._row[0] - 1
+        if live[own]:
+            row = live_adjacency(self._graph, live, ring=self._ring)[own]
+        else:  # not counted live: its own neighbours, as a lost row in the simulator
+            row = self._graph[own]
+        mask: NDArray[np.bool_] = slot_mask(row[None, :])
+        return mask
 
     def _slot(self, peer: int) -> int:
         try:

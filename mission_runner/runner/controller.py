@@ -68,6 +68,7 @@ from ..tasks import first_completed
 from ..wiring import (
     algorithm_params,
     altitude_of,
+    neighbour_graph,
 )
 from .inbox import StepData, StepInbox
 from .odometry import ODOMETRY_PERIOD_S
@@ -882,12 +883,15 @@ def build_controller(
 ) -> VehicleController:
     """The controller of ``vehicle`` flying ``link`` on ``bus`` and ``clock``."""
     ids = [v.id for v in scenario.vehicles]
+    sparse = scenario.algorithm.graph.kind != "complete"
     law = VehicleEnclosing(
         algorithm_params(scenario, flown=True),
         vehicle.id,
         ids,
         vehicle.initial_phase_rad,
         omega_of(scenario, vehicle),
+        graph=neighbour_graph(scenario) if sparse else None,
+        ring=scenario.algorithm.graph.kind == "ring",
     )
     return VehicleController(
         vehicle_id=vehicle.id,

@@ -9,8 +9,9 @@ at once. Ground truth is used here only to make measurements and to score the ru
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,7 @@ from ..enclosing import (
     track_target,
 )
 from ..enclosing.control import saturate
+from ..enclosing.graph import Adjacency, components, live_adjacency, slot_mask
 from ..enclosing.separation import separation_guard
 from ..errors import ConfigError, SimulationError
 from ..metrics import SimulationResult, closest_pair, edge_rms, score
@@ -37,7 +39,9 @@ from ..sensors import (
     range_readings,
     target_seen,
 )
-from ..wiring import algorithm_params
+from ..wiring import algorithm_params, neighbour_graph
+
+logger = logging.getLogger(__name__)
 
 
 def initial_conditions(
@@ -134,6 +138,59 @@ def _sensor_windows(scenario: Scenario, sensor: str) -> Callable[[int], NDArray[
     return down
 
 
+@dataclass
+class _GraphSchedule:
+    """The live vehicles' neighbourhood graph at step k (``algorithm.graph``), worked out once
+    per set of live vehicles: ``graph`` the scenario's ``(N, N)``, None for the complete graph
+    (every live vehicle a neighbour of every other, the code path without masks)."""
+
+    graph: Adjacency | None
+    ring: bool
+    live_at: Callable[[int], NDArray[np.bool_]]
+    _cache: dict[bytes, tuple[Adjacency, NDArray[np.bool_], bool]] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, scenario: Scenario, live_at: Callable[[int], NDArray[np.bool_]]) -> _GraphSchedule:
+        sparse = scenario.algorithm.graph.kind != "complete"
+        graph = neighbour_graph(scenario) if sparse else None
+        return cls(graph=graph, ring=scenario.algorithm.graph.kind == "ring", live_at=live_at)
+
+    def at(self, k: int) -> tuple[Adjacency, NDArray[np.bool_], bool] | None:
+        """The live graph at step k ``(N, N)``, its slot mask ``(N, N+1)`` and whether the live
+        vehicles are connected; None for the complete graph."""
+        if self.graph is None:
+            return None
+        live = self.live_at(k)
+        key = live.tobytes()
+        if key not in self._cache:
+            adjacency = live_adjacency(self.graph, live, ring=self.ring)
+            connected = len(components(adjacency, live)) <= 1
+            # A lost vehicle's row keeps its own neighbours: its phase goes on as with the
+            # complete graph's (recorded, though nobody hears it).
+            rows = np.where(live[:, None], adjacency, self.graph)
+            self._cache[key] = (adjacency, slot_mask(rows), connected)
+        return self._cache[key]
+
+    def frame(self, steps: int) -> Adjacency | None:
+        """Every edge the run's live graphs have over steps 0..steps ``(N, N)``: the pairs the
+        ranging schedule serves (a ring's closing edges included); None for the complete
+        graph."""
+        if self.graph is None:
+            return None
+        union = np.zeros_like(self.graph)
+        for k in range(steps + 1):
+            union |= self.at(k)[0]  # type: ignore[index]  # not None with a graph
+        return union
+
+    def disconnected_step(self, steps: int) -> int:
+        """The first step in 0..steps at which the live graph is disconnected, -1 if none."""
+        for k in range(steps + 1):
+            now = self.at(k)
+            if now is not None and not now[2]:
+                return k
+        return -1
+
+
 #: The most memory a simulation may need for its results [bytes]: a scenario that needs more is
 #: refused before anything is allocated (``timing.steps: 10000000`` with ``--runs 100`` once grew
 #: until the machine swapped).
@@ -214,7 +271,27 @@ def simulate(
     out["separation_m"][:, steps] = closest_pair(
         np.sqrt(np.sum(gaps * gaps, axis=-1)), out["live"][:, steps]
     )
+    _record_graph(scenario, plan, out, runs)
     return score(scenario, plan.times, plan.target[: steps + 1], out)
+
+
+def _record_graph(scenario: Scenario, plan: _Plan, out: dict[str, NDArray[Any]], runs: int) -> None:
+    """A sparse graph's ``graph_disconnected_step`` into ``out`` (and a warning if a loss cut
+    it); nothing for the complete graph, whose summary stays as it was."""
+    if plan.graph.graph is None:
+        return
+    step = plan.graph.disconnected_step(scenario.timing.steps)
+    cut = plan.graph.at(step) if step >= 0 else None
+    if cut is not None:
+        parts = components(cut[0], plan.live_at(step))
+        named = " and ".join("{" + ",".join(map(str, part)) + "}" for part in parts)
+        logger.warning(
+            "algorithm.graph: the live vehicles' graph is disconnected from step %d on "
+            "(vehicles %s, indices in vehicles:): a loss cut it",
+            step,
+            named,
+        )
+    out["graph_disconnected_step"] = np.full(runs, step, dtype=np.int64)
 
 
 @dataclass(frozen=True)
@@ -233,11 +310,13 @@ class _Plan:
     live_at: Callable[[int], NDArray[np.bool_]]
     tracker_down: Callable[[int], NDArray[np.bool_]]
     radio_down: Callable[[int], NDArray[np.bool_]]
+    graph: _GraphSchedule
 
     @classmethod
     def of(cls, scenario: Scenario) -> _Plan:
         step_s, steps = scenario.timing.step_s, scenario.timing.steps
         times = np.arange(steps + 1, dtype=np.float64) * step_s
+        live_at = _event_schedule(scenario)
         return cls(
             times=times,
             target=target_positions(scenario.target.path, np.append(times, times[-1] + step_s)),
@@ -245,9 +324,10 @@ class _Plan:
             omega=np.array([omega_of(scenario, v) for v in scenario.vehicles]),
             senses=np.array([v.senses_target for v in scenario.vehicles]),
             speed_limit=np.array([v.speed_limit_m_s for v in scenario.vehicles])[:, None],
-            live_at=_event_schedule(scenario),
+            live_at=live_at,
             tracker_down=_sensor_windows(scenario, "tracker"),
             radio_down=_sensor_windows(scenario, "uwb"),
+            graph=_GraphSchedule.of(scenario, live_at),
         )
 
 
@@ -282,7 +362,13 @@ class _State:
             swarm=swarm,
             noise=noise,
             drift=drift,
-            uwb=UwbRanging(scenario.sensors, n, scenario.timing.step_s, batch=(runs,)),
+            uwb=UwbRanging(
+                scenario.sensors,
+                n,
+                scenario.timing.step_s,
+                batch=(runs,),
+                graph=plan.graph.frame(scenario.timing.steps),
+            ),
             odometry_error=np.zeros((runs, n, 2)),
             in_force=np.full((runs, n, 2), np.nan),
             # One track of the target per run: every vehicle hears every observation at once
@@ -326,6 +412,7 @@ def _step(
     live = np.broadcast_to(plan.live_at(k), (runs, n))
     truth_north, truth_east, ranges, radio_ranges = _measure(scenario, plan, state, out, k, live)
     odometry, target_estimate, holding = _inputs(scenario, plan, state, ranges, k, live)
+    graph = plan.graph.at(k)
     swarm = state.swarm
     out["phases_rad"][:, k] = swarm.phase_rad
     step = swarm.step(
@@ -335,6 +422,7 @@ def _step(
         target_velocity_m_s=target_estimate.velocity_m_s,
         shape_now=plan.shapes[k],
         shape_next=plan.shapes[k + 1],
+        neighbours=None if graph is None else graph[1],
     )
     if "estimates_m" in out:
         out["estimates_m"][k, ..., 0] = step.estimate_north_m[0]
@@ -376,14 +464,16 @@ def _measure(  # noqa: PLR0917 - the step's pieces, each named
     true_ranges = np.sqrt(truth_north * truth_north + truth_east * truth_east)
     out["separation_m"][:, k] = closest_pair(true_ranges[..., 1:], live)
     radio = live & ~plan.radio_down(k)
+    linked = radio[:, :, None] & radio[:, None, :]
+    graph = plan.graph.at(k)
+    if graph is not None:  # only the graph's edges are ranged
+        linked = linked & graph[0]
     seen = target_seen(
         true_ranges[..., 0], sensors, noise, looking=live & plan.senses & ~plan.tracker_down(k)
     )
     # The target's range comes from the tracker, the others' from the UWB radios.
     target_range = range_readings(true_ranges[..., :1], sensors, noise, measured=seen[..., None])
-    radio_ranges = state.uwb.read(
-        true_ranges[..., 1:], noise, k=k, measured=radio[:, :, None] & radio[:, None, :]
-    )
+    radio_ranges = state.uwb.read(true_ranges[..., 1:], noise, k=k, measured=linked)
     ranges = np.concatenate([target_range, radio_ranges], axis=-1)
     return truth_north, truth_east, ranges, radio_ranges
 

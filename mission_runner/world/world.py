@@ -280,6 +280,7 @@ class World:
             uwb=self._uwb,
         )
         self._queue.put_nowait((k, measured))
+        self.emulator.end_batch()  # this step's measurements go out before the next is sampled
 
     async def _publish(self) -> None:
         """Hand each step's measurements to the bus as soon as they are sampled, without waiting

@@ -349,6 +349,39 @@ def horizontal(velocity):
 
 
 @pytest.mark.asyncio
+async def test_messages_and_ranges_of_a_vehicle_that_is_not_a_graph_neighbour_are_ignored():
+    # Graph 1-2, 1-3 (indices 0-1, 0-2): vehicle 3 talks and is ranged, but is not 2's neighbour.
+    steps = 6
+    scenario = make_scenario(graph={"kind": "edges", "edges": [[0, 1], [0, 2]]})
+    async with rig(scenario) as flight:
+        records = await flight.fly(steps)
+        delivered = flight.neighbours.on_time
+    assert all(3 in delivered[k] for k in range(steps))  # heard and ranged all along
+    assert [r.neighbours_used for r in records] == [(1,)] * steps
+    assert [sorted(r.estimates_m) for r in records] == [[1]] * steps
+    graph = np.array([[False, True, True], [True, False, False], [True, False, False]])
+    law = VehicleEnclosing(
+        algorithm_params(scenario), OWN, [1, 2, 3], PHASES[OWN], OMEGA, graph=graph
+    )
+    for record, setpoint in zip(records, flight.link.setpoints, strict=True):
+        command = law.step(
+            own_odometry_m=wandering(record.step * T)[:2],
+            neighbours={
+                peer: NeighbourReport(
+                    d.message.phase_rad, (d.message.odometry_north_m, d.message.odometry_east_m)
+                )
+                for peer, d in delivered[record.step].items()
+            },
+            ranges_m={peer: d.horizontal_range_m for peer, d in delivered[record.step].items()},
+            target=TargetReport((math.nan, math.nan), TARGET_VELOCITY),
+            members=[1, 2, 3],
+        )
+        np.testing.assert_allclose(horizontal(setpoint), command.velocity_m_s, atol=1e-9)
+    complete, _ = await fly(steps)
+    assert not np.allclose(records[-1].velocity_ned_m_s, complete[-1].velocity_ned_m_s)
+
+
+@pytest.mark.asyncio
 async def test_each_step_publishes_the_own_message_runs_the_law_and_sends_its_command():
     steps = 6
     async with rig() as flight:
