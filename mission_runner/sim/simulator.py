@@ -39,7 +39,7 @@ from ..sensors import (
     range_readings,
     target_seen,
 )
-from ..wiring import algorithm_params, neighbour_graph
+from ..wiring import RangingGraph, algorithm_params, live_schedule, neighbour_graph
 
 logger = logging.getLogger(__name__)
 
@@ -85,24 +85,6 @@ class _Noise:
             return first
         rest = getattr(self._rest, method)(size=(shape[0] - 1, *shape[1:]), **kwargs)
         return np.concatenate([first, rest], axis=0)
-
-
-def _event_schedule(scenario: Scenario) -> Callable[[int], NDArray[np.bool_]]:
-    """live_from_schedule(k) -> ``(N,)`` bool, and the steps at which membership changes."""
-    ids = [v.id for v in scenario.vehicles]
-    joins = {
-        e.vehicle: e.step(scenario.timing.step_s)
-        for e in scenario.events
-        if e.kind == "vehicle_joins"
-    }
-    losses = {
-        e.vehicle: e.step(scenario.timing.step_s)
-        for e in scenario.events
-        if e.kind == "vehicle_lost"
-    }
-    start = np.array([joins.get(i, 0) for i in ids])
-    stop = np.array([losses.get(i, np.iinfo(np.int64).max) for i in ids])
-    return lambda k: (start <= k) & (k < stop)
 
 
 def flight_only_events(scenario: Scenario) -> list[str]:
@@ -170,17 +152,6 @@ class _GraphSchedule:
             rows = np.where(live[:, None], adjacency, self.graph)
             self._cache[key] = (adjacency, slot_mask(rows), connected)
         return self._cache[key]
-
-    def frame(self, steps: int) -> Adjacency | None:
-        """Every edge the run's live graphs have over steps 0..steps ``(N, N)``: the pairs the
-        ranging schedule serves (a ring's closing edges included); None for the complete
-        graph."""
-        if self.graph is None:
-            return None
-        union = np.zeros_like(self.graph)
-        for k in range(steps + 1):
-            union |= self.at(k)[0]  # type: ignore[index]  # not None with a graph
-        return union
 
     def disconnected_step(self, steps: int) -> int:
         """The first step in 0..steps at which the live graph is disconnected, -1 if none."""
@@ -316,7 +287,7 @@ class _Plan:
     def of(cls, scenario: Scenario) -> _Plan:
         step_s, steps = scenario.timing.step_s, scenario.timing.steps
         times = np.arange(steps + 1, dtype=np.float64) * step_s
-        live_at = _event_schedule(scenario)
+        live_at = live_schedule(scenario)
         return cls(
             times=times,
             target=target_positions(scenario.target.path, np.append(times, times[-1] + step_s)),
@@ -356,6 +327,7 @@ class _State:
         )
         noise = _Noise(scenario.seed, runs)
         drift = odometry_drift(scenario.sensors, noise, (runs, n))
+        ranging = RangingGraph.of(scenario)  # the pairs a round of ranging serves
         return cls(
             position=position,
             origin=position.copy(),
@@ -367,7 +339,7 @@ class _State:
                 n,
                 scenario.timing.step_s,
                 batch=(runs,),
-                graph=plan.graph.frame(scenario.timing.steps),
+                graph=None if ranging is None else ranging.frame,
             ),
             odometry_error=np.zeros((runs, n, 2)),
             in_force=np.full((runs, n, 2), np.nan),
