@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
+import math
 import re
 import shutil
 import subprocess
@@ -58,6 +59,7 @@ def report(name: str, flight: Flight, n: int) -> str:
     verdict = flight.summary.get("expectations", {})
     rows = _vehicle_rows(flight, n)
     lateness_ms = [1e3 * float(row["setpoint_lateness_s"]) for row in rows]
+    lateness_ms = [late for late in lateness_ms if not math.isnan(late)]  # skipped: none sent
     p50, p99 = (quantiles(lateness_ms, n=100)[i] for i in (49, 98)) if rows else (0.0, 0.0)
     used = [len([p for p in row["neighbours_used"].split() if p != "0"]) for row in rows]
     relays = "; ".join(
