@@ -171,8 +171,8 @@ class _Layout:
         """The scenario file of the root namespace, or of the vehicle in ``space`` (its broker
         is the relay at its link's root end)."""
         if space is not None:
-            data = {**data, "bus": {**data["bus"], "mqtt": {"host": space.host_ip}}}
-            data["bus"]["mqtt"]["port"] = self.relay_port
+            mqtt = {**data["bus"]["mqtt"], "host": space.host_ip, "port": self.relay_port}
+            data = {**data, "bus": {**data["bus"], "mqtt": mqtt}}
         path = self.folder / f"scenario{'_' + space.name if space else ''}.yaml"
         path.write_text(yaml.safe_dump(data))
         return str(path)
