@@ -13,7 +13,8 @@ came in, in order (802.11 delivers in order per traffic class), and a lost one:
 The defaults are a Wi-Fi mesh's: 20 ms +- 10 ms (uniform 10-30 ms) each way and 2 % loss, i.e.
 what ``tc qdisc add dev X root netem delay 20ms 10ms loss 2%`` on both ends of a link gives,
 without its reordering. Seeds are per line (``seed``, link name, connection number, direction),
-so a run's draws do not depend on what other connections carried.
+so a run's draws do not depend on what other connections carried (a route is named by its kind
+and place on the command line: ``tcp1``, ``udp2``).
 
 As a tool (runs until SIGINT or SIGTERM, then prints what it did)::
 
@@ -130,16 +131,16 @@ class Route:
     target: tuple[str, int]
 
     @classmethod
-    def parse(cls, text: str) -> Route:
+    def parse(cls, text: str, name: str) -> Route:
         """``HOST:PORT=HOST:PORT`` (listen = target)."""
         listen, target = (part.rsplit(":", 1) for part in text.split("=", 1))
-        return cls(text, (listen[0], int(listen[1])), (target[0], int(target[1])))
+        return cls(name, (listen[0], int(listen[1])), (target[0], int(target[1])))
 
 
 @dataclass
 class TcpRelay:
     """Accepts on ``route.listen``; each connection gets its own to ``route.target`` and a
-    :class:`DelayLine` each way. Use as an async context manager (owns its connections)."""
+    :class:`DelayLine` each way. Use :meth:`serving` (owns its connections)."""
 
     route: Route
     impairment: Impairment
@@ -300,17 +301,24 @@ async def relays(
 
 
 def stats_line(relay: TcpRelay | UdpRelay) -> str:
-    kind = "tcp" if isinstance(relay, TcpRelay) else "udp"
-    s = relay.stats
-    lost = f"{s.retransmitted} retransmitted" if kind == "tcp" else f"{s.dropped} dropped"
-    return f"netem: {kind} {relay.route.name}: {s.chunks} chunks, {s.bytes} B, {lost}"
+    """``netem: tcp1 LISTEN=TARGET: N chunks, N B, N retransmitted`` (UDP: ``dropped``)."""
+    s, route = relay.stats, relay.route
+    lost = (
+        f"{s.retransmitted} retransmitted"
+        if isinstance(relay, TcpRelay)
+        else f"{s.dropped} dropped"
+    )
+    addresses = "=".join(f"{host}:{port}" for host, port in (route.listen, route.target))
+    return f"netem: {route.name} {addresses}: {s.chunks} chunks, {s.bytes} B, {lost}"
 
 
 async def _serve(arguments: argparse.Namespace) -> None:
     low_ms, high_ms = arguments.delay_ms
     impairment = Impairment(low_ms / 1e3, high_ms / 1e3, arguments.loss, arguments.rto_ms / 1e3)
-    tcp = [Route.parse(text) for text in arguments.tcp]
-    udp = [Route.parse(text) for text in arguments.udp]
+    # Named by kind and place on the command line, not by address: free ports change from run
+    # to run, the draws must not.
+    tcp = [Route.parse(text, f"tcp{i}") for i, text in enumerate(arguments.tcp, start=1)]
+    udp = [Route.parse(text, f"udp{i}") for i, text in enumerate(arguments.udp, start=1)]
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for number in (signal.SIGINT, signal.SIGTERM):
