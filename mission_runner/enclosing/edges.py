@@ -13,10 +13,12 @@ not in the sums.
 """
 
 from dataclasses import dataclass
-from typing import Self
+from typing import Self, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
+
+Item = TypeVar("Item", bound=np.generic)
 
 
 @dataclass(frozen=True)
@@ -69,11 +71,11 @@ class EdgeIndex:
         """E, the number of edges."""
         return int(self.row.size)
 
-    def gather(self, plane: NDArray[np.generic]) -> NDArray[np.generic]:
+    def gather(self, plane: NDArray[Item]) -> NDArray[Item]:
         """``(..., R, S)`` -> the entries of the edges ``(..., E)``."""
         return plane[..., self.row, self.slot]
 
-    def scatter(self, values: NDArray[np.generic], fill: object) -> NDArray[np.generic]:
+    def scatter(self, values: NDArray[Item], fill: object) -> NDArray[Item]:
         """``(..., E)`` -> ``(..., R, S)`` planes, ``fill`` off the edges."""
         plane = np.full((*values.shape[:-1], self.n_rows, self.n_slots), fill, dtype=values.dtype)
         plane[..., self.row, self.slot] = values
