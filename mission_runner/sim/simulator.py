@@ -286,10 +286,13 @@ def simulate(
     out["positions_m"][:, steps] = position
     out["phases_rad"][:, steps] = state.swarm.phase_rad
     out["live"][:, steps] = plan.live_at(steps)
-    gaps = position[:, :, None, :] - position[:, None, :, :]
-    out["separation_m"][:, steps] = closest_pair(
-        np.sqrt(np.sum(gaps * gaps, axis=-1)), out["live"][:, steps]
-    )
+    if state.swarm.edge_index is None:
+        gaps = position[:, :, None, :] - position[:, None, :, :]
+        out["separation_m"][:, steps] = closest_pair(
+            np.sqrt(np.sum(gaps * gaps, axis=-1)), out["live"][:, steps]
+        )
+    else:
+        out["separation_m"][:, steps] = closest_live_pair(position, out["live"][:, steps])
     _record_graph(scenario, plan, out, runs)
     return score(scenario, plan.times, plan.target[: steps + 1], out)
 
