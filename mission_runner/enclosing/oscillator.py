@@ -180,6 +180,8 @@ def pair_coupling(
     # Wrapped to one turn: l times the difference keeps its precision for large l. Within a
     # half turn it is kept as it is (adding pi would round off its low bits, times f' ~ L).
     wrapped = difference_rad - (2 * np.pi) * np.rint(difference_rad / (2 * np.pi))
+    if gains.shape[0] > 1 and np.all(gains == gains[0]):  # a batch's runs share their gains
+        gains, which = gains[:1], np.zeros_like(which)
     used = np.unique(which)
     for group in used:
         members = which == group if used.size > 1 else slice(None)
@@ -226,7 +228,7 @@ GRID_PER_HARMONIC = 8
 TAYLOR_TERMS = 17
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=4)
 def _coupling_table(gains_bytes: bytes, n_harmonics: int) -> NDArray[np.float64]:
     """f and its derivatives on a uniform grid of M points over one turn, ``(M, J)``: row g
     holds f^(j)(x_g) h^j / j! for j < J, x_g = g h, h = 2 pi / M, so that f(x_g + u h) is the
