@@ -5,12 +5,14 @@ matplotlib costs a flight's end about 1.7 s (1 s to import, 0.2 s to draw and en
 four PNGs) and the MCAP recording 1.2 s or more of building Foxglove messages, which nothing else
 waits on. :meth:`FigureProcess.start` (:meth:`RecordingProcess.start`) starts a worker (``python
 -m mission_runner.figure_process figures|recording``) that imports its library while the
-vehicles land; ``submit`` hands it the result, and the two workers write while this process
-writes the rest (on two cores, the end of a run costs the longer of the two, not their sum).
+mission flies; ``submit`` hands it the result, and the two workers write while this process
+writes the rest (on two cores, the end of a run costs the longer of the two, not their sum). A
+flight hands the figures its mission's result before the vehicles land: they are drawn during
+the landing.
 Their files are in once ``collect`` has returned: ``summary.json``, written last, names them.
 
     with FigureProcess() as figures, RecordingProcess() as recording:
-        ...fly; figures.start(), recording.start() once the mission phase is over...
+        ...fly; figures.start(), recording.start() as the mission starts...
         write_results(result, out_dir, figure_process=figures, recording_process=recording)
 
 A worker is a plain interpreter, not a fork: the flight's process has MAVSDK's threads, which a
@@ -40,8 +42,12 @@ from typing import TYPE_CHECKING, Any, Self
 from .errors import OutputError
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
     from .metrics import SimulationResult
     from .paths import PathName
+    from .recording import LogLine
+    from .records import StepRecord
 
 logger = logging.getLogger(__name__)
 
@@ -64,7 +70,7 @@ class _WorkerProcess:
 
     def __init__(self) -> None:
         self._process: subprocess.Popen[bytes] | None = None
-        self._handed: Path | None = None
+        self._handed: list[Path] = []
 
     def __enter__(self) -> Self:
         return self
@@ -101,23 +107,27 @@ class _WorkerProcess:
             env={**os.environ, "MPLBACKEND": "Agg"},
         )
 
-    def _hand(self, arguments: tuple[Any, ...]) -> None:
+    def _hand(self, arguments: tuple[Any, ...], *, last: bool = True) -> None:
         """The job's ``arguments``, through a private temporary pickle file named on the
-        worker's standard input."""
+        worker's standard input; then (``last``) the end of its input."""
         self.start()
         process = self._process
-        assert process is not None and process.stdin is not None
+        assert process is not None
+        stdin = process.stdin
+        if stdin is None:  # an earlier part found it dead: collect does the job here
+            return
         handle, name = tempfile.mkstemp(prefix=f"{self.job}-", suffix=".pickle")
-        self._handed = Path(name)
+        self._handed.append(Path(name))
         with os.fdopen(handle, "wb") as file:
             pickle.dump(arguments, file, protocol=pickle.HIGHEST_PROTOCOL)
-        # The line, then end of input, straight to the pipe (shorter than PIPE_BUF: one write).
-        stdin, process.stdin = process.stdin, None
+        # The line straight to the pipe (shorter than PIPE_BUF: one write).
         try:
             os.write(stdin.fileno(), name.encode() + b"\n")
         except OSError as failure:  # it died already: collect does the job here
             logger.warning("%s process not reachable: %s", self.what, failure)
-        finally:
+            last = True
+        if last:
+            process.stdin = None
             stdin.close()
 
     def _answer(self) -> list[str] | None:
@@ -148,10 +158,10 @@ class _WorkerProcess:
         return names
 
     def _forget_handed(self) -> None:
-        handed, self._handed = self._handed, None
-        if handed is not None:
+        handed, self._handed = self._handed, []
+        for name in handed:
             with contextlib.suppress(FileNotFoundError):
-                handed.unlink()
+                name.unlink()
 
 
 class FigureProcess(_WorkerProcess):
@@ -160,8 +170,17 @@ class FigureProcess(_WorkerProcess):
     job = "figures"
     what = "figure"
 
+    def __init__(self) -> None:
+        super().__init__()
+        self._submitted = False
+
     def submit(self, result: SimulationResult, out_dir: PathName) -> None:
-        """Hand ``result`` over: its figures are drawn into ``out_dir``; :meth:`collect` them."""
+        """Hand ``result`` over: its figures are drawn into ``out_dir``; :meth:`collect` them.
+        Once: a flight hands its mission's result before it lands (the series the figures draw
+        are final then) and the same run's final result later, which is not drawn again."""
+        if self._submitted:
+            return
+        self._submitted = True
         self._hand((result, os.fspath(out_dir)))
 
     def collect(self, result: SimulationResult, out_dir: PathName) -> list[str]:
@@ -185,20 +204,50 @@ class RecordingProcess(_WorkerProcess):
     def __init__(self) -> None:
         super().__init__()
         self._keywords: dict[str, Any] = {}
+        #: How many log lines went with the mission's part (None: no part handed yet).
+        self._lines_handed: int | None = None
+
+    def submit_mission(
+        self,
+        result: SimulationResult,
+        path: PathName,
+        *,
+        records: Mapping[int, Sequence[StepRecord]],
+        start_s: float,
+        logs: Sequence[LogLine],
+    ) -> None:
+        """Hand a flight's mission over before it lands: the worker records its steps and the
+        ``logs`` so far while the vehicles land (:func:`.recording.recording_of`); the final
+        :meth:`submit` of the same run then hands only the lines logged since and the verdict."""
+        self._lines_handed = len(logs)
+        keywords = {"records": records, "start_s": start_s, "logs": list(logs)}
+        self._hand((result, os.fspath(path), keywords, True), last=False)
 
     def submit(self, result: SimulationResult, path: PathName, **keywords: Any) -> None:
         """Hand ``result`` over: :func:`.recording.write_recording` ``(result, path,
         **keywords)`` in the worker; :meth:`collect` waits for it."""
         self._keywords = keywords
-        self._hand((result, os.fspath(path), keywords))
+        if self._lines_handed is None:
+            self._hand((result, os.fspath(path), keywords, False))
+        else:
+            later = list(keywords.get("logs", ()))[self._lines_handed :]
+            self._hand((later, keywords.get("verdict")))
 
     def collect(self, result: SimulationResult, path: PathName) -> None:
         """Once the recording is written: by the worker or, if it failed, here."""
         if self._answer() is not None:
             return
-        from .recording import write_recording  # noqa: PLC0415 - foxglove loads a library
+        from .recording import recording_of, write_recording  # noqa: PLC0415 - foxglove loads
 
-        write_recording(result, path, **self._keywords)
+        keywords = dict(self._keywords)
+        if self._lines_handed is None:
+            write_recording(result, path, **keywords)
+            return
+        # As the worker would have: the lines of the landing after the mission's steps
+        logs, verdict = list(keywords.pop("logs", ())), keywords.pop("verdict", None)
+        mission_lines = logs[: self._lines_handed]
+        with recording_of(result, path, **keywords, logs=mission_lines) as finish:
+            finish(logs[self._lines_handed :], verdict)
 
 
 def _names(output: bytes) -> list[str] | None:
@@ -218,11 +267,38 @@ def _draw(result: SimulationResult, out_dir: str) -> list[str]:
     return write_figures(result, out_dir)
 
 
-def _record(result: SimulationResult, path: str, keywords: dict[str, Any]) -> list[str]:
-    from .recording import write_recording  # noqa: PLC0415 - this job's import, not the other's
+def _record(
+    result: SimulationResult, path: str, keywords: dict[str, Any], in_two_parts: bool
+) -> list[str]:
+    """The recording; ``in_two_parts``: a mission's steps first, then (the next line of the
+    input) the lines logged since and the verdict. No second part (the run failed while it
+    landed): no recording, and no names."""
+    from .recording import recording_of, write_recording  # noqa: PLC0415 - this job's import
 
-    write_recording(result, path, **keywords)
-    return [Path(path).name]
+    if not in_two_parts:
+        write_recording(result, path, **keywords)
+        return [Path(path).name]
+    with contextlib.suppress(_Abandoned), recording_of(result, path, **keywords) as finish:
+        later = _handed_arguments()
+        if later is None:
+            raise _Abandoned
+        finish(*later)
+        return [Path(path).name]
+    return []
+
+
+class _Abandoned(Exception):
+    """The command went without handing the rest of a job over."""
+
+
+def _handed_arguments() -> tuple[Any, ...] | None:
+    """The arguments named on the next line of the input; None at its end."""
+    line = sys.stdin.readline().strip()
+    if not line:
+        return None
+    with open(line, "rb") as file:
+        arguments: tuple[Any, ...] = pickle.load(file)  # our own private file, written by _hand
+    return arguments
 
 
 #: Each job: the module it imports before anything is handed over, and what it does.
@@ -238,11 +314,9 @@ def _main() -> int:
     job = sys.argv[1] if len(sys.argv) > 1 else "figures"
     module, work = _JOBS[job]
     importlib.import_module(module)  # imported before the result is in
-    line = sys.stdin.readline().strip()
-    if not line:
+    arguments = _handed_arguments()
+    if arguments is None:
         return 0  # not handed anything: the run ended without results
-    with open(line, "rb") as file:
-        arguments = pickle.load(file)  # our own private file, written by _hand
     sys.stdout.write(json.dumps(work(*arguments)))
     return 0
 

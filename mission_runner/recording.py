@@ -568,48 +568,83 @@ def write_recording(
     records: the flight's controllers' records ``{id: [StepRecord]}`` (None for a simulation:
     its estimates come with the result); start_s: the mission clock at k = 0; logs: the run's
     log lines; verdict: the ``expect:`` verdict, recorded as the last event."""
+    with recording_of(result, path, records=records, start_s=start_s, logs=logs) as finish:
+        finish((), verdict)
 
+
+@contextlib.contextmanager
+def recording_of(
+    result: SimulationResult,
+    path: PathName,
+    *,
+    records: Mapping[int, Sequence[StepRecord]] | None = None,
+    start_s: float = 0.0,
+    logs: Sequence[LogLine] = (),
+) -> Iterator[Callable[[Sequence[LogLine], str | None], None]]:
+    """:func:`write_recording` in two parts: run 0's steps and the ``logs`` so far are written
+    on entry, and the block gets ``finish(later_logs, verdict)``, which adds the lines logged
+    since (a flight's landing) and the verdict. The file is in place once the block ends; a
+    block that raises leaves none."""
+    scenario = result.scenario
+    end_s = start_s + result.commands_m_s.shape[1] * scenario.timing.step_s
+    with _mcap(path, scenario) as context:
+        channels = MissionChannels(
+            context, [v.id for v in scenario.vehicles], scenario.algorithm.radius_m
+        )
+        backlog = _Backlog(channels, start_s, _scheduled_events(scenario, start_s), logs)
+        _record_steps(result, records, channels, backlog, start_s)
+        backlog.until(math.inf)
+
+        def finish(later_logs: Sequence[LogLine], verdict: str | None) -> None:
+            _Backlog(channels, start_s, (), later_logs).until(math.inf)
+            if verdict is not None:
+                channels.log_event(end_s, verdict)
+
+        yield finish
+
+
+def _record_steps(
+    result: SimulationResult,
+    records: Mapping[int, Sequence[StepRecord]] | None,
+    channels: MissionChannels,
+    backlog: _Backlog,
+    start_s: float,
+) -> None:
+    """Every step of run 0 (truth, formation, metrics, each vehicle's view), with the
+    ``backlog``'s events and lines due before each."""
     scenario = result.scenario
     ids = [vehicle.id for vehicle in scenario.vehicles]
-    steps = result.commands_m_s.shape[1]
     step_s = scenario.timing.step_s
     shape = shape_schedule(scenario)
     by_step = {
         vehicle_id: {record.step: record for record in vehicle_records}
         for vehicle_id, vehicle_records in (records or {}).items()
     }
-    with _mcap(path, scenario) as context:
-        channels = MissionChannels(context, ids, scenario.algorithm.radius_m)
-        backlog = _Backlog(channels, start_s, _scheduled_events(scenario, start_s), logs)
-        for k in range(steps + 1):
-            time_s = start_s + k * step_s
-            backlog.until(time_s)
-            positions = result.positions_m[0, k]
-            views = []
-            for index, vehicle_id in enumerate(ids):
-                view = _vehicle_view(
-                    result, by_step, index=index, vehicle_id=vehicle_id, k=k, time_s=time_s
-                )
-                if view is not None:
-                    view.live = bool(result.live[0, k, index])
-                    views.append(view)
-            channels.log_step(
-                time_s,
-                shape=shape(k),
-                target_m=result.target_m[k],
-                positions_m={
-                    vehicle_id: positions[index]
-                    for index, vehicle_id in enumerate(ids)
-                    if np.all(np.isfinite(positions[index]))
-                },
-                phases_rad=dict(zip(ids, result.phases_rad[0, k].tolist(), strict=True)),
-                views=views,
-                metrics=_metrics_document(result, k, time_s),
+    for k in range(result.commands_m_s.shape[1] + 1):
+        time_s = start_s + k * step_s
+        backlog.until(time_s)
+        positions = result.positions_m[0, k]
+        views = []
+        for index, vehicle_id in enumerate(ids):
+            view = _vehicle_view(
+                result, by_step, index=index, vehicle_id=vehicle_id, k=k, time_s=time_s
             )
-        end_s = start_s + steps * step_s
-        backlog.until(math.inf)
-        if verdict is not None:
-            channels.log_event(end_s, verdict)
+            if view is not None:
+                view.live = bool(result.live[0, k, index])
+                views.append(view)
+        channels.log_step(
+            time_s,
+            shape=shape(k),
+            target_m=result.target_m[k],
+            positions_m={
+                vehicle_id: positions[index]
+                for index, vehicle_id in enumerate(ids)
+                if np.all(np.isfinite(positions[index]))
+            },
+            phases_rad=dict(zip(ids, result.phases_rad[0, k].tolist(), strict=True)),
+            views=views,
+            metrics=_metrics_document(result, k, time_s),
+        )
 
 
 def write_vehicle_recording(
@@ -734,7 +769,11 @@ def _mcap(path: PathName, scenario: Scenario | None) -> Iterator[foxglove.Contex
                     "radius_m": repr(scenario.algorithm.radius_m),
                 },
             )
-        yield context
+        try:
+            yield context
+        except BaseException:
+            temporary.unlink(missing_ok=True)  # the writer then closes a file no name leads to
+            raise
     os.replace(temporary, path)
 
 

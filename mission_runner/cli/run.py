@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -17,6 +17,7 @@ from .stopping import RUN_STOPPING, run_async
 
 if TYPE_CHECKING:
     from ..config import Scenario
+    from ..metrics import SimulationResult
     from ..records import Progress, StepRecord
     from ..runner.mission import FlightOutcome
 
@@ -52,7 +53,7 @@ def command(arguments: argparse.Namespace) -> int:
         RecordingProcess,
     )
     from ..outputs import RUN_FILES, RunSummary, prepare_out_dir  # noqa: PLC0415 - fast `--help`
-    from ..recording import LogCapture  # noqa: PLC0415 - fast `--help`
+    from ..recording import RECORDING, LogCapture  # noqa: PLC0415 - fast `--help`
     from ..runner.mission import fly  # noqa: PLC0415 - fast `--help`
 
     scenario = _scenario(arguments)
@@ -66,16 +67,26 @@ def command(arguments: argparse.Namespace) -> int:
         RecordingProcess() as recording_process,
         RunSummary(out_dir, scenario, config_path=arguments.config) as record,
     ):
-        last_step = scenario.timing.steps - 1
 
         def on_step(vehicle_id: int, step: StepRecord) -> None:
             record.steps_done = max(record.steps_done, step.step + 1)
             capture.stamp(step.time_s)
-            if step.step == last_step:
-                # The workers' imports while the vehicles land (paced: the CPU has time then)
+            if step.step == 0:
+                # The workers import while the mission flies: this process keeps one core busy,
+                # the other has time (MAVSDK's threads use a tenth of it).
                 recording_process.start()
                 if not arguments.no_figures:
                     figure_process.start()
+
+        def on_mission_end(
+            result: SimulationResult, records: Mapping[int, Sequence[StepRecord]], start_s: float
+        ) -> None:
+            # Drawn and recorded while the vehicles land
+            if not arguments.no_figures:
+                figure_process.submit(result, out_dir)
+            recording_process.submit_mission(
+                result, out_dir / RECORDING, records=records, start_s=start_s, logs=capture.lines
+            )
 
         step_callbacks: list[Callable[[int, StepRecord], None]] = [on_step]
         progress_callbacks: list[Callable[[Progress], None]] = [view] if view is not None else []
@@ -89,6 +100,7 @@ def command(arguments: argparse.Namespace) -> int:
                         emulator_overrides={"tlog_dir": str(tlogs)},
                         on_step=every(step_callbacks),
                         on_progress=every(progress_callbacks),
+                        on_mission_end=on_mission_end,
                         console=operator_console("run"),
                     ),
                     RUN_STOPPING,

@@ -71,6 +71,10 @@ if TYPE_CHECKING:
 
 #: Sees every controller step: ``(vehicle_id, record)``.
 StepCallback = Callable[[int, StepRecord], None]
+#: Sees the mission's end before the landing: ``(result, records, start_s)``, the score so far
+#: (its series are final; what it says of the landing is not in yet), every controller's step
+#: records and the mission clock at k = 0.
+MissionEndCallback = Callable[["SimulationResult", Mapping[int, Sequence[StepRecord]], float], None]
 
 logger = logging.getLogger(__name__)
 
@@ -162,12 +166,14 @@ async def fly(
     emulator_overrides: Mapping[str, Any] | None = None,
     on_step: StepCallback | None = None,
     on_progress: Callable[[Progress], None] | None = None,
+    on_mission_end: MissionEndCallback | None = None,
     console: OperatorConsole | None = None,
 ) -> FlightOutcome:
     """Fly ``scenario`` on the bundled emulator. Returns a :class:`FlightOutcome`.
 
     on_step(vehicle_id, record) sees every controller step; on_progress(Progress) every step of
-    the whole swarm; ``console`` gives the operator's typed commands (:mod:`.operator`).
+    the whole swarm; on_mission_end once the last step is flown (:data:`MissionEndCallback`);
+    ``console`` gives the operator's typed commands (:mod:`.operator`).
     """
     if any(vehicle.url for vehicle in scenario.vehicles):
         raise RunnerError("vehicles with a url fly on real PX4: use 'mission-runner vehicle'")
@@ -176,6 +182,7 @@ async def fly(
         emulator_overrides=emulator_overrides,
         on_step=on_step,
         on_progress=on_progress,
+        on_mission_end=on_mission_end,
     )
     return await flight.fly(console)
 
@@ -199,6 +206,7 @@ class InProcessFlight:
         emulator_overrides: Mapping[str, Any] | None = None,
         on_step: StepCallback | None = None,
         on_progress: Callable[[Progress], None] | None = None,
+        on_mission_end: MissionEndCallback | None = None,
         unix_s: Callable[[], float] = time.time,
     ) -> None:
         self.scenario = scenario
@@ -221,6 +229,7 @@ class InProcessFlight:
         self.on_step = on_step
         self.aggregator: _ProgressAggregator | None = None
         self.on_progress = on_progress
+        self.on_mission_end = on_mission_end
         self.vehicles: list[MavsdkVehicle] = []
         self.controllers: list[VehicleController] = []
         #: Every bus that checks what it receives (their counters go into ``bus_security``).
@@ -240,6 +249,8 @@ class InProcessFlight:
                 await self.take_off()
                 controls, clocks = await self.build_controllers(stack)
                 await self.start_and_fly(console, before_mission, controls, clocks)
+                if self.on_mission_end is not None:
+                    self.on_mission_end(self.score(), self.records, self.start_s)
                 await self.land()
             except BaseException as error:
                 # Never leave a vehicle in the air undriven: whatever ended the flight (Ctrl-C
