@@ -42,8 +42,8 @@ from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync, MavlinkMes
 from mavsdk.asyncio.plugins.param import ParamAsync, ParamError, ParamResult
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from mavsdk.logging import LogLevel, log_subscribe
-from pymavlink.dialects.v20 import common as mavlink
 
+from . import mavlink_ids as mavlink
 from .errors import RunnerTimeoutError, VehicleCommandError, VehicleConnectionError
 from .odometry import ODOMETRY_RATE_HZ, FedTrack, OdometrySample, OdometryTrack
 from .timesync import ClockMapping, ClockMappingError, MissionTime
@@ -585,11 +585,10 @@ class MavsdkVehicle:
                 f"vehicle {self.system_id}: {what}: unreadable COMMAND_ACK ({error!r})"
             ) from error
         if result != mavlink.MAV_RESULT_ACCEPTED:
-            name = mavlink.enums["MAV_RESULT"].get(result)
             reason = (await self.reason_since(asked_s) or "").strip()
             raise VehicleCommandError(
                 f"vehicle {self.system_id}: {what} refused "
-                f"({name.name if name is not None else result})" + (f": {reason}" if reason else "")
+                f"({mavlink.result_name(result)})" + (f": {reason}" if reason else "")
             )
 
     async def odometry_updated(self) -> None:
