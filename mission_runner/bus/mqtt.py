@@ -68,6 +68,7 @@ from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
 from mission_runner.bus.errors import BusConnectionError, BusTimeoutError
 from mission_runner.bus.messages import VehicleStatus
 from mission_runner.bus.paho_reader import guard_reader, max_packet_bytes
+from mission_runner.bus.paho_writer import write_at_once
 from mission_runner.bus.settings import TlsSettings
 from mission_runner.bus.topics import Topics, topic_matches, validate_pattern, validate_topic
 from mission_runner.clock import Clock, MonotonicClock
@@ -438,6 +439,8 @@ class MqttBus(Bus):
             self.auth.skipped_oversized,
             admits=self.auth.admits,
         )
+        # A publish the socket takes whole completes in its call, not three loop turns later.
+        write_at_once(client)
         return client
 
     async def _keep_connected(self) -> None:
