@@ -42,11 +42,11 @@ from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync, MavlinkMes
 from mavsdk.asyncio.plugins.param import ParamAsync, ParamError, ParamResult
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from mavsdk.logging import LogLevel, log_subscribe
-from pymavlink.dialects.v20 import common as mavlink
 
+from . import mavlink_ids as mavlink
 from .errors import RunnerTimeoutError, VehicleCommandError, VehicleConnectionError
 from .odometry import ODOMETRY_RATE_HZ, FedTrack, OdometrySample, OdometryTrack
-from .timesync import ClockMapping, ClockMappingError, MissionTime
+from .timesync import ClockMapping, ClockMappingError, FedClockMapping, MissionTime
 
 _T = TypeVar("_T")
 
@@ -294,6 +294,8 @@ class MavsdkVehicle:
         self._timeout_s = command_timeout_s
         self._odometry_waiters: set[asyncio.Future[None]] = set()
         self.odometry_malformed = 0  # LOCAL_POSITION_NED samples that could not be read
+        self.clock_malformed = 0  # SYSTEM_TIME messages that could not be read
+        self.clock_fed = asyncio.Event()  # a SYSTEM_TIME pair came (until the mapping is ready)
         self._group: asyncio.TaskGroup | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._stack = contextlib.AsyncExitStack()
@@ -473,28 +475,16 @@ class MavsdkVehicle:
         """Map this autopilot's boot clock onto ``mission_time`` from now on, refitted at every
         SYSTEM_TIME (requested at ``SYSTEM_TIME_RATE_HZ``). Returns the :class:`ClockMapping`
         once it has its first pair; raises :class:`RunnerTimeoutError` if none comes."""
-        mapping = ClockMapping()
-        first = asyncio.Event()
-        stream = self.raw.subscribe_message("SYSTEM_TIME")
-
-        async def feed() -> None:
-            async with contextlib.aclosing(stream):
-                async for message in stream:
-                    if message.system_id != self.system_id:
-                        continue
-                    fields = json.loads(message.fields_json)
-                    if fields["time_unix_usec"] and mapping.add(
-                        fields["time_boot_ms"] / 1000.0, fields["time_unix_usec"] / 1e6
-                    ):
-                        first.set()
-
-        self._spawn(feed(), "clock")
+        mapping = FedClockMapping()
+        self._stream_clock(mapping)
         with contextlib.suppress(VehicleCommandError, RunnerTimeoutError):
             # Some autopilots stream it anyway; PX4 SITL sends it at 1 Hz by default.
             await self.request_interval(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, SYSTEM_TIME_RATE_HZ)
         try:
             async with asyncio.timeout(timeout_s):
-                await first.wait()
+                while not mapping.ready:
+                    await self.clock_fed.wait()
+                    self.clock_fed.clear()
         except TimeoutError:
             raise RunnerTimeoutError(
                 f"vehicle {self.system_id}: SYSTEM_TIME with a UNIX time (is the autopilot's "
@@ -505,6 +495,31 @@ class MavsdkVehicle:
         self._mission_time = mission_time
         self.boot_s_at = lambda mission_s: mapping.boot_s(mission_time.to_unix(mission_s))
         return mapping
+
+    def _stream_clock(self, mapping: FedClockMapping) -> None:
+        """SYSTEM_TIME pairs into ``mapping`` straight from MAVSDK's thread (as odometry, see
+        :meth:`_stream_odometry`), waking :attr:`clock_fed` only until the mapping is ready; the
+        subscription ends when the vehicle's link closes."""
+        loop = asyncio.get_running_loop()
+        plugin = self.raw._plugin  # the blocking plugin: its callbacks run in MAVSDK's thread
+
+        def received(message: Any, _user_data: object) -> None:
+            keep_thread_state()
+            if message.system_id != self.system_id:
+                return
+            try:
+                fields = json.loads(message.fields_json)
+                boot_s, unix_s = fields["time_boot_ms"] / 1000.0, fields["time_unix_usec"] / 1e6
+            except (ValueError, KeyError, TypeError):
+                self.clock_malformed += 1
+                return
+            if unix_s:
+                mapping.feed(boot_s, unix_s)
+                if not mapping.fitted:  # the loop's thread adds the pairs as it reads them
+                    loop.call_soon_threadsafe(self.clock_fed.set)
+
+        handle = plugin.subscribe_message("SYSTEM_TIME", received)
+        self._stack.callback(plugin.unsubscribe_message, handle)
 
     @property
     def velocity_scale(self) -> float:
@@ -589,11 +604,10 @@ class MavsdkVehicle:
                 f"vehicle {self.system_id}: {what}: unreadable COMMAND_ACK ({error!r})"
             ) from error
         if result != mavlink.MAV_RESULT_ACCEPTED:
-            name = mavlink.enums["MAV_RESULT"].get(result)
             reason = (await self.reason_since(asked_s) or "").strip()
             raise VehicleCommandError(
                 f"vehicle {self.system_id}: {what} refused "
-                f"({name.name if name is not None else result})" + (f": {reason}" if reason else "")
+                f"({mavlink.result_name(result)})" + (f": {reason}" if reason else "")
             )
 
     async def odometry_updated(self) -> None:
