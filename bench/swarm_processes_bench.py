@@ -27,6 +27,7 @@ Stops at the first N that does not hold real time. Asserts nothing.
 from __future__ import annotations
 
 import argparse
+import collections
 import contextlib
 import csv
 import os
@@ -135,6 +136,8 @@ class Outcome:
     following: float
     window_s: float
     rates: dict[str, float]
+    #: Peer -> how many vehicle-steps went without its step message.
+    missed: dict[int, int] = field(default_factory=dict)
 
     @property
     def held(self) -> bool:
@@ -275,6 +278,13 @@ def _outcome(
         for row in rows
     ]
     vehicle_steps = max(len(rows), 1)
+    missed = collections.Counter(  # whose step message a vehicle's step went without
+        peer
+        for row in rows
+        for peer in everyone
+        - {int(row["vehicle"])}
+        - {int(i) for i in row["neighbours_used"].split()}
+    )
     return Outcome(
         n=n,
         step_s=step_s,
@@ -286,6 +296,7 @@ def _outcome(
         following=sum(row["state"] == "following" for row in rows) / vehicle_steps,
         window_s=window_s,
         rates=rates,
+        missed=dict(missed),
     )
 
 
@@ -298,6 +309,12 @@ def print_outcome(o: Outcome) -> None:
         f"neighbours {o.all_neighbours:6.1%}, following {o.following:6.1%}, window "
         f"{o.window_s:.0f} s" + (f"; failed: {', '.join(failed)}" if failed else "")
     )
+    if o.missed:
+        worst = sorted(o.missed.items(), key=lambda item: -item[1])
+        print(
+            "      vehicle-steps without a peer's step message, by peer: "
+            + ", ".join(f"{peer}: {count}" for peer, count in worst)
+        )
     print(
         f"      CPU % of a core: vehicle {min(vehicles, default=0):.1f}-"
         f"{max(vehicles, default=0):.1f} (sum {sum(vehicles):.0f}), ground "

@@ -215,6 +215,32 @@ def closest_pair(distance_m: NDArray[np.float64], live: NDArray[np.bool_]) -> ND
     return np.where(pair, distance_m, np.inf).min(axis=(-1, -2))
 
 
+def closest_live_pair(
+    position_m: NDArray[np.float64], live: NDArray[np.bool_]
+) -> NDArray[np.float64]:
+    """:func:`closest_pair` from the positions ``(..., n, 2)`` without the ``(n, n)`` distances:
+    the live vehicles sorted by north, the pairs d places apart for d = 1, 2, ... until every
+    such pair is further apart in north alone than the closest pair so far. Each distance is
+    computed as in the matrix (``sqrt(dn^2 + de^2)`` of ``p_i - p_j``), so the result is the
+    same bit for bit; O(n d) for the d that ends the search (a few dozen for 1000 vehicles)."""
+    north = np.where(live, position_m[..., 0], np.inf)  # the lost ones sort last
+    order = np.argsort(north, axis=-1, kind="stable")
+    ordered = np.take_along_axis(position_m, order[..., None], axis=-2)
+    ordered_live = np.take_along_axis(live, order, axis=-1)
+    closest = np.full(live.shape[:-1], np.inf)
+    for apart in range(1, live.shape[-1]):
+        first, second = ordered[..., :-apart, :], ordered[..., apart:, :]
+        both = ordered_live[..., :-apart] & ordered_live[..., apart:]
+        north_gap = first[..., 0] - second[..., 0]
+        east_gap = first[..., 1] - second[..., 1]
+        distance = np.sqrt(north_gap * north_gap + east_gap * east_gap)
+        closest = np.minimum(closest, np.where(both, distance, np.inf).min(axis=-1))
+        # Sorted: pairs further apart in the order are at least this far apart in north.
+        if np.all(np.where(both, -north_gap, np.inf).min(axis=-1) >= closest):
+            break
+    return closest
+
+
 @dataclass(frozen=True)
 class SimulationResult:
     """Time series of a (batched) run; B runs, K steps, N vehicles.

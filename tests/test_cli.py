@@ -2,6 +2,7 @@
 
 import csv
 import fnmatch
+import gc
 import json
 import os
 import shutil
@@ -28,6 +29,7 @@ from mission_runner.cli import (
     EXIT_TERMINATED,
     main,
 )
+from mission_runner.cli.common import startup_heap
 from mission_runner.cli.ground import score_without_truth
 from mission_runner.outputs import RUN_FILES, RunSummary
 from tests.sitl.helpers import free_port_config
@@ -973,3 +975,19 @@ def test_help_imports_no_bus_client_flight_stack_recording_or_figures(command):
     assert "usage: mission-runner" in done.stdout
     loaded = set(done.stdout.splitlines()[-1].split())
     assert not loaded & set(HEAVY_MODULES), sorted(loaded & set(HEAVY_MODULES))
+
+
+def test_start_up_runs_without_the_collector_and_freezes_what_it_built() -> None:
+    assert gc.isenabled()
+    frozen = gc.get_freeze_count()
+    try:
+        with startup_heap():
+            assert not gc.isenabled()
+            built = [[i] for i in range(1000)]
+        assert gc.isenabled()
+        assert gc.get_freeze_count() >= frozen + len(built)
+        with pytest.raises(ValueError, match="bad scenario"), startup_heap():
+            raise ValueError("bad scenario")
+        assert gc.isenabled()  # a failed start-up leaves the collector on
+    finally:
+        gc.unfreeze()

@@ -62,12 +62,14 @@ from typing import Self, TypeVar
 
 import aiomqtt
 from aiomqtt.exceptions import MqttCodeError, MqttConnectError
+from paho.mqtt.client import MQTTMessage
 
 from mission_runner.bus.auth import AuthPolicy, BusKey, MessageAuth, Sender
 from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
 from mission_runner.bus.errors import BusConnectionError, BusTimeoutError
 from mission_runner.bus.messages import VehicleStatus
 from mission_runner.bus.paho_reader import guard_reader, max_packet_bytes
+from mission_runner.bus.paho_writer import write_at_once
 from mission_runner.bus.settings import TlsSettings
 from mission_runner.bus.topics import Topics, topic_matches, validate_pattern, validate_topic
 from mission_runner.clock import Clock, MonotonicClock
@@ -290,6 +292,8 @@ class MqttBus(Bus):
         # The last retained message published on the will's topic (payload, signer), published
         # again after a reconnect: the broker may have put the will in its place meanwhile.
         self._will_topic_retained: tuple[bytes, Sender | None] | None = None
+        #: Messages of the connection being made, delivered once it is in place (see _deliver).
+        self._held: list[MQTTMessage] | None = None
 
     def __repr__(self) -> str:
         state = "connected" if self._connected else "disconnected"
@@ -429,6 +433,8 @@ class MqttBus(Bus):
         # aiomqtt warns above 10 publishes awaiting their hand-over; a range aid hands a step's
         # dozen over at once, which is no backlog.
         client.pending_calls_threshold = PENDING_PUBLISHES_WARNING
+        self._held = []
+        client._client.on_message = self._deliver  # see _deliver; the guard below wraps it
         # A packet too long to be a message is skipped as it arrives, never read into memory in
         # the loop the controller runs in (four 64 MiB payloads stalled vehicles for seconds),
         # and waiting packets are read in batches (see paho_reader.py).
@@ -438,6 +444,8 @@ class MqttBus(Bus):
             self.auth.skipped_oversized,
             admits=self.auth.admits,
         )
+        # A publish the socket takes whole completes in its call, not three loop turns later.
+        write_at_once(client)
         return client
 
     async def _keep_connected(self) -> None:
@@ -547,19 +555,42 @@ class MqttBus(Bus):
             self.client_id,
             len(patterns),
         )
-        async for message in client.messages:
-            self.received += 1
-            self.last_message_s = self.clock.now_s()
-            topic = message.topic.value
-            payload = message.payload
-            if not isinstance(payload, bytes):
-                payload = str(payload).encode() if payload is not None else b""
-            body = self.auth.open(topic, payload, retained=bool(message.retain))
-            if body is None:
-                continue  # dropped and counted: never handed to a subscription
-            for subscription in self._subscriptions:
-                if topic_matches(subscription.pattern, topic):
-                    subscription.offer(topic, body)
+        held, self._held = self._held, None
+        for message in held or ():
+            self._deliver_now(message)
+        # Messages arrive through _deliver from here on; the connection ends as aiomqtt's
+        # message iterator would end it.
+        await asyncio.wait({client._disconnected})
+        raise aiomqtt.MqttError("Disconnected during message iteration") from (
+            client._disconnected.exception()
+        )
+
+    def _deliver(self, _client: object, _userdata: object, message: MQTTMessage) -> None:
+        """paho's ``on_message``, in the event loop's thread as paho reads the socket: what
+        comes before the connection is in place (retained messages as the subscriptions are
+        made) waits until then, in order.
+
+        aiomqtt would queue the message and its iterator wake the connection task for it (a
+        task and an ``asyncio.wait`` a message, the most of what a vehicle process's event
+        loop ran in flight); handed on here, the subscriptions' readers are the only ones
+        woken, once for all a read brought them."""
+        if self._held is not None:
+            self._held.append(message)
+        else:
+            self._deliver_now(message)
+
+    def _deliver_now(self, message: MQTTMessage) -> None:
+        self.received += 1
+        self.last_message_s = self.clock.now_s()
+        topic, payload = message.topic, message.payload
+        if not isinstance(payload, bytes):
+            payload = bytes(payload)
+        body = self.auth.open(topic, payload, retained=bool(message.retain))
+        if body is None:
+            return  # dropped and counted: never handed to a subscription
+        for subscription in self._subscriptions:
+            if topic_matches(subscription.pattern, topic):
+                subscription.offer(topic, body)
 
     async def _restore_will_topic(self, client: aiomqtt.Client) -> None:
         """Publish again, before anything else of this connection, the last retained message

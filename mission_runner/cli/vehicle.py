@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 from .. import argtypes
 from ..limits import MAX_MAVLINK_ID
-from .common import EXIT_OK, EXIT_RUNTIME_FAILURE, default_mission_dir
+from .common import EXIT_OK, EXIT_RUNTIME_FAILURE, default_mission_dir, startup_heap
 from .options import add_bus_arguments
 from .stopping import run_async
 
@@ -41,14 +41,15 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def command(arguments: argparse.Namespace) -> int:
-    from ..bus.cli_options import with_bus_access  # noqa: PLC0415 - fast `--help`
-    from ..checks import load_scenario  # noqa: PLC0415 - fast `--help`
-    from ..outputs import VEHICLE_FILES, Status, prepare_out_dir, write_vehicle_run  # noqa: PLC0415 - fast `--help`
-    from ..recording import LogCapture  # noqa: PLC0415 - fast `--help`
-    from ..records import ControllerState, VehicleRun  # noqa: PLC0415 - fast `--help`
-    from ..runner.process import run_vehicle  # noqa: PLC0415 - fast `--help`
+    with startup_heap():
+        from ..bus.cli_options import with_bus_access  # noqa: PLC0415 - fast `--help`
+        from ..checks import load_scenario  # noqa: PLC0415 - fast `--help`
+        from ..outputs import VEHICLE_FILES, Status, prepare_out_dir, write_vehicle_run  # noqa: PLC0415 - fast `--help`
+        from ..recording import LogCapture  # noqa: PLC0415 - fast `--help`
+        from ..records import ControllerState, VehicleRun  # noqa: PLC0415 - fast `--help`
+        from ..runner.process import run_vehicle  # noqa: PLC0415 - fast `--help`
 
-    scenario = with_bus_access(load_scenario(arguments.config, flying=True), arguments)
+        scenario = with_bus_access(load_scenario(arguments.config, flying=True), arguments)
     # No summary.json until the end: the ground station takes one as "this vehicle is done".
     out_dir = prepare_out_dir(
         arguments.out or default_mission_dir(scenario) / f"vehicle_{arguments.id}", VEHICLE_FILES

@@ -45,12 +45,17 @@ def k_nearest_graph(positions_m: ArrayLike, k: int) -> Adjacency:
         raise EnclosingError(f"k must be >= 1, got {k}")
     if k >= n - 1:
         return complete_graph(n)
-    gaps = positions[:, None, :] - positions[None, :, :]
-    distance = np.sqrt(np.sum(gaps * gaps, axis=-1))
+    north = positions[:, None, 0] - positions[None, :, 0]
+    east = positions[:, None, 1] - positions[None, :, 1]
+    distance = np.sqrt(north * north + east * east)
     np.fill_diagonal(distance, np.inf)
-    nearest = np.argsort(distance, axis=-1, kind="stable")[:, :k]
-    adjacency = np.zeros((n, n), dtype=bool)
-    adjacency[np.arange(n)[:, None], nearest] = True
+    # The first k of a stable sort of each row, without sorting it: everything nearer than the
+    # k-th distance, then the lowest indices at it.
+    kth = np.partition(distance, k - 1, axis=-1)[:, k - 1 : k]
+    nearer = distance < kth
+    tied = distance == kth
+    room = k - np.sum(nearer, axis=-1, keepdims=True)
+    adjacency: Adjacency = nearer | (tied & (np.cumsum(tied, axis=-1) <= room))
     return adjacency | adjacency.T
 
 

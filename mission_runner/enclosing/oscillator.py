@@ -15,6 +15,8 @@ every heard vehicle, see :data:`PRODUCT_MAX_SLOTS`), instead of a Python triple 
 unchanged for one vehicle (one row) and for a whole swarm or a batch of swarms (leading axes).
 """
 
+import functools
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -141,39 +143,110 @@ def _summed_coupling(
     return rates[..., row_slots, 0] / np.maximum(n_neighbours, 1)
 
 
-#: Pairs whose harmonics :func:`_edge_coupling` computes at once: its ``(chunk, L)`` arrays stay
-#: in cache. 1000 vehicles on a k = 6 graph (6000 pairs, 1000 harmonics): 51 ms a step in
-#: chunks of 128, 138 ms all at once (the arrays were 48 MB each).
-EDGE_CHUNK = 128
-
-
 def _edge_coupling(
     phase_slots: NDArray[np.float64],
     row_slots: NDArray[np.intp],
     heard: NDArray[np.bool_],
     gains: NDArray[np.float64],
 ) -> NDArray[np.float64]:
-    """:func:`coupling_rate` over a sparse graph in O(E L), E the pairs (row, heard neighbour)
-    of ``heard`` ``(..., R, S)``: each pair's sum over the harmonics, then the sums by row. A
-    dense product would be O(R S L), with L ~ S harmonics. Phases finite."""
-    n_harmonics = gains.shape[-1]
+    """:func:`coupling_rate` over a sparse graph, E the pairs (row, heard neighbour) of
+    ``heard`` ``(..., R, S)``: each pair's sum over the harmonics (:func:`pair_coupling`), then
+    the sums by row. A dense product would be O(R S L), with L ~ S harmonics. Phases finite."""
     pairs = (np.arange(heard.shape[-1]) != row_slots[:, None]) & heard
     *lead, rows, slots = np.nonzero(pairs)
     difference = phase_slots[(*lead, row_slots[rows])] - phase_slots[(*lead, slots)]
-    # Wrapped to one turn: l times the difference keeps its precision for large l.
-    difference = np.mod(difference + np.pi, 2 * np.pi) - np.pi
-    scaled = gains / np.arange(1, n_harmonics + 1)  # (..., L)
-    per_pair = np.empty(difference.shape)
-    for start in range(0, difference.size, EDGE_CHUNK):
-        part = slice(start, start + EDGE_CHUNK)
-        _, sines = harmonics(difference[part], n_harmonics)  # (chunk, L)
-        weights = scaled[tuple(axis[part] for axis in lead)]  # (chunk, L), or (L,) unbatched
-        per_pair[part] = np.einsum("el,el->e", sines, np.broadcast_to(weights, sines.shape))
+    batch_shape = pairs.shape[:-2]
+    batch = np.ravel_multi_index(tuple(lead), batch_shape) if lead else np.zeros_like(rows)
+    per_pair = pair_coupling(difference, gains.reshape(-1, gains.shape[-1]), batch)
     row_shape = pairs.shape[:-1]
     flat = np.ravel_multi_index((*lead, rows), row_shape)
     total = np.bincount(flat, weights=per_pair, minlength=int(np.prod(row_shape)))
     count = np.sum(pairs, axis=-1)
     return total.reshape(row_shape) / np.maximum(count, 1)
+
+
+def pair_coupling(
+    difference_rad: NDArray[np.float64],
+    gains: NDArray[np.float64],
+    which: NDArray[np.intp],
+) -> NDArray[np.float64]:
+    """f(x) = sum_l (K_l / l) sin(l x) for each pair's phase difference x = theta_i - theta_j
+    ``(P,)`` [rad], with the gains ``gains[which[p]]`` (``(G, L)`` rows of K_1..K_L, ``which``
+    ``(P,)``). Up to :data:`DIRECT_MAX_HARMONICS` harmonics the sum itself, O(P L); above, a
+    table of f on a grid (:func:`_coupling_table`), O(P) a pair once the table is built."""
+    result = np.empty(difference_rad.shape)
+    if difference_rad.size == 0:
+        return result
+    # Wrapped to one turn: l times the difference keeps its precision for large l. Within a
+    # half turn it is kept as it is (adding pi would round off its low bits, times f' ~ L).
+    wrapped = difference_rad - (2 * np.pi) * np.rint(difference_rad / (2 * np.pi))
+    if gains.shape[0] > 1 and np.all(gains == gains[0]):  # a batch's runs share their gains
+        gains, which = gains[:1], np.zeros_like(which)
+    used = np.unique(which)
+    for group in used:
+        members = which == group if used.size > 1 else slice(None)
+        result[members] = _pair_sum(wrapped[members], gains[group])
+    return result
+
+
+#: Up to this many harmonics :func:`pair_coupling` sums them; above, it reads a table.
+DIRECT_MAX_HARMONICS = 64
+
+
+def _pair_sum(
+    difference_rad: NDArray[np.float64], gains: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """f(x) for the phase differences ``(P,)`` in [-pi, pi) with one row of gains ``(L,)``."""
+    n_harmonics = gains.shape[-1]
+    if n_harmonics <= DIRECT_MAX_HARMONICS:
+        scaled = gains / np.arange(1, n_harmonics + 1)
+        _, sines = harmonics(difference_rad, n_harmonics)
+        return sines @ scaled
+    table = _coupling_table(gains.tobytes(), n_harmonics)
+    points = table.shape[0]
+    step = 2 * np.pi / points
+    nearest = np.rint(difference_rad / step)
+    # x - g h with h in two parts, the first of 32 bits so that g times it is exact: the offset
+    # then carries the rounding of x alone, not x's times M (f' is up to ~L).
+    step_high = float(np.float32(step))
+    offset = difference_rad - nearest * step_high
+    offset -= nearest * (step - step_high)
+    offset /= step  # in [-1/2, 1/2] grid steps
+    coefficients = table[nearest.astype(np.intp) % points]  # (P, J + 1)
+    total = coefficients[:, -1].copy()
+    for order in range(table.shape[1] - 2, -1, -1):  # Horner in the offset
+        total *= offset
+        total += coefficients[:, order]
+    return total
+
+
+#: The table's grid has this many points per harmonic (a power of two times L at least), so
+#: that l times the distance to the nearest point is at most pi / GRID_PER_HARMONIC; its
+#: Taylor series there, to :data:`TAYLOR_TERMS` terms, is then exact to rounding
+#: ((pi / 8)^17 / 17! < 1e-20 of the sum of |K_l / l|).
+GRID_PER_HARMONIC = 8
+TAYLOR_TERMS = 17
+
+
+@functools.lru_cache(maxsize=4)
+def _coupling_table(gains_bytes: bytes, n_harmonics: int) -> NDArray[np.float64]:
+    """f and its derivatives on a uniform grid of M points over one turn, ``(M, J)``: row g
+    holds f^(j)(x_g) h^j / j! for j < J, x_g = g h, h = 2 pi / M, so that f(x_g + u h) is the
+    polynomial in u of the row. f is a trigonometric polynomial: every derivative on the grid
+    is one inverse FFT of its coefficients. Kept per set of gains (they change only when a
+    vehicle is lost or joins)."""
+    gains = np.frombuffer(gains_bytes, dtype=np.float64)
+    points = 1 << max(6, int(np.ceil(np.log2(GRID_PER_HARMONIC * n_harmonics))))
+    order = np.arange(1, n_harmonics + 1)
+    step = 2 * np.pi / points
+    coefficients = np.zeros((TAYLOR_TERMS, points), dtype=complex)
+    term = (gains / order).astype(complex)  # K_l / l (i l h)^j / j!, j = 0, 1, ...
+    for j in range(TAYLOR_TERMS):
+        coefficients[j, 1 : n_harmonics + 1] = term
+        term = term * (1j * order * step) / (j + 1)
+    # sum_l c_l e^{i l x_g}; the imaginary part is the sine series.
+    values = np.fft.ifft(coefficients, axis=-1) * points
+    return np.ascontiguousarray(values.imag.T)
 
 
 def advance_phase(

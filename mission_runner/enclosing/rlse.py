@@ -13,7 +13,9 @@ from odometry (cumulative displacement in each vehicle's own north-east frame), 
 a neighbour's message is missing the next update simply spans the longer interval: nothing is
 guessed and nothing is corrupted. With every measurement present it is exactly the paper's update.
 
-Every array is ``(..., R, S)``: edges from R computing vehicles to S slots (slot 0 is the target).
+Every array is ``(..., R, S)``: edges from R computing vehicles to S slots (slot 0 is the target);
+the update is elementwise, so a sparse swarm keeps the same state per edge, ``(..., E)``
+(:mod:`.edges`).
 Planar quantities are stored as separate north and east arrays and Gamma (symmetric) as its three
 distinct entries: contiguous planes are several times faster than ``(..., 2)`` and ``(..., 2, 2)``
 trailing axes for the large swarms the simulator runs.

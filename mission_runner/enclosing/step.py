@@ -20,6 +20,9 @@ sums, whose weights are re-normalised over the neighbours that are there.
 
 Neighbours are every other vehicle (and the target) unless ``StepInputs.neighbours`` restricts
 each row to its graph's (:mod:`.graph`); the three stages that relate slots use the same mask.
+With an :class:`.edges.EdgeIndex` (sparse graphs) everything that relates a row to a slot is kept
+per directed edge ``(..., E)`` instead of on ``(..., R, S)`` planes: the same sums over the same
+neighbours, in O(E) work and memory.
 """
 
 from dataclasses import dataclass
@@ -29,9 +32,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .control import consensus_velocity, row_normalised, saturate
+from .edges import EdgeIndex
 from .ekf import FilterEdges, FilterSettings, filter_update
 from .errors import EnclosingError
-from .oscillator import advance_phase, coupling_rate, harmonic_gains
+from .oscillator import advance_phase, coupling_rate, harmonic_gains, pair_coupling
 from .rlse import EdgeEstimates, rlse_update
 from .shape import desired_offsets
 
@@ -97,7 +101,8 @@ class EnclosingParams:
 class EnclosingState:
     """What the computing vehicles carry from step k to k+1.
 
-    step: k. phase_rad: ``(..., R)`` theta_i(k). edges: estimator state ``(..., R, S)``.
+    step: k. phase_rad: ``(..., R)`` theta_i(k). edges: estimator state ``(..., R, S)``, or
+    ``(..., E)`` per edge of an :class:`.edges.EdgeIndex`.
     """
 
     step: int
@@ -105,10 +110,13 @@ class EnclosingState:
     edges: EdgeEstimates | FilterEdges
 
     @classmethod
-    def initial(cls, params: EnclosingParams, phase_rad: ArrayLike, n_slots: int) -> Self:
-        """State at k = 0 for rows with phases ``(..., R)`` and ``n_slots`` slots."""
+    def initial(
+        cls, params: EnclosingParams, phase_rad: ArrayLike, n_slots: int, n_edges: int | None = None
+    ) -> Self:
+        """State at k = 0 for rows with phases ``(..., R)`` and ``n_slots`` slots; with
+        ``n_edges``, estimators per edge of an :class:`.edges.EdgeIndex` ``(..., E)``."""
         phase_rad = np.asarray(phase_rad, dtype=float)
-        shape = (*phase_rad.shape, n_slots)
+        shape = (*phase_rad.shape, n_slots) if n_edges is None else (*phase_rad.shape[:-1], n_edges)
         edges: EdgeEstimates | FilterEdges
         if params.estimator == "ekf":
             edges = FilterEdges.initial(shape, params.initial_gain)
@@ -137,6 +145,9 @@ class StepInputs:
     neighbours: ``(..., R, S)`` bool, the slots each row may couple with, range to and take into
         its consensus (its graph neighbours and the target, :mod:`.graph`). None: every slot
         (the complete graph, the paper's Assumption 1).
+
+    With an :class:`.edges.EdgeIndex`, ``range_m``, ``reverse_range_m`` and ``neighbours`` are
+    ``(..., E)``, one entry per edge (``neighbours``: the edges in the graph at k).
     """
 
     odometry_m: NDArray[np.float64]
@@ -165,6 +176,8 @@ class StepOutputs:
         bound of its error (RLSE: :attr:`.rlse.EdgeEstimates.bearing_std_rad`, kept with
         ``EnclosingParams.bound_range_noise_std_m``; the filter: its covariance, once it has
         taken over); NaN where not known.
+
+    With an :class:`.edges.EdgeIndex` every ``(..., R, S)`` plane is ``(..., E)``, per edge.
     """
 
     velocity_m_s: NDArray[np.float64]
@@ -182,43 +195,42 @@ class StepOutputs:
 
 
 def enclosing_step(
-    params: EnclosingParams, row_slots: ArrayLike, state: EnclosingState, inputs: StepInputs
+    params: EnclosingParams,
+    row_slots: ArrayLike,
+    state: EnclosingState,
+    inputs: StepInputs,
+    *,
+    edge_index: EdgeIndex | None = None,
 ) -> tuple[EnclosingState, StepOutputs]:
     """Advance the rows ``row_slots`` ``(R,)`` from step k to k+1. Returns ``(state, outputs)``.
 
     The four stages of the module docstring, in order; each is a function of its own below.
+    edge_index: the directed edges the state, the inputs and the outputs are kept on (a sparse
+    graph's, :mod:`.edges`); None: ``(..., R, S)`` planes.
     """
     row_slots = np.asarray(row_slots)
-    n_slots = inputs.phase_rad.shape[-1]
-    if state.edges.anchored.shape[-1] != n_slots:
-        raise EnclosingError(
-            f"state has {state.edges.anchored.shape[-1]} slots, inputs have {n_slots}"
-        )
-    slot_index = np.arange(n_slots)
-    not_self = slot_index != row_slots[:, None]  # (R, S)
-    if inputs.neighbours is not None:
-        not_self = not_self & inputs.neighbours  # from here on: the row's graph neighbours
-
+    not_self = _neighbour_mask(row_slots, state, inputs, edge_index)
     edges, gated, estimate_north, estimate_east = _localize(
-        params, row_slots, not_self, state, inputs
+        params, row_slots, not_self, state, inputs, edge_index
     )
-    phase, phase_next = _advance_oscillators(params, row_slots, state, inputs)
+    phase, phase_next = _advance_oscillators(
+        params, row_slots, state, inputs, (edge_index, not_self)
+    )
     error_north, error_east, feed_forward = _formation_errors(
         params,
         inputs,
-        phase,
-        state.phase_rad,
-        phase_next,
+        (phase, state.phase_rad, phase_next),
         estimate_north=estimate_north,
         estimate_east=estimate_east,
+        edge_index=edge_index,
     )
     velocity, consensus, weights = _command(
         params,
         not_self,
-        error_north,
-        error_east,
+        (error_north, error_east),
         feed_forward=feed_forward,
         target_velocity_m_s=inputs.target_velocity_m_s,
+        edge_index=edge_index,
     )
 
     next_state = EnclosingState(step=state.step + 1, phase_rad=phase_next, edges=edges)
@@ -234,24 +246,50 @@ def enclosing_step(
     return next_state, outputs
 
 
-def _localize(
+def _neighbour_mask(
+    row_slots: NDArray[np.intp],
+    state: EnclosingState,
+    inputs: StepInputs,
+    edge_index: EdgeIndex | None,
+) -> NDArray[np.bool_]:
+    """Which (row, slot) pairs are the rows' graph neighbours at k, self excluded: ``(R, S)``
+    (or ``(..., R, S)``), or ``(..., E)`` per edge. Checks that the state fits the inputs."""
+    n_slots = inputs.phase_rad.shape[-1]
+    width = n_slots if edge_index is None else edge_index.size
+    if state.edges.anchored.shape[-1] != width:
+        unit = "slots" if edge_index is None else "edges"
+        raise EnclosingError(
+            f"state has {state.edges.anchored.shape[-1]} {unit}, inputs have {width}"
+        )
+    if edge_index is not None:  # edges are never self edges
+        if inputs.neighbours is None:
+            return np.ones(edge_index.size, dtype=bool)
+        return inputs.neighbours
+    not_self: NDArray[np.bool_] = np.arange(n_slots) != row_slots[:, None]  # (R, S)
+    if inputs.neighbours is not None:
+        not_self = not_self & inputs.neighbours
+    return not_self
+
+
+def _localize(  # noqa: PLR0917 - the stage's inputs, each named
     params: EnclosingParams,
     row_slots: NDArray[np.intp],
     not_self: NDArray[np.bool_],
     state: EnclosingState,
     inputs: StepInputs,
+    edge_index: EdgeIndex | None,
 ) -> tuple[
     EdgeEstimates | FilterEdges, NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]
 ]:
     """Stage 1, relative localization: every edge's estimator updated from the ranges and
     odometries at k, then phat_ij(k) carried to now. Returns the updated edges, the ranges the
-    estimator gated, and phat_ij(k) north and east, all on ``(..., R, S)`` planes.
+    estimator gated, and phat_ij(k) north and east, all on ``(..., R, S)`` planes (or per edge).
 
     Self edges carry no range, so they never anchor and never estimate.
     """
-    odometry_north, odometry_east = inputs.odometry_m[..., 0], inputs.odometry_m[..., 1]
-    relative_north = odometry_north[..., row_slots, None] - odometry_north[..., None, :]
-    relative_east = odometry_east[..., row_slots, None] - odometry_east[..., None, :]
+    relative_north, relative_east = (
+        _relative(inputs.odometry_m[..., axis], row_slots, edge_index) for axis in (0, 1)
+    )
     range_m = np.where(not_self, inputs.range_m, np.nan)
     readings: NDArray[np.float64] | None = None  # one range per edge
     if params.shared_ranges and inputs.reverse_range_m is not None:
@@ -261,6 +299,15 @@ def _localize(
     )
     estimate_north, estimate_east = edges.current(relative_north, relative_east)
     return edges, gated, estimate_north, estimate_east
+
+
+def _relative(
+    slot_values: NDArray[np.float64], row_slots: NDArray[np.intp], edge_index: EdgeIndex | None
+) -> NDArray[np.float64]:
+    """Row minus slot of values by slot ``(..., S)``: ``(..., R, S)`` or, per edge, ``(..., E)``."""
+    if edge_index is None:
+        return slot_values[..., row_slots, None] - slot_values[..., None, :]
+    return edge_index.difference(slot_values[..., row_slots], slot_values)
 
 
 def _update_edges(
@@ -300,11 +347,16 @@ def _update_edges(
 
 
 def _advance_oscillators(
-    params: EnclosingParams, row_slots: NDArray[np.intp], state: EnclosingState, inputs: StepInputs
+    params: EnclosingParams,
+    row_slots: NDArray[np.intp],
+    state: EnclosingState,
+    inputs: StepInputs,
+    edges: tuple[EdgeIndex | None, NDArray[np.bool_]],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Stage 2, the oscillator over the vehicles heard this step. Returns every slot's phase at k
     as this row sees it ``(..., S)`` (the row's own from the state, the target's NaN) and the
-    rows' theta_i(k+1) ``(..., R)``."""
+    rows' theta_i(k+1) ``(..., R)``. ``edges``: the edge index (None: planes) and, with one,
+    the edges in the graph at k ``(..., E)``."""
     n_slots = inputs.phase_rad.shape[-1]
     phase = inputs.phase_rad.copy()
     phase[..., row_slots] = state.phase_rad
@@ -312,30 +364,60 @@ def _advance_oscillators(
     heard = np.isfinite(phase) & inputs.member
     n_live = inputs.member[..., 1:].sum(axis=-1)
     gains = harmonic_gains(n_live, n_slots - 1, params.coupling_gain, params.coupling_gain_last)
-    coupling = coupling_rate(phase, row_slots, heard, gains, neighbours=inputs.neighbours)
+    edge_index, in_graph = edges
+    if edge_index is None:
+        coupling = coupling_rate(phase, row_slots, heard, gains, neighbours=inputs.neighbours)
+    else:
+        pairs = in_graph & heard[..., edge_index.slot]
+        coupling = _edge_coupling(phase, row_slots, pairs, gains, edge_index)
     phase_next = advance_phase(state.phase_rad, inputs.omega_rad_s, coupling, params.step_s)
     return phase, phase_next
+
+
+def _edge_coupling(
+    phase: NDArray[np.float64],
+    row_slots: NDArray[np.intp],
+    pairs: NDArray[np.bool_],
+    gains: NDArray[np.float64],
+    edge_index: EdgeIndex,
+) -> NDArray[np.float64]:
+    """:func:`.oscillator.coupling_rate` per edge: the mean over each row's ``pairs``
+    ``(..., E)`` (edges to heard neighbours) of :func:`.oscillator.pair_coupling`, ``(..., R)``."""
+    finite = np.where(np.isfinite(phase), phase, 0.0)
+    difference = edge_index.difference(finite[..., row_slots], finite)
+    n_harmonics = gains.shape[-1]
+    gain_rows = np.broadcast_to(gains, (*difference.shape[:-1], n_harmonics))
+    gain_rows = gain_rows.reshape(-1, n_harmonics)
+    which = np.repeat(np.arange(gain_rows.shape[0]), edge_index.size)
+    per_pair = pair_coupling(difference.reshape(-1), gain_rows, which).reshape(difference.shape)
+    total = edge_index.row_sums(np.where(pairs, per_pair, 0.0))
+    return total / np.maximum(edge_index.row_sums(pairs), 1)
 
 
 def _formation_errors(
     params: EnclosingParams,
     inputs: StepInputs,
-    phase: NDArray[np.float64],
-    row_phase: NDArray[np.float64],
-    phase_next: NDArray[np.float64],
+    phases: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
     *,
     estimate_north: NDArray[np.float64],
     estimate_east: NDArray[np.float64],
+    edge_index: EdgeIndex | None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Stage 3, desired offsets r(k), r_i(k+1) through the affine shape. Returns the formation
-    error phat_ij - (r_i - r_j) north and east ``(..., R, S)`` and the feed-forward delta_r_i / T
-    ``(..., R, 2)``. The target's offset is 0 whatever the shape."""
+    """Stage 3, desired offsets r(k), r_i(k+1) through the affine shape, from ``phases``: every
+    slot's ``(..., S)``, the rows' ``(..., R)`` and the rows' at k+1. Returns the formation
+    error phat_ij - (r_i - r_j) north and east ``(..., R, S)`` (or per edge) and the
+    feed-forward delta_r_i / T ``(..., R, 2)``. The target's offset is 0 whatever the shape."""
+    phase, row_phase, phase_next = phases
     offsets = desired_offsets(phase, params.radius_m, inputs.shape_now)
     offsets[..., TARGET_SLOT, :] = 0.0
     row_offsets = desired_offsets(row_phase, params.radius_m, inputs.shape_now)
     row_offsets_next = desired_offsets(phase_next, params.radius_m, inputs.shape_next)
-    error_north = estimate_north - (row_offsets[..., :, None, 0] - offsets[..., None, :, 0])
-    error_east = estimate_east - (row_offsets[..., :, None, 1] - offsets[..., None, :, 1])
+    if edge_index is None:
+        error_north = estimate_north - (row_offsets[..., :, None, 0] - offsets[..., None, :, 0])
+        error_east = estimate_east - (row_offsets[..., :, None, 1] - offsets[..., None, :, 1])
+    else:
+        error_north = estimate_north - edge_index.difference(row_offsets[..., 0], offsets[..., 0])
+        error_east = estimate_east - edge_index.difference(row_offsets[..., 1], offsets[..., 1])
     feed_forward = (row_offsets_next - row_offsets) / params.step_s
     return error_north, error_east, feed_forward
 
@@ -343,23 +425,41 @@ def _formation_errors(
 def _command(
     params: EnclosingParams,
     not_self: NDArray[np.bool_],
-    error_north: NDArray[np.float64],
-    error_east: NDArray[np.float64],
+    errors: tuple[NDArray[np.float64], NDArray[np.float64]],
     *,
     feed_forward: NDArray[np.float64],
     target_velocity_m_s: NDArray[np.float64],
+    edge_index: EdgeIndex | None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Stage 4, u_i(k) = sat(ubar_i) + delta_r_i / T + u_0: saturated consensus plus
-    feed-forward. Returns u_i ``(..., R, 2)``, the saturated term ``(..., R, 2)`` and the weights
-    abar_ij ``(..., R, S)`` over the neighbours with an error this step."""
-    weights = row_normalised(not_self & np.isfinite(error_north + error_east))
-    consensus = saturate(
-        consensus_velocity(error_north, error_east, weights, params.beta),
-        params.saturation_m_s,
-    )
+    feed-forward, from the formation errors north and east. Returns u_i ``(..., R, 2)``, the
+    saturated term ``(..., R, 2)`` and the weights abar_ij ``(..., R, S)`` (or per edge) over
+    the neighbours with an error this step."""
+    error_north, error_east = errors
+    used = not_self & np.isfinite(error_north + error_east)
+    if edge_index is None:
+        weights = row_normalised(used)
+        unsaturated = consensus_velocity(error_north, error_east, weights, params.beta)
+    else:
+        weights, unsaturated = _edge_consensus(used, errors, params.beta, edge_index)
+    consensus = saturate(unsaturated, params.saturation_m_s)
     target_velocity = np.nan_to_num(target_velocity_m_s, nan=0.0)
     velocity = consensus + feed_forward + target_velocity[..., None, :]
     return velocity, consensus, weights
+
+
+def _edge_consensus(
+    used: NDArray[np.bool_],
+    errors: tuple[NDArray[np.float64], NDArray[np.float64]],
+    beta: float,
+    edge_index: EdgeIndex,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`.control.row_normalised` and :func:`.control.consensus_velocity` per edge: the
+    weights abar_ij ``(..., E)`` over the ``used`` edges and ubar_i ``(..., R, 2)``."""
+    share = 1.0 / np.maximum(edge_index.row_sums(used), 1)
+    weights = np.where(used, share[..., edge_index.row], 0.0)
+    sums = [edge_index.row_sums(np.where(used, weights * error, 0.0)) for error in errors]
+    return weights, -beta * np.stack(sums, axis=-1)
 
 
 def pair_ranges(

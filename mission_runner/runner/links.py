@@ -42,11 +42,11 @@ from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync, MavlinkMes
 from mavsdk.asyncio.plugins.param import ParamAsync, ParamError, ParamResult
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from mavsdk.logging import LogLevel, log_subscribe
-from pymavlink.dialects.v20 import common as mavlink
 
+from . import mavlink_ids as mavlink
 from .errors import RunnerTimeoutError, VehicleCommandError, VehicleConnectionError
 from .odometry import ODOMETRY_RATE_HZ, FedTrack, OdometrySample, OdometryTrack
-from .timesync import ClockMapping, ClockMappingError, MissionTime
+from .timesync import ClockMapping, ClockMappingError, FedClockMapping, MissionTime
 
 _T = TypeVar("_T")
 
@@ -87,6 +87,10 @@ TAKEOFF_CLEAR_M = 2.0
 #: How long a refused arm is asked again, and how often [s].
 ARM_RETRY_S = 15.0
 ARM_RETRY_INTERVAL_S = 1.0
+#: How many times OFFBOARD is asked for, each after a fresh zero-velocity setpoint, and how long
+#: apart [s]: PX4 refuses it ("no setpoints") when the setpoint before the request was lost.
+OFFBOARD_ATTEMPTS = 5
+OFFBOARD_RETRY_INTERVAL_S = 0.2
 #: How often discovery looks for the vehicles it waits for [s].
 DISCOVERY_POLL_S = 0.1
 #: PX4 sends HEARTBEAT at 1 Hz, so a disarm happened up to a period before the heartbeat that
@@ -290,6 +294,8 @@ class MavsdkVehicle:
         self._timeout_s = command_timeout_s
         self._odometry_waiters: set[asyncio.Future[None]] = set()
         self.odometry_malformed = 0  # LOCAL_POSITION_NED samples that could not be read
+        self.clock_malformed = 0  # SYSTEM_TIME messages that could not be read
+        self.clock_fed = asyncio.Event()  # a SYSTEM_TIME pair came (until the mapping is ready)
         self._group: asyncio.TaskGroup | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._stack = contextlib.AsyncExitStack()
@@ -469,28 +475,16 @@ class MavsdkVehicle:
         """Map this autopilot's boot clock onto ``mission_time`` from now on, refitted at every
         SYSTEM_TIME (requested at ``SYSTEM_TIME_RATE_HZ``). Returns the :class:`ClockMapping`
         once it has its first pair; raises :class:`RunnerTimeoutError` if none comes."""
-        mapping = ClockMapping()
-        first = asyncio.Event()
-        stream = self.raw.subscribe_message("SYSTEM_TIME")
-
-        async def feed() -> None:
-            async with contextlib.aclosing(stream):
-                async for message in stream:
-                    if message.system_id != self.system_id:
-                        continue
-                    fields = json.loads(message.fields_json)
-                    if fields["time_unix_usec"] and mapping.add(
-                        fields["time_boot_ms"] / 1000.0, fields["time_unix_usec"] / 1e6
-                    ):
-                        first.set()
-
-        self._spawn(feed(), "clock")
+        mapping = FedClockMapping()
+        self._stream_clock(mapping)
         with contextlib.suppress(VehicleCommandError, RunnerTimeoutError):
             # Some autopilots stream it anyway; PX4 SITL sends it at 1 Hz by default.
             await self.request_interval(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, SYSTEM_TIME_RATE_HZ)
         try:
             async with asyncio.timeout(timeout_s):
-                await first.wait()
+                while not mapping.ready:
+                    await self.clock_fed.wait()
+                    self.clock_fed.clear()
         except TimeoutError:
             raise RunnerTimeoutError(
                 f"vehicle {self.system_id}: SYSTEM_TIME with a UNIX time (is the autopilot's "
@@ -501,6 +495,31 @@ class MavsdkVehicle:
         self._mission_time = mission_time
         self.boot_s_at = lambda mission_s: mapping.boot_s(mission_time.to_unix(mission_s))
         return mapping
+
+    def _stream_clock(self, mapping: FedClockMapping) -> None:
+        """SYSTEM_TIME pairs into ``mapping`` straight from MAVSDK's thread (as odometry, see
+        :meth:`_stream_odometry`), waking :attr:`clock_fed` only until the mapping is ready; the
+        subscription ends when the vehicle's link closes."""
+        loop = asyncio.get_running_loop()
+        plugin = self.raw._plugin  # the blocking plugin: its callbacks run in MAVSDK's thread
+
+        def received(message: Any, _user_data: object) -> None:
+            keep_thread_state()
+            if message.system_id != self.system_id:
+                return
+            try:
+                fields = json.loads(message.fields_json)
+                boot_s, unix_s = fields["time_boot_ms"] / 1000.0, fields["time_unix_usec"] / 1e6
+            except (ValueError, KeyError, TypeError):
+                self.clock_malformed += 1
+                return
+            if unix_s:
+                mapping.feed(boot_s, unix_s)
+                if not mapping.fitted:  # the loop's thread adds the pairs as it reads them
+                    loop.call_soon_threadsafe(self.clock_fed.set)
+
+        handle = plugin.subscribe_message("SYSTEM_TIME", received)
+        self._stack.callback(plugin.unsubscribe_message, handle)
 
     @property
     def velocity_scale(self) -> float:
@@ -585,11 +604,10 @@ class MavsdkVehicle:
                 f"vehicle {self.system_id}: {what}: unreadable COMMAND_ACK ({error!r})"
             ) from error
         if result != mavlink.MAV_RESULT_ACCEPTED:
-            name = mavlink.enums["MAV_RESULT"].get(result)
             reason = (await self.reason_since(asked_s) or "").strip()
             raise VehicleCommandError(
                 f"vehicle {self.system_id}: {what} refused "
-                f"({name.name if name is not None else result})" + (f": {reason}" if reason else "")
+                f"({mavlink.result_name(result)})" + (f": {reason}" if reason else "")
             )
 
     async def odometry_updated(self) -> None:
@@ -700,21 +718,32 @@ class MavsdkVehicle:
             ) from error
 
     async def start_offboard(self) -> None:
-        """Enter OFFBOARD with a zero-velocity setpoint (PX4 needs one streaming first)."""
+        """Enter OFFBOARD with a zero-velocity setpoint (PX4 needs one streaming first). Over a
+        lossy link that setpoint can be lost and PX4 refuses ("no setpoints": 1 of 4 vehicles
+        across a Wi-Fi link with 2 % loss aborted a mission so): asked again with a fresh one,
+        up to OFFBOARD_ATTEMPTS times."""
         if self.released is not None:
             raise VehicleCommandError(
                 f"vehicle {self.system_id}: no longer driven ({self.released}); the runner "
                 "never takes a vehicle back"
             )
-        await self.set_velocity_ned(0.0, 0.0, 0.0)
         self._seen_in_control, self._control_lost = False, None
-        armed = mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0
-        await self._command_long(
-            mavlink.MAV_CMD_DO_SET_MODE,
-            "offboard start",
-            mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | armed,
-            PX4_MAIN_MODE_OFFBOARD,
-        )
+        for attempt in range(1, OFFBOARD_ATTEMPTS + 1):
+            await self.set_velocity_ned(0.0, 0.0, 0.0)
+            armed = mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0
+            try:
+                await self._command_long(
+                    mavlink.MAV_CMD_DO_SET_MODE,
+                    "offboard start",
+                    mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | armed,
+                    PX4_MAIN_MODE_OFFBOARD,
+                )
+                break
+            except VehicleCommandError as refusal:
+                if attempt == OFFBOARD_ATTEMPTS:
+                    raise
+                logger.warning("%s; asking again with a fresh setpoint", refusal)
+            await asyncio.sleep(OFFBOARD_RETRY_INTERVAL_S)  # the pace of asking, not a wait
         self.in_offboard = True
         self._check_control()
 

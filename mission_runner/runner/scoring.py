@@ -7,6 +7,8 @@ controller ever reads it.
 from __future__ import annotations
 
 import csv
+import dataclasses
+import itertools
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -201,6 +203,42 @@ def write_truth_csv(samples: Iterable[TruthSample], ids: Sequence[int], path: Pa
     write_atomic(path, "\n".join(lines) + "\n")
 
 
+#: A vehicle's truth missing for at most this many steps between two known positions is
+#: interpolated (:func:`fill_truth_gaps`); a longer gap, or one with no end, stays unknown.
+TRUTH_GAP_STEPS = 8
+
+
+def fill_truth_gaps(
+    samples: Sequence[TruthSample], max_gap_steps: int = TRUTH_GAP_STEPS
+) -> list[TruthSample]:
+    """``samples`` (one per step, in order) with each vehicle's unknown positions filled in
+    linearly between the known ones around them, for gaps of at most ``max_gap_steps``.
+
+    The range aid writes no position for a step it skipped (past its deadline on a loaded
+    machine: 4 of 1280 vehicle-steps in a 320-step flight). Left unknown, a step where every
+    vehicle's position is missing put the formation's centre at the origin: a 30.7 m tracking
+    error at one step gave a tail RMS of 3.4 m to a formation 0.06-0.12 m off. A vehicle
+    lost for good has no later position, so its gap is not filled."""
+    if not samples:
+        return []
+    positions = np.stack([s.positions_m for s in samples])  # (steps, n, 2)
+    alive = np.stack([s.alive for s in samples])  # (steps, n)
+    for column in range(alive.shape[1]):
+        known = np.flatnonzero(alive[:, column])
+        for before, after in itertools.pairwise(known):
+            if 1 < after - before <= max_gap_steps + 1:
+                k = np.arange(before + 1, after)
+                weight = ((k - before) / (after - before))[:, None]
+                positions[k, column] = (1 - weight) * positions[before, column] + weight * (
+                    positions[after, column]
+                )
+                alive[k, column] = True
+    return [
+        dataclasses.replace(sample, positions_m=positions[i], alive=alive[i])
+        for i, sample in enumerate(samples)
+    ]
+
+
 def read_truth_csv(path: PathName, ids: Sequence[int]) -> list[TruthSample]:
     """The samples written by :func:`write_truth_csv`."""
     samples = []
@@ -273,14 +311,15 @@ def read_steps_csv(path: PathName) -> list[StepRecord]:
 def merge_mission(scenario: Scenario, mission_dir: PathName) -> SimulationResult | None:
     """Score a mission of vehicle processes from what they wrote under ``mission_dir``
     (``vehicle_<id>/steps.csv``, ``truth/truth.csv``). Returns a SimulationResult, or None when
-    the truth is not there (a mission without a simulator has no truth to score against)."""
+    the truth is not there (a mission without a simulator has no truth to score against). Short
+    gaps in the truth are interpolated (:func:`fill_truth_gaps`)."""
     mission_dir = Path(mission_dir)
     ids = [v.id for v in scenario.vehicles]
     truth = mission_dir / "truth" / "truth.csv"
     if not truth.exists():
         return None
     records = mission_records(mission_dir, ids)
-    return score_flight(scenario, read_truth_csv(truth, ids), records, None)
+    return score_flight(scenario, fill_truth_gaps(read_truth_csv(truth, ids)), records, None)
 
 
 def mission_records(mission_dir: PathName, ids: Iterable[int]) -> dict[int, list[StepRecord]]:

@@ -22,6 +22,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from .errors import RunnerError
 
@@ -250,6 +251,57 @@ class ClockMapping:
             return before[other] + weight * (after[other] - before[other])
         anchor = pairs[-1] if index >= len(pairs) else pairs[0]
         return anchor[other] + rate * (value - anchor[axis])
+
+
+class FedClockMapping(ClockMapping):
+    """A :class:`ClockMapping` fed from another thread (MAVSDK's, as SYSTEM_TIME arrives):
+    :meth:`feed` only queues the pair; the pairs queued are added, in order, on the thread that
+    reads the mapping, when it next reads it. Nobody waits for a pair the mapping is not read
+    for, and the event loop is not woken for each one (at 10 Hz, a third of a vehicle process's
+    event-loop turns in flight went to it)."""
+
+    def __init__(self, **settings: Any) -> None:
+        super().__init__(**settings)
+        self._fed: deque[tuple[float, float]] = deque()  # appended and popped thread-safely
+        self._taking = False
+
+    def feed(self, boot_s: float, unix_s: float) -> None:
+        """Queue a pair read at one instant (from any thread); :meth:`add` judges it later."""
+        self._fed.append((boot_s, unix_s))
+
+    @property
+    def fitted(self) -> bool:
+        """Whether the mapping had a fit when last read (for the feeding thread: it takes
+        nothing queued)."""
+        return self._fit is not None
+
+    def _take_fed(self) -> None:
+        if self._taking:  # add() reads the fit: the pairs go in one by one, in order
+            return
+        self._taking, fed = True, self._fed
+        try:
+            while fed:
+                super().add(*fed.popleft())
+        finally:
+            self._taking = False
+
+    def add(self, boot_s: float, unix_s: float) -> bool:
+        self._take_fed()
+        return super().add(boot_s, unix_s)
+
+    @property
+    def ready(self) -> bool:
+        self._take_fed()
+        return self._fit is not None
+
+    @property
+    def fit(self) -> ClockFit:
+        self._take_fed()
+        return super().fit
+
+    def recent_boot_rate(self, span_s: float = 5.0) -> float:
+        self._take_fed()
+        return super().recent_boot_rate(span_s)
 
 
 class MissionTime:

@@ -27,10 +27,11 @@ from ..enclosing import (
     track_target,
 )
 from ..enclosing.control import saturate
+from ..enclosing.edges import EdgeIndex
 from ..enclosing.graph import Adjacency, components, live_adjacency, slot_mask
 from ..enclosing.separation import separation_guard
 from ..errors import ConfigError, SimulationError
-from ..metrics import SimulationResult, closest_pair, edge_rms, score
+from ..metrics import SimulationResult, closest_live_pair, closest_pair, edge_rms, score
 from ..scenario import omega_of, shape_matrices, target_positions
 from ..sensors import (
     UwbRanging,
@@ -153,6 +154,18 @@ class _GraphSchedule:
             self._cache[key] = (adjacency, slot_mask(rows), connected)
         return self._cache[key]
 
+    def slot_frame(self, steps: int) -> NDArray[np.bool_] | None:
+        """Every (vehicle, slot) pair the step's masks have over steps 0..steps ``(N, N+1)``
+        (the edges a swarm kept per edge needs), if they are few enough for that to pay:
+        at most :data:`PER_EDGE_MAX_DENSITY` of the entries; None otherwise (and for the
+        complete graph)."""
+        if self.graph is None:
+            return None
+        union = np.zeros((self.graph.shape[0], self.graph.shape[0] + 1), dtype=bool)
+        for k in range(steps + 1):
+            union |= self.at(k)[1]  # type: ignore[index]  # not None with a graph
+        return union if union.sum() <= PER_EDGE_MAX_DENSITY * union.size else None
+
     def disconnected_step(self, steps: int) -> int:
         """The first step in 0..steps at which the live graph is disconnected, -1 if none."""
         for k in range(steps + 1):
@@ -162,6 +175,12 @@ class _GraphSchedule:
         return -1
 
 
+#: A sparse graph's swarm is kept per edge (:class:`~mission_runner.enclosing.edges.EdgeIndex`)
+#: when its edges are at most this fraction of the (vehicle, slot) pairs: the per-edge step
+#: gathers and sums by row, which costs more per entry than the planes. Denser graphs (a
+#: handful of vehicles on a ring, the complete graph given as edges) stay on the planes and
+#: simulate as before.
+PER_EDGE_MAX_DENSITY = 0.25
 #: The most memory a simulation may need for its results [bytes]: a scenario that needs more is
 #: refused before anything is allocated (``timing.steps: 10000000`` with ``--runs 100`` once grew
 #: until the machine swapped).
@@ -238,10 +257,13 @@ def simulate(
     out["positions_m"][:, steps] = position
     out["phases_rad"][:, steps] = state.swarm.phase_rad
     out["live"][:, steps] = plan.live_at(steps)
-    gaps = position[:, :, None, :] - position[:, None, :, :]
-    out["separation_m"][:, steps] = closest_pair(
-        np.sqrt(np.sum(gaps * gaps, axis=-1)), out["live"][:, steps]
-    )
+    if state.swarm.edge_index is None:
+        gaps = position[:, :, None, :] - position[:, None, :, :]
+        out["separation_m"][:, steps] = closest_pair(
+            np.sqrt(np.sum(gaps * gaps, axis=-1)), out["live"][:, steps]
+        )
+    else:
+        out["separation_m"][:, steps] = closest_live_pair(position, out["live"][:, steps])
     _record_graph(scenario, plan, out, runs)
     return score(scenario, plan.times, plan.target[: steps + 1], out)
 
@@ -323,7 +345,10 @@ class _State:
         n = len(scenario.vehicles)
         position, phase = initial_conditions(scenario, runs)
         swarm = SwarmEnclosing(
-            algorithm_params(scenario), phase, np.broadcast_to(plan.omega, phase.shape)
+            algorithm_params(scenario),
+            phase,
+            np.broadcast_to(plan.omega, phase.shape),
+            edges=plan.graph.slot_frame(scenario.timing.steps),
         )
         noise = _Noise(scenario.seed, runs)
         drift = odometry_drift(scenario.sensors, noise, (runs, n))
@@ -372,6 +397,21 @@ def _allocate(runs: int, steps: int, n: int) -> dict[str, NDArray[Any]]:
     return out
 
 
+@dataclass(frozen=True)
+class _Measured:
+    """Step k's truth and measurements, on ``(B, N, N+1)`` planes (slot 0 the target) or, for
+    a swarm kept per edge, ``(B, E)``: the true p_i - p_j north and east, the ranges, the
+    UWB radios' ranges (``(B, N, N)``, or ``(B, E_v)`` on the edges between vehicles), the
+    target's ranges ``(B, N)`` and the step's neighbour mask (None: the complete graph)."""
+
+    truth_north: NDArray[np.float64]
+    truth_east: NDArray[np.float64]
+    ranges: NDArray[np.float64]
+    radio_ranges: NDArray[np.float64]
+    target_range: NDArray[np.float64]
+    neighbours: NDArray[np.bool_] | None
+
+
 def _step(
     scenario: Scenario,
     plan: _Plan,
@@ -382,30 +422,30 @@ def _step(
     """Step ``k`` of every run: measure, estimate, command, record into ``out`` and move."""
     runs, n = state.position.shape[:2]
     live = np.broadcast_to(plan.live_at(k), (runs, n))
-    truth_north, truth_east, ranges, radio_ranges = _measure(scenario, plan, state, out, k, live)
-    odometry, target_estimate, holding = _inputs(scenario, plan, state, ranges, k, live)
-    graph = plan.graph.at(k)
     swarm = state.swarm
+    if swarm.edge_index is None:
+        measured = _measure(scenario, plan, state, out, k, live)
+    else:
+        measured = _measure_edges(scenario, plan, state, out, k, live)
+    odometry, target_estimate, holding = _inputs(
+        scenario, plan, state, measured.target_range, k, live
+    )
     out["phases_rad"][:, k] = swarm.phase_rad
     step = swarm.step(
         odometry_m=odometry,
-        range_m=ranges,
+        range_m=measured.ranges,
         live=live,
         target_velocity_m_s=target_estimate.velocity_m_s,
         shape_now=plan.shapes[k],
         shape_next=plan.shapes[k + 1],
-        neighbours=None if graph is None else graph[1],
+        neighbours=measured.neighbours,
     )
-    if "estimates_m" in out:
-        out["estimates_m"][k, ..., 0] = step.estimate_north_m[0]
-        out["estimates_m"][k, ..., 1] = step.estimate_east_m[0]
-    _record_estimation(
-        out, k, step, (truth_north, truth_east), odometry, live, swarm, state.uwb, radio_ranges
-    )
+    _record_estimates(out, k, step, swarm)
+    _record_estimation(out, k, step, measured, odometry, live, swarm, state.uwb)
 
     command = step.velocity_m_s
     if scenario.safety.min_separation_m is not None:
-        command = _guarded(command, step, ranges, state.in_force, live, scenario)
+        command = _guarded(command, step, measured.ranges, state.in_force, live, scenario)
     command = saturate(command, plan.speed_limit)
     command = np.where(live[..., None] & ~holding[:, None, None], command, 0.0)
     state.in_force = np.where(live[..., None], command, np.nan)
@@ -417,6 +457,19 @@ def _step(
     state.odometry_error = odometry_error_step(scenario.sensors, state.noise, state.odometry_error)
 
 
+def _record_estimates(
+    out: dict[str, NDArray[Any]], k: int, step: StepOutputs, swarm: SwarmEnclosing
+) -> None:
+    """Run 0's estimates at step ``k`` into ``out`` ``(K, N, N+1, 2)``, if it keeps them."""
+    if "estimates_m" not in out:
+        return
+    north, east = step.estimate_north_m[0], step.estimate_east_m[0]
+    if swarm.edge_index is not None:
+        north, east = (swarm.edge_index.scatter(plane, np.nan) for plane in (north, east))
+    out["estimates_m"][k, ..., 0] = north
+    out["estimates_m"][k, ..., 1] = east
+
+
 def _measure(  # noqa: PLR0917 - the step's pieces, each named
     scenario: Scenario,
     plan: _Plan,
@@ -424,10 +477,9 @@ def _measure(  # noqa: PLR0917 - the step's pieces, each named
     out: dict[str, NDArray[Any]],
     k: int,
     live: NDArray[np.bool_],
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """The true relative positions p_i - p_j on north and east planes ``(B, N, N+1)`` (slot 0
-    the target), the ranges measured ``(B, N, N+1)`` and those of the radios ``(B, N, N)``;
-    records the closest pair."""
+) -> _Measured:
+    """The true relative positions and the ranges on ``(B, N, N+1)`` planes; records the
+    closest pair."""
     runs, sensors, noise = state.position.shape[0], scenario.sensors, state.noise
     position = state.position
     ranged = np.concatenate([np.broadcast_to(plan.target[k], (runs, 1, 2)), position], axis=1)
@@ -447,22 +499,90 @@ def _measure(  # noqa: PLR0917 - the step's pieces, each named
     target_range = range_readings(true_ranges[..., :1], sensors, noise, measured=seen[..., None])
     radio_ranges = state.uwb.read(true_ranges[..., 1:], noise, k=k, measured=linked)
     ranges = np.concatenate([target_range, radio_ranges], axis=-1)
-    return truth_north, truth_east, ranges, radio_ranges
+    return _Measured(
+        truth_north=truth_north,
+        truth_east=truth_east,
+        ranges=ranges,
+        radio_ranges=radio_ranges,
+        target_range=ranges[..., 0],
+        neighbours=None if graph is None else graph[1],
+    )
+
+
+def _measure_edges(  # noqa: PLR0917 - the step's pieces, each named
+    scenario: Scenario,
+    plan: _Plan,
+    state: _State,
+    out: dict[str, NDArray[Any]],
+    k: int,
+    live: NDArray[np.bool_],
+) -> _Measured:
+    """:func:`_measure` on the edges of a swarm kept per edge ``(B, E)``: the same readings
+    (and draws) on the edges, O(E) for a model that draws nothing."""
+    index, sensors, noise = state.swarm.edge_index, scenario.sensors, state.noise
+    if index is None:
+        raise SimulationError("_measure_edges needs a swarm kept per edge")
+    runs, position = state.position.shape[0], state.position
+    ranged = np.concatenate([np.broadcast_to(plan.target[k], (runs, 1, 2)), position], axis=1)
+    truth_north = index.difference(position[..., 0], ranged[..., 0])
+    truth_east = index.difference(position[..., 1], ranged[..., 1])
+    true_ranges = np.sqrt(truth_north * truth_north + truth_east * truth_east)
+    out["separation_m"][:, k] = closest_live_pair(position, live)
+    adjacency, neighbours, _ = plan.graph.at(k)  # type: ignore[misc]  # a graph: not None
+    radio = live & ~plan.radio_down(k)
+    to_target, pairs = _edge_kinds(index)
+    rows, cols, _ = pairs
+    linked = radio[:, rows] & radio[:, cols] & adjacency[rows, cols]
+    looking = live & plan.senses & ~plan.tracker_down(k)
+    seen = target_seen(true_ranges[:, to_target], sensors, noise, looking=looking)
+    target_range = range_readings(
+        true_ranges[:, to_target, None], sensors, noise, measured=seen[..., None]
+    )[..., 0]
+    vehicle = index.slot > 0
+    radio_ranges = state.uwb.read_edges(true_ranges[:, vehicle], noise, k, pairs, linked)
+    ranges = np.empty(true_ranges.shape)
+    ranges[:, to_target], ranges[:, vehicle] = target_range, radio_ranges
+    return _Measured(
+        truth_north=truth_north,
+        truth_east=truth_east,
+        ranges=ranges,
+        radio_ranges=radio_ranges,
+        target_range=target_range,
+        neighbours=index.gather(neighbours),
+    )
+
+
+def _edge_kinds(
+    index: EdgeIndex,
+) -> tuple[NDArray[np.intp], tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]]:
+    """The edges to the target, one per vehicle in vehicle order ``(N,)``, and the edges
+    between vehicles as ``(rows, cols, reverse)`` ``(E_v,)``: reader, read vehicle, and the
+    index among them of the edge back (-1 if none)."""
+    to_target = np.flatnonzero(index.slot == 0)
+    if not np.array_equal(index.row[to_target], np.arange(index.n_rows)):
+        raise SimulationError("a swarm kept per edge needs every vehicle's edge to the target")
+    vehicle = np.flatnonzero(index.slot > 0)
+    among = np.full(index.size, -1)
+    among[vehicle] = np.arange(vehicle.size)
+    back = index.reverse[vehicle]
+    reverse = np.where(back >= 0, among[back], -1)
+    return to_target, (index.row[vehicle], index.slot[vehicle] - 1, reverse)
 
 
 def _inputs(  # noqa: PLR0917 - the step's pieces, each named
     scenario: Scenario,
     plan: _Plan,
     state: _State,
-    ranges: NDArray[np.float64],
+    target_range: NDArray[np.float64],
     k: int,
     live: NDArray[np.bool_],
 ) -> tuple[NDArray[np.float64], TargetEstimate, NDArray[np.bool_]]:
     """The algorithm's odometry ``(B, N+1, 2)`` (slot 0 the target's), the target as tracked
-    (the track moves on) and which runs hold for a lost target ``(B,)``."""
+    from the vehicles' ranges to it ``(B, N)`` (the track moves on) and which runs hold for a
+    lost target ``(B,)``."""
     step_s, target = scenario.timing.step_s, plan.target
     odometry = state.position - state.origin + state.drift * plan.times[k] + state.odometry_error
-    observed = np.asarray(np.isfinite(ranges[..., 0]).any(axis=-1))
+    observed = np.asarray(np.isfinite(target_range).any(axis=-1))
     state.track, target_estimate = track_target(
         state.track,
         k,
@@ -485,29 +605,38 @@ def _record_estimation(  # noqa: PLR0917 - the step's pieces, each named
     out: dict[str, NDArray[Any]],
     k: int,
     step: StepOutputs,
-    truth: tuple[NDArray[np.float64], NDArray[np.float64]],
+    measured: _Measured,
     odometry: NDArray[np.float64],
     live: NDArray[np.bool_],
     swarm: SwarmEnclosing,
     uwb: UwbRanging,
-    radio_ranges: NDArray[np.float64],
 ) -> None:
-    """Step ``k``'s localization errors against ``truth`` (north, east ``(B, N, N+1)``), gated
-    and NLOS ranges and the consensus speed, into ``out``."""
-    error_north = step.estimate_north_m - truth[0]
-    error_east = step.estimate_east_m - truth[1]
+    """Step ``k``'s localization errors against the truth, gated and NLOS ranges and the
+    consensus speed, into ``out``."""
+    error_north = step.estimate_north_m - measured.truth_north
+    error_east = step.estimate_east_m - measured.truth_east
     error = np.sqrt(error_north * error_north + error_east * error_east)
     # NaN: an edge not estimated (never ranged, or an end lost), which does not count. But an
     # anchored edge between two live ends without a finite estimate has diverged (absurd
     # noise or gains), which must read as infinitely wrong, not as 0.
-    diverged = swarm.state.edges.anchored & live[..., None] & np.isfinite(odometry[:, None, :, 0])
+    index, anchored = swarm.edge_index, swarm.state.edges.anchored
+    if index is None:
+        diverged = anchored & live[..., None] & np.isfinite(odometry[:, None, :, 0])
+        nlos, radio_gated = uwb.nlos, step.gated[..., 1:]
+    else:  # per edge: (B, E), one plane for the sums over (-1, -2)
+        diverged = anchored & live[:, index.row] & np.isfinite(odometry[:, index.slot, 0])
+        vehicle = index.slot > 0
+        nlos = uwb.nlos[..., index.row[vehicle], index.slot[vehicle] - 1][:, None, :]
+        radio_gated = step.gated[:, None, vehicle]
+        error, diverged = error[:, None, :], diverged[:, None, :]
     error = np.where(diverged & ~np.isfinite(error), np.inf, error)
     out["localization_error_m"][:, k] = np.where(np.isnan(error), 0.0, error).max(axis=(-1, -2))
     out["localization_rms_m"][:, k] = edge_rms(error)
-    out["gated_ranges"][:, k] = step.gated.sum(axis=(-1, -2))
-    out["nlos_ranges"][:, k] = (uwb.nlos & np.isfinite(radio_ranges)).sum(axis=(-1, -2))
-    good = ~uwb.nlos & np.isfinite(radio_ranges)
-    out["false_rejections"][:, k] = (step.gated[..., 1:] & good).sum(axis=(-1, -2))
+    out["gated_ranges"][:, k] = step.gated.reshape(step.gated.shape[0], -1).sum(axis=-1)
+    radio_ranges = measured.radio_ranges.reshape(nlos.shape)
+    out["nlos_ranges"][:, k] = (nlos & np.isfinite(radio_ranges)).sum(axis=(-1, -2))
+    good = ~nlos & np.isfinite(radio_ranges)
+    out["false_rejections"][:, k] = (radio_gated & good).sum(axis=(-1, -2))
     speed = np.sqrt(np.sum(step.consensus_m_s**2, axis=-1))
     out["consensus_speed_m_s"][:, k] = np.where(live, speed, 0.0).max(axis=-1)
 

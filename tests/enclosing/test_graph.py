@@ -233,3 +233,19 @@ def vehicle_steps(vehicles, world, live):
             )
         )
     return commands
+
+
+def test_k_nearest_takes_the_lower_index_at_a_tie():
+    # On a grid many distances tie: each vehicle's k are the first k of a stable sort.
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        n, k = int(rng.integers(3, 30)), int(rng.integers(1, 6))
+        positions = rng.integers(-3, 4, (n, 2)).astype(float)
+        gaps = positions[:, None, :] - positions[None, :, :]
+        distance = np.sqrt(np.sum(gaps * gaps, axis=-1))
+        np.fill_diagonal(distance, np.inf)
+        nearest = np.argsort(distance, axis=-1, kind="stable")[:, :k]
+        expected = np.zeros((n, n), dtype=bool)
+        expected[np.arange(n)[:, None], nearest] = k < n - 1
+        expected = (expected | expected.T) if k < n - 1 else complete_graph(n)
+        assert np.array_equal(k_nearest_graph(positions, k), expected)

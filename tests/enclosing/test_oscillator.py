@@ -15,6 +15,7 @@ from mission_runner.enclosing.oscillator import (
     coupling_rate,
     harmonic_gains,
     harmonics,
+    pair_coupling,
     splay_spacing_error,
 )
 
@@ -134,3 +135,20 @@ def test_spacing_error_measures_the_worst_gap():
     three_of_four = np.array([0.0, 2 * np.pi / 3, 4 * np.pi / 3, 1.0])
     assert splay_spacing_error(three_of_four, np.array([1, 1, 1, 0], bool)) < 1e-12
     assert np.isnan(splay_spacing_error(np.array([0.0, 1.0]), np.array([True, False])))
+
+
+@pytest.mark.parametrize("n_harmonics", [5, 65, 1000])
+def test_the_pair_coupling_table_equals_the_harmonic_sum(n_harmonics):
+    # Two sets of gains (live counts) at once; differences near 0 (where f' ~ L), near a half
+    # turn and beyond one turn. The reference sums every harmonic in extended precision.
+    gains = harmonic_gains(np.array([n_harmonics, n_harmonics - 1]), n_harmonics, 1.3, -0.7)
+    rng = np.random.default_rng(n_harmonics)
+    difference = np.concatenate(
+        [rng.uniform(-np.pi, np.pi, 400), rng.uniform(-1e-3, 1e-3, 50), [0.0, np.pi, 7.0, -20.0]]
+    )
+    which = rng.integers(0, 2, difference.size)
+    fast = pair_coupling(difference, gains, which)
+    order = np.arange(1, n_harmonics + 1).astype(np.longdouble)
+    angle = difference.astype(np.longdouble)[:, None] * order
+    exact = np.sum(np.sin(angle) * (gains[which].astype(np.longdouble) / order), axis=-1)
+    np.testing.assert_allclose(fast, exact.astype(float), rtol=0, atol=5e-15)

@@ -1016,3 +1016,27 @@ async def test_in_lockstep_a_not_seen_observation_is_not_waited_for():
             records = await flight.fly(6)
     assert [r.target for r in records] == ["observed"] * 6  # vehicle 1 still sees it
     assert not any(0 in r.ranges_m for r in records)
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("shared", [False, True])
+async def test_an_own_input_is_awaited_half_the_deadline_so_the_message_still_reaches_peers(
+    shared, monkeypatch
+):
+    """The neighbours wait for this vehicle's step message until their deadline: the target
+    observation (and, when sharing, the ranges) it relays is awaited half of it at most."""
+    scenario = make_scenario(sensing=(1, 2), shared_ranges=shared)
+    async with rig(scenario, wall_deadline_s=8.0) as flight:
+        flight.clock.lockstep = True
+        flight.neighbours.own_tracker = lambda k: own_observation(k, seen=True)
+        bounds = []
+        waiting = flight.controller.inbox.wait_for
+
+        async def wait_for(ready, timeout_s):
+            bounds.append(timeout_s)
+            return await waiting(ready, timeout_s)
+
+        monkeypatch.setattr(flight.controller.inbox, "wait_for", wait_for)
+        await flight.fly(3)
+    # Each step: its own inputs half the deadline, then the neighbours' the whole of it
+    assert bounds == [4.0, 8.0] * 3

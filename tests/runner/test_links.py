@@ -62,6 +62,37 @@ async def test_an_arm_refused_while_checks_settle_is_asked_again(caplog):
 
 
 @pytest.mark.timeout(60)
+async def test_offboard_refused_for_a_lost_setpoint_is_asked_again_with_a_fresh_one(caplog):
+    """Across a lossy link the one setpoint sent before asking for OFFBOARD can be lost; PX4 (and
+    the emulator) then refuses: "no setpoints". A vehicle process across a Wi-Fi link with 2 %
+    loss aborted its mission so. Here the first setpoint never leaves."""
+    ports = free_port_config(1, gcs=False)
+    config = EmulatorConfig(vehicles=1, ports=ports, clock=ClockConfig(speed=1.0))
+    async with Emulator(config) as emulator:
+        url = f"udpin://0.0.0.0:{ports.api_remote_port(0)}"
+        async with (
+            connected_vehicles([url], [1]) as systems,
+            MavsdkVehicle(systems[1], 1) as vehicle,
+        ):
+            await vehicle.take_off(3.0)
+            send, lost = vehicle.set_velocity_ned, []
+
+            async def lose_the_first(*velocity):
+                if not lost:
+                    lost.append(velocity)  # lost on the way: the autopilot never sees it
+                    return
+                await send(*velocity)
+
+            vehicle.set_velocity_ned = lose_the_first
+            await vehicle.start_offboard()
+            assert lost and vehicle.in_offboard
+            assert emulator.autopilot(0).mode.name == "OFFBOARD"
+            await vehicle.finish("land")
+    refusals = [r.getMessage() for r in caplog.records if "asking again" in r.getMessage()]
+    assert len(refusals) == 1 and "no setpoints" in refusals[0], refusals
+
+
+@pytest.mark.timeout(60)
 @pytest.mark.parametrize(
     ("mission_rate", "expected_scale"), [(1.8, 0.9), (2.2, 1.1), (1.0, 1 / MAX_VELOCITY_SCALE)]
 )

@@ -2,6 +2,7 @@
 behaves (a boot clock at 0.986x or 1.93x the host's), with quantisation, outliers and jumps."""
 
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from mission_runner.runner.timesync import (
     ClockFollower,
     ClockMapping,
     ClockMappingError,
+    FedClockMapping,
     MissionTime,
 )
 
@@ -154,6 +156,30 @@ def test_a_jittery_simulated_clock_is_followed_between_pairs():
     for unix in np.arange(5.03, 19.9, 0.37):
         assert mapping.unix_s(boot_at(unix)) == pytest.approx(UNIX_AT_BOOT + unix, abs=2e-3)
         assert mapping.boot_s(UNIX_AT_BOOT + unix) == pytest.approx(boot_at(unix), abs=2e-3)
+
+
+def test_pairs_fed_from_another_thread_are_taken_in_order_when_the_mapping_is_read():
+    """MAVSDK's thread feeds SYSTEM_TIME pairs; the loop's thread reads the mapping: the same
+    fit, pair for pair, as adding them there (outliers and a clock step included)."""
+    fed = pairs(1.93, 30.0, every_s=0.1, jitter_s=0.002, seed=4)
+    fed[100] = (fed[100][0], fed[100][1] + 5.0)  # a lone outlier
+    fed[200:] = [(boot, unix + 60.0) for boot, unix in fed[200:]]  # the UNIX clock stepped
+    added, mapping = ClockMapping(), FedClockMapping()
+    assert not mapping.ready
+    feeder = threading.Thread(target=lambda: [mapping.feed(*pair) for pair in fed])
+    feeder.start()
+    feeder.join()
+    assert not mapping.fitted  # queued, not taken: nothing read it yet
+    for pair in fed:
+        added.add(*pair)
+    assert mapping.ready and mapping.fitted
+    assert mapping.fit == added.fit
+    assert (mapping.rejected, mapping.refits) == (added.rejected, added.refits) == (3, 1)
+    assert mapping.recent_boot_rate() == added.recent_boot_rate()
+    mapping.feed(fed[-1][0] + 0.1, fed[-1][1] + 0.1 / 1.93)
+    added.add(fed[-1][0] + 0.1, fed[-1][1] + 0.1 / 1.93)
+    assert mapping.unix_s(fed[-1][0] + 0.05) == added.unix_s(fed[-1][0] + 0.05)
+    assert mapping.boot_s(fed[-1][1]) == added.boot_s(fed[-1][1])
 
 
 @pytest.mark.slow  # 144 000 pairs, one by one
