@@ -126,19 +126,8 @@ def _read_bounded(file: Path, timeout_s: float) -> bytes | None:
 
 def flight_problems(scenario: Scenario) -> list[Problem]:
     """What a scenario valid for the numeric model cannot fly: vehicle ids beyond MAVLink's, a
-    graph other than the complete one (the flight controllers hear and range to everyone)."""
-    graph: list[Problem] = []
-    if scenario.algorithm.graph.kind != "complete":
-        graph.append(
-            (
-                "algorithm.graph",
-                f"kind {scenario.algorithm.graph.kind} cannot be flown yet: the controllers "
-                "keep to their neighbours, but the world and the range aid still range every "
-                "pair and no flight with it has been tested; simulate it with 'mission-runner "
-                "simulate', or fly with kind complete",
-            )
-        )
-    return graph + [
+    ring graph with a vehicle that goes silent without being lost (:func:`_silent_in_ring`)."""
+    return _silent_in_ring(scenario) + [
         (
             f"vehicles[{index}].id",
             f"{vehicle.id} is not a MAVLink system id (1..{MAX_MAVLINK_ID}); a flying vehicle's "
@@ -146,6 +135,25 @@ def flight_problems(scenario: Scenario) -> list[Problem]:
         )
         for index, vehicle in enumerate(scenario.vehicles)
         if vehicle.id > MAX_MAVLINK_ID
+    ]
+
+
+def _silent_in_ring(scenario: Scenario) -> list[Problem]:
+    """A ring closes over a vehicle its neighbours stop hearing, but the radios' schedule
+    closes it only over a vehicle that is lost (the emulator's truth): over one whose link is
+    lost or that is taken over, the controllers would couple two vehicles that never range each
+    other."""
+    if scenario.algorithm.graph.kind != "ring":
+        return []
+    return [
+        (
+            f"events[{index}]",
+            f"{event.kind} cannot be flown on a ring graph: the controllers close the ring over "
+            "the vehicle that goes silent, the radios keep ranging it and not the closing pair; "
+            "fly it with another algorithm.graph kind, or make it vehicle_lost",
+        )
+        for index, event in enumerate(scenario.events)
+        if event.kind in {"link_lost", "taken_over"}
     ]
 
 

@@ -9,7 +9,12 @@ world (:mod:`.world`) all build from here, so a default lives once, in the confi
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from .config import Scenario, SensorConfig, VehicleConfig
 from .enclosing import EnclosingParams
@@ -19,6 +24,7 @@ from .enclosing.graph import (
     complete_graph,
     edge_graph,
     k_nearest_graph,
+    live_adjacency,
     ring_graph,
 )
 from .sensors import SPEED_OF_LIGHT_M_S
@@ -67,6 +73,58 @@ def neighbour_graph(scenario: Scenario) -> Adjacency:
     if graph.kind == "edges":
         return edge_graph(n, graph.edges or [])
     return complete_graph(n)
+
+
+def live_schedule(scenario: Scenario) -> Callable[[int], NDArray[np.bool_]]:
+    """live_at(k) -> ``(N,)`` bool: the vehicles the scenario's ``events`` have in the swarm at
+    step k (from their ``vehicle_joins``, until their ``vehicle_lost``): the plan, not what
+    happens in a flight."""
+    ids = [v.id for v in scenario.vehicles]
+    step_s = scenario.timing.step_s
+    joins = {e.vehicle: e.step(step_s) for e in scenario.events if e.kind == "vehicle_joins"}
+    losses = {e.vehicle: e.step(step_s) for e in scenario.events if e.kind == "vehicle_lost"}
+    start = np.array([joins.get(i, 0) for i in ids])
+    stop = np.array([losses.get(i, np.iinfo(np.int64).max) for i in ids])
+    return lambda k: (start <= k) & (k < stop)
+
+
+@dataclass(frozen=True)
+class RangingGraph:
+    """Which pairs the UWB radios range under a sparse ``algorithm.graph``: a radio ranges only
+    with the neighbours it is scheduled with, and the schedule is the graph among the vehicles
+    still flying (a ring closes over a loss, :func:`.enclosing.graph.live_adjacency`). The
+    numeric simulator, the emulated world and the range aid all range by it.
+
+    graph: the scenario's ``(N, N)``; ring: it closes over losses; frame ``(N, N)``: every edge
+    the plan's live graphs have over the run (a ring's closing edges included), the pairs an
+    airtime schedule's round serves (:func:`.sensors.range_slots`).
+    """
+
+    graph: Adjacency
+    ring: bool
+    frame: Adjacency
+
+    @classmethod
+    def of(cls, scenario: Scenario) -> RangingGraph | None:
+        """The scenario's ranging graph; None for the complete graph (every pair ranges)."""
+        if scenario.algorithm.graph.kind == "complete":
+            return None
+        graph, ring = neighbour_graph(scenario), scenario.algorithm.graph.kind == "ring"
+        live_at, steps = live_schedule(scenario), scenario.timing.steps
+        # The live set changes only at the events' steps: the union over those is the run's.
+        changes = {0} | {
+            e.step(scenario.timing.step_s)
+            for e in scenario.events
+            if e.kind in {"vehicle_joins", "vehicle_lost"}
+        }
+        frame = np.zeros_like(graph)
+        for k in sorted(step for step in changes if step <= steps):
+            frame |= live_adjacency(graph, live_at(k), ring=ring)
+        return cls(graph=graph, ring=ring, frame=frame)
+
+    def among(self, live: ArrayLike) -> Adjacency:
+        """The pairs ranged while the vehicles ``live`` ``(N,)`` bool fly ``(N, N)``."""
+        return live_adjacency(self.graph, live, ring=self.ring)
 
 
 def range_error_std_m(sensors: SensorConfig) -> float:

@@ -1,5 +1,5 @@
 """algorithm.graph at load: bad settings and disconnected graphs named at their YAML path; a
-sparse graph refused for flight, with the path."""
+ring with a vehicle that goes silent refused for flight, at its event."""
 
 import pytest
 import yaml
@@ -88,13 +88,22 @@ def test_a_sparse_graph_with_the_separation_guard_is_refused():
     ), problems
 
 
-def test_a_sparse_graph_is_refused_for_flight_at_its_path():
-    ring = parse_scenario((CONFIGS / "ring_enclosing.yaml").read_text(), source="ring.yaml")
-    problems = flight_problems(ring)
-    assert [location for location, _ in problems] == ["algorithm.graph"]
-    assert "cannot be flown yet" in problems[0][1]
-    complete = parse_scenario(yaml.safe_dump(with_graph({"kind": "complete"})), source="c.yaml")
-    assert flight_problems(complete) == []
+def test_a_sparse_graph_flies():
+    for graph in ({"kind": "ring"}, {"kind": "k_nearest", "k": 2}, {"kind": "complete"}):
+        scenario = parse_scenario(yaml.safe_dump(with_graph(graph)), source="g.yaml")
+        assert flight_problems(scenario) == [], graph
+
+
+@pytest.mark.parametrize("kind", ["link_lost", "taken_over"])
+def test_a_ring_with_a_vehicle_gone_silent_is_refused_for_flight_at_its_event(kind):
+    data = with_graph({"kind": "ring"})
+    data["events"] = [{"kind": "vehicle_lost", "vehicle": 2, "at_step": 5}]
+    data["events"].append({"kind": kind, "vehicle": 3, "at_step": 10})
+    problems = flight_problems(parse_scenario(yaml.safe_dump(data), source="ring.yaml"))
+    assert [location for location, _ in problems] == ["events[1]"], problems
+    assert "cannot be flown on a ring graph" in problems[0][1]
+    data["algorithm"]["graph"] = {"kind": "k_nearest", "k": 2}
+    assert flight_problems(parse_scenario(yaml.safe_dump(data), source="k.yaml")) == []
 
 
 def test_the_default_graph_is_left_out_of_the_recorded_scenario():

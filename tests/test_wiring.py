@@ -1,13 +1,15 @@
-"""Scenario -> emulator settings: the physics rate a flight's emulator runs at."""
+"""Scenario -> emulator settings: the physics rate a flight's emulator runs at; the pairs the
+radios range under a sparse graph."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from mission_runner.checks import load_scenario
-from mission_runner.wiring import emulator_config, physics_rate_hz
+from mission_runner.wiring import RangingGraph, emulator_config, neighbour_graph, physics_rate_hz
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -32,3 +34,16 @@ def test_a_flights_emulator_runs_at_its_clocks_rate_unless_the_scenario_sets_one
     assert emulator_config(scenario, clock=clock).physics.rate_hz == rate_hz
     chosen = emulator_config(scenario, clock=clock, physics={"rate_hz": 100.0})
     assert chosen.physics.rate_hz == 100.0
+
+
+def test_a_ring_ranges_its_edges_and_the_one_that_closes_it_over_the_planned_loss():
+    scenario = load_scenario(CONFIGS / "ring_enclosing.yaml")  # six on a ring, index 3 lost
+    ranging = RangingGraph.of(scenario)
+    assert ranging is not None and ranging.ring
+    closing = np.zeros((6, 6), dtype=bool)
+    closing[2, 4] = closing[4, 2] = True
+    assert np.array_equal(ranging.frame, neighbour_graph(scenario) | closing)
+    live = np.array([True, True, True, False, True, True])
+    among = ranging.among(live)
+    assert among[2, 4] and not among[3].any() and not among[:, 3].any()
+    assert RangingGraph.of(load_scenario(CONFIGS / "paper_tracking.yaml")) is None

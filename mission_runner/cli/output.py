@@ -27,9 +27,10 @@ def replay_text(files: ReplayFiles) -> str:
 def ranging_text(scenario: Scenario) -> str:
     """Which ranges a step of the scenario has (its UWB scheme and airtime)."""
     from ..sensors import ranging_plan  # noqa: PLC0415 - fast `--help`
-    from ..wiring import neighbour_graph  # noqa: PLC0415 - fast `--help`
+    from ..wiring import RangingGraph  # noqa: PLC0415 - fast `--help`
 
-    graph = None if scenario.algorithm.graph.kind == "complete" else neighbour_graph(scenario)
+    ranging = RangingGraph.of(scenario)  # its frame: a ring's closing edges are slots too
+    graph = None if ranging is None else ranging.frame
     return ranging_plan(len(scenario.vehicles), scenario.sensors, scenario.timing.step_s, graph)
 
 

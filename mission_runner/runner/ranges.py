@@ -24,9 +24,11 @@ EKF2's estimate, its latency and its filtering included. Without it, SIH's EKF2 
 GPS (0.2 m white noise, hard-coded) and its local position wanders 0.2-0.3 m within seconds.
 
 Each step's ranges are published as soon as every live vehicle has a position after t_k (the two
-samples bracketing t_k, interpolated), not after a fixed delay. The scenario frame's origin is
-placed so that the first vehicle's first fix is at its ``initial_position_m``; the virtual target
-follows the scenario's path on the mission clock from k = 0.
+samples bracketing t_k, interpolated), not after a fixed delay. Under a sparse ``algorithm.graph``
+only the graph's edges are ranged, among the vehicles heard within ``STALE_AFTER_S`` (a ring
+closes over one that went silent, :class:`mission_runner.wiring.RangingGraph`). The scenario
+frame's origin is placed so that the first vehicle's first fix is at its ``initial_position_m``;
+the virtual target follows the scenario's path on the mission clock from k = 0.
 """
 
 from __future__ import annotations
@@ -59,6 +61,7 @@ from ..bus import (
 from ..records import TruthSample
 from ..scenario import target_positions
 from ..sensors import UwbRanging, ranging_plan
+from ..wiring import RangingGraph
 from ..world.world import publish_measurements, step_measurements
 from .errors import RunnerError
 from .handshake import freeze_heap, next_command, start_command, take_clock_change
@@ -297,6 +300,12 @@ class _Positions:
             positions.received += 1
             self.changed.set()
 
+    def heard(self, unix_s: float) -> NDArray[np.bool_]:
+        """``(n,)`` bool: the vehicles with a position at most ``STALE_AFTER_S`` before
+        ``unix_s`` (the others are dead or silent)."""
+        newest = [self.vehicles[vehicle_id].newest_s() for vehicle_id in self.ids]
+        return np.asarray(newest) >= unix_s - STALE_AFTER_S
+
     async def bracketing(
         self, unix_s: float, max_wait_s: float, *, extrapolate_s: float = 0.0
     ) -> NDArray[np.float64]:
@@ -514,7 +523,10 @@ async def run_range_provider(
     mission clock, the truth's arrivals and the steps' deadlines read."""
     truth_rate_hz = _truth_rate(scenario, source, vision, truth_rate_hz)
     topics = scenario.bus.topics(scenario.name)
-    logger.info(ranging_plan(len(scenario.vehicles), scenario.sensors, scenario.timing.step_s))
+    ranging = RangingGraph.of(scenario)
+    frame = None if ranging is None else ranging.frame
+    n, step_s = len(scenario.vehicles), scenario.timing.step_s
+    logger.info(ranging_plan(n, scenario.sensors, step_s, frame))
     mission_time = MissionTime(unix=unix_s)
     positions = _Positions(scenario)
     odometry = {
@@ -546,7 +558,7 @@ async def run_range_provider(
         stack.callback(following.cancel)  # before the task group waits for its tasks
         # Up to 1.5 periods of the positions' rate: SIH's truth as asked, or the GPS stream's.
         rate_hz = (truth_rate_hz or SIH_TRUTH_RATE_HZ) if source == "sih" else POSITION_RATE_HZ
-        aid = _AidSteps(bus, topics, scenario, mission_time, positions, unix_s)
+        aid = _AidSteps(bus, topics, scenario, mission_time, positions, unix_s, ranging)
         rates = _Rates(positions, odometry, unix_s)
         stats = await aid.run(
             start.time_s,
@@ -602,13 +614,17 @@ class _AidSteps:
     mission_time: MissionTime
     positions: _Positions
     unix_s: Callable[[], float]
+    ranging: RangingGraph | None = None
 
     async def run(
         self, start_s: float, steps: int, rng: np.random.Generator, *, extrapolate_s: float
     ) -> RangeStats:
         stats = RangeStats()
         uwb = UwbRanging(
-            self.scenario.sensors, len(self.scenario.vehicles), self.scenario.timing.step_s
+            self.scenario.sensors,
+            len(self.scenario.vehicles),
+            self.scenario.timing.step_s,
+            graph=None if self.ranging is None else self.ranging.frame,
         )
         for k in range(steps):
             t_k = start_s + k * self.scenario.timing.step_s
@@ -622,6 +638,9 @@ class _AidSteps:
             stats.skipped += not publish
             wait_s = min(MAX_WAIT_S, max(0.0, deadline_s - self.unix_s()))
             now = await self.positions.bracketing(unix_k, wait_s, extrapolate_s=extrapolate_s)
+            graph = (
+                None if self.ranging is None else self.ranging.among(self.positions.heard(unix_k))
+            )
             await _publish_step(
                 self.bus,
                 self.topics,
@@ -633,6 +652,7 @@ class _AidSteps:
                 (rng, uwb),
                 stats,
                 publish=publish,
+                graph=graph,
             )
             if publish:
                 stats.lateness_s.append(self.mission_time.now_s() - t_k)
@@ -691,11 +711,13 @@ async def _publish_step(  # noqa: PLR0917
     stats: RangeStats,
     *,
     publish: bool = True,
+    graph: NDArray[np.bool_] | None = None,
 ) -> None:
     """Publish step ``k``'s ranges and target observations from ``positions_m`` ``(n, 3)``
     (north-east-down [m], NaN rows: no position; ``publish``: False to only record) and
     record its truth in ``stats``. ``noise``: the aid's generator and its radios (a step not
-    published still ages their errors at the next one)."""
+    published still ages their errors at the next one). ``graph`` ``(n, n)``: the pairs
+    scheduled to range (None: every pair)."""
     rng, uwb = noise
     ids = [v.id for v in scenario.vehicles]
     known = ~np.isnan(positions_m[:, 0])
@@ -719,6 +741,7 @@ async def _publish_step(  # noqa: PLR0917
         sensors=scenario.sensors,
         rng=rng,
         uwb=uwb,
+        graph=graph,
     )
 
     # All at once: one after the other, each waited for the loop to write it out, and with four

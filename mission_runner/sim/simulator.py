@@ -40,7 +40,7 @@ from ..sensors import (
     range_readings,
     target_seen,
 )
-from ..wiring import algorithm_params, neighbour_graph
+from ..wiring import RangingGraph, algorithm_params, live_schedule, neighbour_graph
 
 logger = logging.getLogger(__name__)
 
@@ -86,24 +86,6 @@ class _Noise:
             return first
         rest = getattr(self._rest, method)(size=(shape[0] - 1, *shape[1:]), **kwargs)
         return np.concatenate([first, rest], axis=0)
-
-
-def _event_schedule(scenario: Scenario) -> Callable[[int], NDArray[np.bool_]]:
-    """live_from_schedule(k) -> ``(N,)`` bool, and the steps at which membership changes."""
-    ids = [v.id for v in scenario.vehicles]
-    joins = {
-        e.vehicle: e.step(scenario.timing.step_s)
-        for e in scenario.events
-        if e.kind == "vehicle_joins"
-    }
-    losses = {
-        e.vehicle: e.step(scenario.timing.step_s)
-        for e in scenario.events
-        if e.kind == "vehicle_lost"
-    }
-    start = np.array([joins.get(i, 0) for i in ids])
-    stop = np.array([losses.get(i, np.iinfo(np.int64).max) for i in ids])
-    return lambda k: (start <= k) & (k < stop)
 
 
 def flight_only_events(scenario: Scenario) -> list[str]:
@@ -171,17 +153,6 @@ class _GraphSchedule:
             rows = np.where(live[:, None], adjacency, self.graph)
             self._cache[key] = (adjacency, slot_mask(rows), connected)
         return self._cache[key]
-
-    def frame(self, steps: int) -> Adjacency | None:
-        """Every edge the run's live graphs have over steps 0..steps ``(N, N)``: the pairs the
-        ranging schedule serves (a ring's closing edges included); None for the complete
-        graph."""
-        if self.graph is None:
-            return None
-        union = np.zeros_like(self.graph)
-        for k in range(steps + 1):
-            union |= self.at(k)[0]  # type: ignore[index]  # not None with a graph
-        return union
 
     def slot_frame(self, steps: int) -> NDArray[np.bool_] | None:
         """Every (vehicle, slot) pair the step's masks have over steps 0..steps ``(N, N+1)``
@@ -338,7 +309,7 @@ class _Plan:
     def of(cls, scenario: Scenario) -> _Plan:
         step_s, steps = scenario.timing.step_s, scenario.timing.steps
         times = np.arange(steps + 1, dtype=np.float64) * step_s
-        live_at = _event_schedule(scenario)
+        live_at = live_schedule(scenario)
         return cls(
             times=times,
             target=target_positions(scenario.target.path, np.append(times, times[-1] + step_s)),
@@ -381,6 +352,7 @@ class _State:
         )
         noise = _Noise(scenario.seed, runs)
         drift = odometry_drift(scenario.sensors, noise, (runs, n))
+        ranging = RangingGraph.of(scenario)  # the pairs a round of ranging serves
         return cls(
             position=position,
             origin=position.copy(),
@@ -392,7 +364,7 @@ class _State:
                 n,
                 scenario.timing.step_s,
                 batch=(runs,),
-                graph=plan.graph.frame(scenario.timing.steps),
+                graph=None if ranging is None else ranging.frame,
             ),
             odometry_error=np.zeros((runs, n, 2)),
             in_force=np.full((runs, n, 2), np.nan),

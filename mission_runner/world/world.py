@@ -8,6 +8,8 @@ Published where real drivers on companion computers would publish them - on the 
   as a UWB tag reports a ranging round (empty when it ranged nothing), as the scenario's
   ``sensors:`` describe the radios (:class:`mission_runner.sensors.UwbRanging`: one exchange per
   pair or per direction, pair biases, multipath, NLOS bursts, dropouts, airtime, a maximum range);
+  under a sparse ``algorithm.graph`` only the graph's edges among the vehicles still flying
+  (:class:`mission_runner.wiring.RangingGraph`, as in the numeric simulator);
 - ``vehicle/<id>/target``: :class:`TargetObservation` for vehicles that sense the target, its
   horizontal range and velocity (what a radar or vision tracker gives), at the same instants; or,
   when the tracker does not see it (beyond ``sensors.target_sensing_range_m``, a random miss, an
@@ -36,12 +38,14 @@ from ..errors import MissionRunnerError
 from ..records import TruthSample
 from ..scenario import target_positions
 from ..sensors import UwbRanging, measure_ranges, target_seen
+from ..wiring import RangingGraph
 
 if TYPE_CHECKING:
     from sitl.emulator import Emulator, Truth
 
     from ..bus import Bus, BusClient, Topics
     from ..config import EventConfig, Scenario, SensorConfig, TargetPath
+    from ..enclosing.graph import Adjacency
     from ..sensors import Rng
 
 logger = logging.getLogger(__name__)
@@ -62,6 +66,8 @@ class World:
         than none); None: never (an emulator racing ahead in lockstep, with nobody to wait for).
         senses_target: ``(N,)`` bool. sensors: the scenario's ``SensorConfig``. The first vehicle
         position the emulator places is the scenario's frame origin, so ``target_path`` shares it.
+        ranging: the pairs the radios range under a sparse graph, among the vehicles the
+        emulator has alive; None: every pair.
     """
 
     def __init__(
@@ -80,8 +86,10 @@ class World:
         time_offset_s: float = 0.0,
         events: Sequence[EventConfig] = (),
         stale_after_steps: int | None = 2,
+        ranging: RangingGraph | None = None,
     ) -> None:
         self.emulator = emulator
+        self.ranging = ranging
         self.stale_after_steps = stale_after_steps
         self.bus = bus
         self.topics = topics
@@ -98,7 +106,8 @@ class World:
         self._steps: int | None = None
         self._rng = np.random.default_rng([seed, 7])
         # The radios' lasting errors (pair biases, multipath, NLOS bursts) for the mission.
-        self._uwb = UwbRanging(sensors, len(self.vehicle_ids), step_s)
+        frame = None if ranging is None else ranging.frame
+        self._uwb = UwbRanging(sensors, len(self.vehicle_ids), step_s, graph=frame)
         # (index or None for every vehicle, sensor) -> windows [(from_s, until_s)]
         self._down: dict[tuple[int | None, str], list[tuple[float, float]]] = {}
         # One step's measurements at a time: (k, [(topic, message), ...]).
@@ -156,6 +165,7 @@ class World:
             events=scenario.events,
             # In lockstep the mission waits for its measurements: none is ever stale.
             stale_after_steps=None if emulator.clock.mode == "lockstep" else 2,
+            ranging=RangingGraph.of(scenario),
         )
 
     async def drained(self) -> None:
@@ -278,6 +288,7 @@ class World:
             sensors=self.sensors,
             rng=self._rng,
             uwb=self._uwb,
+            graph=None if self.ranging is None else self.ranging.among(alive),
         )
         self._queue.put_nowait((k, measured))
         self.emulator.end_batch()  # this step's measurements go out before the next is sampled
@@ -353,6 +364,7 @@ def step_measurements(
     rng: Rng,
     uwb: UwbRanging,
     target_hidden: ArrayLike | None = None,
+    graph: Adjacency | None = None,
 ) -> Measured:
     """What the UWB radios and target trackers report for step ``k`` (time ``t_k``), as
     ``(topic, message)`` pairs: a :class:`TargetObservation` per tracking vehicle (the target's
@@ -369,11 +381,22 @@ def step_measurements(
     ``(2,)``, target_velocity_m_s ``(2,)`` north/east; sensors: the scenario's ``SensorConfig``
     (its sensing range and misses apply here, :func:`mission_runner.sensors.target_seen`);
     uwb: the mission's radios (:class:`mission_runner.sensors.UwbRanging`, stepped to ``k``).
+    graph: ``(n, n)`` bool, the pairs scheduled to range this step (a sparse neighbourhood
+    graph among the live vehicles, :class:`mission_runner.wiring.RangingGraph`); None: every
+    pair. The noise is drawn for every pair either way (the complete graph's draws unchanged).
     """
     positions_m = np.asarray(positions_m, dtype=float)
     # Ranges first: the radios draw from ``rng`` before the trackers do.
     range_sets = _range_sets(
-        k, t_k, ids=ids, topics=topics, positions_m=positions_m, ranging=ranging, rng=rng, uwb=uwb
+        k,
+        t_k,
+        ids=ids,
+        topics=topics,
+        positions_m=positions_m,
+        ranging=ranging,
+        rng=rng,
+        uwb=uwb,
+        graph=graph,
     )
     observations = _target_observations(
         t_k,
@@ -400,13 +423,17 @@ def _range_sets(
     ranging: ArrayLike,
     rng: Rng,
     uwb: UwbRanging,
+    graph: Adjacency | None,
 ) -> Measured:
     """A :class:`RangeSet` per vehicle whose radio works or that read a range (see
     :func:`step_measurements`)."""
     ranging = np.asarray(ranging, dtype=bool)
     gaps = positions_m[:, None, :] - positions_m[None, :, :]
     distances = np.sqrt(np.sum(gaps * gaps, axis=-1))
-    ranges = uwb.read(distances, rng, k=k, measured=ranging[:, None] & ranging[None, :])
+    linked = ranging[:, None] & ranging[None, :]
+    if graph is not None:  # a radio ranges only with the neighbours it is scheduled with
+        linked &= graph
+    ranges = uwb.read(distances, rng, k=k, measured=linked)
     read = np.isfinite(ranges)
     return [
         (

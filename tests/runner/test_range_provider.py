@@ -330,3 +330,42 @@ async def test_a_vehicle_whose_truth_stops_costs_no_step_more_than_its_deadline(
     assert stats.missing_vehicles >= 4  # vehicle 3 had no position in its last steps
     assert stats.ranges == len(measured) < 8 * 6
     assert max(stats.lateness_s) < MAX_WAIT_S  # every wait ended at the deadline, not later
+
+
+async def test_on_a_ring_the_aid_ranges_its_edges_and_closes_it_over_a_silent_vehicle():
+    """A sparse graph: the aid ranges the ring's edges only, among the vehicles it heard in the
+    last ``STALE_AFTER_S``; over one whose truth stopped, the ring closes."""
+    from mission_runner.wiring import RangingGraph
+
+    data = load("paper_tracking_flyable").model_dump(mode="json")
+    data["algorithm"]["graph"] = {"kind": "ring"}
+    data["bus"] = {"kind": "mqtt", "mqtt": {"host": "127.0.0.1", "port": 1}}
+    mission = validate_scenario(data)
+    topics = mission.bus.topics(mission.name)
+    ranging = RangingGraph.of(mission)
+    positions = _Positions(mission)
+    north_per_deg = 111_195.0
+    for vehicle_id, newest_s in ((1, 100.0), (2, 98.5), (3, 100.0), (4, 100.0)):
+        positions.add(vehicle_id, newest_s, vehicle_id / north_per_deg, 0.0, 10.0)
+    assert positions.heard(100.0).tolist() == [True, False, True, True]
+
+    class Sent:
+        def __init__(self):
+            self.sets = {}
+
+        async def publish_message(self, topic, message, *, timeout):
+            if isinstance(message, RangeSet):
+                self.sets[message.vehicle_id] = {peer for peer, _ in message.ranges_m}
+
+    everyone = np.array([[4.0 * i, 0.0, -5.0] for i in range(4)])
+    bus = Sent()
+    for heard, expected in (
+        (np.ones(4, dtype=bool), {1: {2, 4}, 2: {1, 3}, 3: {2, 4}, 4: {1, 3}}),
+        (positions.heard(100.0), {1: {3, 4}, 2: set(), 3: {1, 4}, 4: {1, 3}}),
+    ):
+        noise = (np.random.default_rng(0), UwbRanging(mission.sensors, 4, STEP_S))
+        graph = ranging.among(heard)
+        await _publish_step(
+            bus, topics, mission, everyone, 0, 10.0, 10.0, noise, RangeStats(), graph=graph
+        )
+        assert bus.sets == expected

@@ -408,3 +408,89 @@ async def test_the_scenarios_events_happen_at_their_step_on_the_emulators_clock(
     assert happened[1, "killed"] == pytest.approx(start_s + 8 * STEP_S, abs=0.006)
     taken = [time_s for (index, what), time_s in happened.items() if index == 2]
     assert taken == [pytest.approx(start_s + 4 * STEP_S, abs=0.006)]
+
+
+def ring_of_four_measured(graph, seed=5):
+    """Step 7's range sets of four vehicles on a line 4 m apart, with noise, pair biases and
+    dropouts, every radio working, ``graph`` the pairs scheduled (None: every pair)."""
+    from mission_runner.sensors import UwbRanging
+    from mission_runner.world import step_measurements
+
+    sensors = SensorConfig(
+        range_noise_std_m=0.05, range_bias_std_m=0.1, range_dropout_probability=0.2
+    )
+    positions = np.array([[4.0 * i, 0.0, -5.0] for i in range(4)])
+    uwb = UwbRanging(sensors, 4, STEP_S)
+    rng = np.random.default_rng(seed)
+    for k in range(8):
+        measured = step_measurements(
+            k,
+            k * STEP_S,
+            ids=[1, 2, 3, 4],
+            topics=TOPICS,
+            positions_m=positions,
+            ranging=np.ones(4, dtype=bool),
+            tracking=np.zeros(4, dtype=bool),
+            target_m=[0.0, 0.0],
+            target_velocity_m_s=[0.0, 0.0],
+            sensors=sensors,
+            rng=rng,
+            uwb=uwb,
+            graph=graph,
+        )
+    return {(m.vehicle_id, peer): r for _, m in measured for peer, r in m.ranges_m}
+
+
+async def test_a_sparse_graph_ranges_its_edges_only_with_the_complete_graphs_draws():
+    from mission_runner.enclosing.graph import ring_graph
+
+    everyone = ring_of_four_measured(None)
+    ring = ring_of_four_measured(ring_graph(4))
+    edges = {(i + 1, j + 1) for i, j in zip(*np.nonzero(ring_graph(4)), strict=True)}
+    assert set(ring) <= edges and len(ring) >= 4  # 0.2 dropouts: some edges read nothing
+    # One draw per pair either way: what an edge reads does not depend on who else ranges.
+    assert ring == {pair: r for pair, r in everyone.items() if pair in edges}
+    assert set(everyone) - edges  # the complete graph ranged the non-edges too
+
+
+async def test_a_ring_is_ranged_over_its_edges_and_closes_over_a_vehicle_lost():
+    from mission_runner.enclosing.graph import ring_graph
+    from mission_runner.wiring import RangingGraph
+
+    graph = ring_graph(4)
+    frame = graph.copy()
+    frame[0, 2] = frame[2, 0] = True  # the edge that closes the ring over vehicle index 1
+    path = CirclePath(kind="circle", center_m=[0.0, 10.0], radius_m=2.0, period_s=20.0)
+    config = emulator_config(n=4)
+    async with (
+        Emulator(config) as emulator,
+        InProcessBus() as bus,
+        bus.subscribe(TOPICS.all_ranges(), queue_size=100_000) as ranges,
+        World(
+            emulator,
+            bus=bus,
+            topics=TOPICS,
+            vehicle_ids=[1, 2, 3, 4],
+            senses_target=(True, False, False, False),
+            target_path=path,
+            target_altitude_m=0.0,
+            sensors=SensorConfig(range_noise_std_m=0.01),
+            step_s=STEP_S,
+            stale_after_steps=None,
+            events=[EventConfig(kind="vehicle_lost", vehicle=2, at_step=8)],
+            ranging=RangingGraph(graph=graph, ring=True, frame=frame),
+        ) as world,
+    ):
+        world.start(math.ceil(emulator.time_s / STEP_S) * STEP_S, steps=16)
+        await emulator.run_for(17 * STEP_S)
+        async with asyncio.timeout(10):
+            await world.drained()
+        sets = [m for _, m in ranges.drain_messages(RangeSet)]
+    pairs = {k: set() for k in range(16)}
+    for ranged in each_range(sets):
+        pairs[ranged.step].add(frozenset((ranged.vehicle_id, ranged.peer_id)))
+    ring = {frozenset(p) for p in ({1, 2}, {2, 3}, {3, 4}, {4, 1})}
+    closed = {frozenset(p) for p in ({1, 3}, {3, 4}, {4, 1})}
+    # Killed at t_8, after its radio's round of step 8: the ring closes from step 9 on.
+    assert all(pairs[k] == ring for k in range(9)), pairs
+    assert all(pairs[k] == closed for k in range(9, 16)), pairs
