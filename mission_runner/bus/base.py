@@ -32,7 +32,7 @@ import collections
 import contextlib
 import functools
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from contextlib import AbstractAsyncContextManager
 from types import TracebackType
 from typing import Generic, Self, TypeVar
@@ -40,6 +40,7 @@ from typing import Generic, Self, TypeVar
 from mission_runner.bus.auth import AuthCounters, MessageAuth, Sender
 from mission_runner.bus.errors import BusConnectionError, BusTimeoutError, MessageDecodeError
 from mission_runner.bus.messages import Message
+from mission_runner.bus.topics import MATCH_CACHE_SIZE, topic_matches
 
 logger = logging.getLogger(__name__)
 
@@ -236,6 +237,49 @@ class _TypedMessages(Generic[M]):
         return self
 
 
+class Routes:
+    """A bus's live subscriptions, and which of them each topic reaches.
+
+    The subscriptions that match a topic are worked out once and remembered until a subscription
+    comes or goes: a swarm publishes the same few topics every step to many subscriptions, and
+    matching each against every pattern on every publish grew with the swarm squared. At most
+    ``MATCH_CACHE_SIZE`` topics are remembered (a flood of made-up topics only starts it over).
+    """
+
+    def __init__(self) -> None:
+        self._subscriptions: list[Subscription] = []
+        self._by_topic: dict[str, tuple[Subscription, ...]] = {}
+
+    def __iter__(self) -> Iterator[Subscription]:
+        return iter(list(self._subscriptions))
+
+    def __len__(self) -> int:
+        return len(self._subscriptions)
+
+    def append(self, subscription: Subscription) -> None:
+        self._subscriptions.append(subscription)
+        self._by_topic.clear()
+
+    def remove(self, subscription: Subscription) -> None:
+        """Forget ``subscription``; ValueError if it is not here (as ``list.remove``)."""
+        self._subscriptions.remove(subscription)
+        self._by_topic.clear()
+
+    def clear(self) -> None:
+        self._subscriptions.clear()
+        self._by_topic.clear()
+
+    def matching(self, topic: str) -> tuple[Subscription, ...]:
+        """The subscriptions whose pattern matches ``topic``, in subscription order."""
+        found = self._by_topic.get(topic)
+        if found is None:
+            found = tuple(s for s in self._subscriptions if topic_matches(s.pattern, topic))
+            if len(self._by_topic) >= MATCH_CACHE_SIZE:
+                self._by_topic.clear()
+            self._by_topic[topic] = found
+        return found
+
+
 class Bus(abc.ABC):
     """A publish/subscribe message bus with MQTT topic semantics.
 
@@ -254,7 +298,7 @@ class Bus(abc.ABC):
     """Whom this bus signs as; None: the owner of each topic (``Sender.for_topic``), for a bus
     that speaks for the whole swarm of one process."""
 
-    _subscriptions: list[Subscription]
+    _subscriptions: Routes
     _open: bool
     _closed: bool
     _stack: contextlib.AsyncExitStack

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from typing import Self
 
 from mission_runner.bus.auth import AuthPolicy, BusKey, MessageAuth, Sender
-from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, BusClient, Subscription
+from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, BusClient, Routes, Subscription
 from mission_runner.bus.errors import BusConnectionError
 from mission_runner.bus.topics import topic_matches, validate_pattern, validate_topic
 from mission_runner.clock import Clock, MonotonicClock
@@ -103,7 +103,7 @@ class InProcessBus(Bus):
         self.queue_size = queue_size
         self.published = 0
         self.lost = 0
-        self._subscriptions: list[Subscription] = []
+        self._subscriptions = Routes()
         # Which client made each subscription, and how many deliveries each (client, pattern,
         # topic) has had: the link model's draws are keyed on them.
         self._clients: dict[Subscription, str] = {}
@@ -181,9 +181,8 @@ class InProcessBus(Bus):
         self.published += 1
         if retain:
             self._retained[topic] = payload
-        for subscription in self._subscriptions:
-            if topic_matches(subscription.pattern, topic):
-                self._deliver(subscription, topic, payload)
+        for subscription in self._subscriptions.matching(topic):
+            self._deliver(subscription, topic, payload)
 
     def _deliver(self, subscription: Subscription, topic: str, payload: bytes) -> None:
         link = self.link

@@ -65,13 +65,13 @@ from aiomqtt.exceptions import MqttCodeError, MqttConnectError
 from paho.mqtt.client import MQTTMessage
 
 from mission_runner.bus.auth import AuthPolicy, BusKey, MessageAuth, Sender
-from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Subscription
+from mission_runner.bus.base import DEFAULT_QUEUE_SIZE, Bus, Routes, Subscription
 from mission_runner.bus.errors import BusConnectionError, BusTimeoutError
 from mission_runner.bus.messages import VehicleStatus
 from mission_runner.bus.paho_reader import guard_reader, max_packet_bytes
 from mission_runner.bus.paho_writer import write_at_once
 from mission_runner.bus.settings import TlsSettings
-from mission_runner.bus.topics import Topics, topic_matches, validate_pattern, validate_topic
+from mission_runner.bus.topics import Topics, validate_pattern, validate_topic
 from mission_runner.clock import Clock, MonotonicClock
 from mission_runner.records import ControllerState
 
@@ -282,7 +282,7 @@ class MqttBus(Bus):
         self._connected = False
         self._fatal: BusConnectionError | None = None
         self._state = asyncio.Condition()
-        self._subscriptions: list[Subscription] = []
+        self._subscriptions = Routes()
         self._patterns: collections.Counter[str] = collections.Counter()
         self._open = False
         self._closed = False
@@ -588,9 +588,8 @@ class MqttBus(Bus):
         body = self.auth.open(topic, payload, retained=bool(message.retain))
         if body is None:
             return  # dropped and counted: never handed to a subscription
-        for subscription in self._subscriptions:
-            if topic_matches(subscription.pattern, topic):
-                subscription.offer(topic, body)
+        for subscription in self._subscriptions.matching(topic):
+            subscription.offer(topic, body)
 
     async def _restore_will_topic(self, client: aiomqtt.Client) -> None:
         """Publish again, before anything else of this connection, the last retained message

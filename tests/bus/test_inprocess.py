@@ -187,6 +187,20 @@ async def test_exited_subscription_gets_nothing_more() -> None:
 
 
 @pytest.mark.asyncio
+async def test_routes_follow_subscriptions_that_come_and_go_between_publishes() -> None:
+    # The bus remembers which subscriptions a topic reaches: a subscription made or ended after
+    # that topic was first routed must still be (or no longer be) reached.
+    async with InProcessBus() as bus, bus.subscribe(TOPICS.step(1)) as one:
+        await bus.publish_message(TOPICS.step(1), step(1, 0), timeout=0.1)
+        async with bus.subscribe(TOPICS.all_steps()) as every:
+            await bus.publish_message(TOPICS.step(1), step(1, 1), timeout=0.1)
+            assert len(every) == 1
+        await bus.publish_message(TOPICS.step(1), step(1, 2), timeout=0.1)
+        assert len(one) == 3
+        assert len(every) == 1
+
+
+@pytest.mark.asyncio
 async def test_wildcards_are_refused_on_publish_and_checked_on_subscribe() -> None:
     async with InProcessBus() as bus:
         with pytest.raises(TopicError):
