@@ -47,6 +47,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 import yaml  # noqa: E402
+from bytecode import compile_packages  # noqa: E402
 
 DEMO_CONFIG = "configs/paper_tracking_flyable.yaml"
 FLOWN = re.compile(r"flown: ([0-9.]+) s of mission in ([0-9.]+) s wall")
@@ -138,11 +139,7 @@ def bench_processes(steps: int) -> dict[str, object]:
     from tests.sitl.helpers import free_port_config  # noqa: PLC0415
 
     print(f"\n2. one process per vehicle over mosquitto, real time, {steps} steps")
-    packages = [str(ROOT / "mission_runner"), str(ROOT / "sitl")]
-    subprocess.run(  # what an install does: the processes below read bytecode, not compile
-        [sys.executable, "-m", "compileall", "-q", *packages], check=True,
-        stdout=subprocess.DEVNULL, env={**os.environ, "PYTHONDONTWRITEBYTECODE": ""},
-    )  # fmt: skip
+    compile_packages(ROOT)  # as an install does: the processes read bytecode
     with (
         tempfile.TemporaryDirectory(prefix="bench-processes-") as name,
         _broker(Path(name)) as broker,

@@ -47,6 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import yaml  # noqa: E402
+from bytecode import compile_packages  # noqa: E402
 
 CONFIG = ROOT / "configs" / "px4_sih_tracking.yaml"
 TICK_S = os.sysconf("SC_CLK_TCK")
@@ -448,11 +449,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--timeout", type=float, default=900.0, help="per run, for ground [s]")
     parser.add_argument("--keep", action="store_true", help="keep each run's folder (logs)")
     arguments = parser.parse_args(argv)
-    subprocess.run(  # what an install does: the processes read bytecode, not compile
-        [sys.executable, "-m", "compileall", "-q", str(ROOT / "mission_runner"),
-         str(ROOT / "sitl")],
-        check=True, stdout=subprocess.DEVNULL, env={**os.environ, "PYTHONDONTWRITEBYTECODE": ""},
-    )  # fmt: skip
+    compile_packages(ROOT)  # as an install does: the processes read bytecode
     results = []
     for number in range(1, arguments.runs + 1):
         result = fly(arguments.px4_dir, arguments.speed, arguments.timeout, arguments.keep)

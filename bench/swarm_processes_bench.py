@@ -47,6 +47,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 import paho.mqtt.client as paho  # noqa: E402
 import yaml  # noqa: E402
+from bytecode import compile_packages  # noqa: E402
 from flight_bench import swarm_data  # noqa: E402
 
 ON_TIME_TARGET = 0.99
@@ -380,11 +381,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--keep-going", action="store_true", help="past an N that did not hold")
     parser.add_argument("--keep", action="store_true", help="keep each run's folder (logs)")
     arguments = parser.parse_args(argv)
-    subprocess.run(  # what an install does: the processes read bytecode, not compile
-        [sys.executable, "-m", "compileall", "-q", str(ROOT / "mission_runner"),
-         str(ROOT / "sitl")],
-        check=True, stdout=subprocess.DEVNULL, env={**os.environ, "PYTHONDONTWRITEBYTECODE": ""},
-    )  # fmt: skip
+    compile_packages(ROOT)  # as an install does: the processes read bytecode
     held: list[Outcome] = []
     last: Outcome | None = None
     for n in arguments.sizes:
