@@ -129,37 +129,41 @@ def _summed_coupling(
 ) -> NDArray[np.float64]:
     """:func:`coupling_rate` in O(S L): with the same gains for every row,
     ``sum_{j heard} sum_l (K_l / l) sin(l (theta_i - theta_j))
-    = sum_l (K_l / l) (sin(l theta_i) C_l - cos(l theta_i) S_l)`` with C_l + i S_l the sum of
-    e^{i l theta_j} over the heard slots; a heard row's own term is sin(0) = 0, so the sum over
-    its neighbours is the sum over every heard slot. Phases finite.
-
-    Both sums are real matrix products over the phasors' (cos, sin) pairs, which numpy keeps
-    interleaved: ``[cos l theta, sin l theta] . [-S_l, C_l] (K_l / l)``."""
+    = sum_l (K_l / l) Im(e^{i l theta_i} conj(Z_l))`` with Z_l the sum of e^{i l theta_j} over
+    the heard slots; a heard row's own term is sin(0) = 0, so the sum over its neighbours is the
+    sum over every heard slot. Phases finite."""
     n_harmonics = gains.shape[-1]
-    pairs = phasors(phase_slots, n_harmonics).view(np.float64)  # (..., S, 2L): cos, sin
-    sums = heard[..., None, :].astype(float) @ pairs  # (..., 1, 2L): C_1, S_1, C_2, ...
+    # Real products over the phasors' (cos, sin) pairs, which numpy keeps interleaved: complex
+    # ones start BLAS threads that cost twice the CPU for no gain in time.
+    pairs = phasors(phase_slots, n_harmonics).view(np.float64)  # (..., L, 2S): cos, sin
+    spread = np.zeros((*heard.shape[:-1], 2 * heard.shape[-1], 2))  # (..., 2S, 2)
+    spread[..., 0::2, 0] = heard
+    spread[..., 1::2, 1] = heard
+    sums = pairs @ spread  # (..., L, 2): C_l, S_l (Z_l = C_l + i S_l)
     scaled = gains / np.arange(1, n_harmonics + 1)  # (..., L)
-    weights = np.empty((*scaled.shape, 2))  # (..., L, 2): on cos l theta_i, on sin l theta_i
-    np.multiply(sums[..., 0, 1::2], scaled, out=weights[..., 0])
-    np.negative(weights[..., 0], out=weights[..., 0])
-    np.multiply(sums[..., 0, 0::2], scaled, out=weights[..., 1])
-    rates = pairs @ weights.reshape(*scaled.shape[:-1], 2 * n_harmonics, 1)  # (..., S, 1)
+    # sin(l theta_i) C_l - cos(l theta_i) S_l, l = 1..L: the weights of cos and of sin.
+    weights = np.stack([-sums[..., 1], sums[..., 0]], axis=-2) * scaled[..., None, :]
+    mixed = weights @ pairs  # (..., 2, 2S)
+    rates = mixed[..., 0, 0::2] + mixed[..., 1, 1::2]  # (..., S)
     n_neighbours = np.sum(heard, axis=-1, keepdims=True) - heard[..., row_slots]  # (..., R)
-    return rates[..., row_slots, 0] / np.maximum(n_neighbours, 1)
+    return rates[..., row_slots] / np.maximum(n_neighbours, 1)
 
 
 def phasors(phase_rad: NDArray[np.float64], n_harmonics: int) -> NDArray[np.complex128]:
-    """e^{i l theta} for l = 1..n_harmonics, ``(..., n_harmonics)`` complex for phases ``(...)``
-    [rad]: :func:`harmonics` as complex numbers, one complex product a harmonic (harmonics
-    d+1..2d are harmonics 1..d times e^{i d theta}) instead of four real products and two sums,
-    each with its temporary: three times faster for a 256-vehicle swarm."""
-    result = np.empty((*phase_rad.shape, n_harmonics), dtype=np.complex128)
-    result[..., 0] = np.exp(1j * phase_rad)
+    """e^{i l theta} for l = 1..n_harmonics, ``(..., n_harmonics, S)`` complex for phases
+    ``(..., S)`` [rad] (harmonic l - 1 on the second axis from the end): :func:`harmonics` as
+    complex numbers, one complex product a harmonic (harmonics d+1..2d are harmonics 1..d
+    times e^{i d theta}) instead of four real products and two sums, each with its temporary;
+    a harmonic's slots are contiguous, so each doubling multiplies whole rows. Three times
+    faster than :func:`harmonics` for a 256-vehicle swarm."""
+    slots = phase_rad.shape[-1]
+    result = np.empty((*phase_rad.shape[:-1], n_harmonics, slots), dtype=np.complex128)
+    result[..., 0, :] = np.exp(1j * phase_rad)
     done = 1
     while done < n_harmonics:
         width = min(done, n_harmonics - done)
-        turn = np.exp(1j * (done * phase_rad))[..., None]
-        np.multiply(result[..., :width], turn, out=result[..., done : done + width])
+        turn = np.exp(1j * (done * phase_rad))[..., None, :]
+        np.multiply(result[..., :width, :], turn, out=result[..., done : done + width, :])
         done += width
     return result
 

@@ -123,7 +123,7 @@ def test_coupling_equals_the_pairwise_sum_below_and_above_the_product_threshold(
 @pytest.mark.parametrize("n_harmonics", [1, 2, 7, 256, 300])
 def test_phasors_equal_the_harmonics(n_harmonics):
     phase = np.random.default_rng(n_harmonics).uniform(-50, 50, (3, 40))
-    powers = phasors(phase, n_harmonics)
+    powers = np.swapaxes(phasors(phase, n_harmonics), -1, -2)
     cos, sin = harmonics(phase, n_harmonics)
     assert powers.shape == (3, 40, n_harmonics)
     # both are within a few eps of the exact values; np.cos(l theta) is not (see above)
