@@ -648,13 +648,36 @@ def _record_estimation(  # noqa: PLR0917 - the step's pieces, each named
     # error is >= 0.
     out["localization_error_m"][:, k] = np.fmax.reduce(error, axis=(-1, -2), initial=0.0)
     out["localization_rms_m"][:, k] = edge_rms(error)
-    out["gated_ranges"][:, k] = step.gated.reshape(step.gated.shape[0], -1).sum(axis=-1)
     radio_ranges = measured.radio_ranges.reshape(nlos.shape)
-    out["nlos_ranges"][:, k] = (nlos & np.isfinite(radio_ranges)).sum(axis=(-1, -2))
-    good = ~nlos & np.isfinite(radio_ranges)
-    out["false_rejections"][:, k] = (radio_gated & good).sum(axis=(-1, -2))
+    _count_ranges(out, k, step.gated, (nlos, radio_gated), radio_ranges)
     speed = np.sqrt(np.sum(step.consensus_m_s**2, axis=-1))
     out["consensus_speed_m_s"][:, k] = np.where(live, speed, 0.0).max(axis=-1)
+
+
+def _count_ranges(
+    out: dict[str, NDArray[Any]],
+    k: int,
+    gated: NDArray[np.bool_],
+    radio: tuple[NDArray[np.bool_], NDArray[np.bool_]],
+    radio_ranges: NDArray[np.float64],
+) -> None:
+    """Step ``k``'s gated ranges, NLOS ranges read and the gate's false rejections (good ranges
+    gated) into ``out``: ``gated`` ``(B, ...)``, and ``radio`` the NLOS and gated marks of the
+    ranges between vehicles, ``radio_ranges`` ``(B, R, S)`` (or ``(B, 1, E_v)``). A count whose
+    marks are all False is 0 without a pass over the plane (the RLSE gates nothing, and most
+    models have no NLOS)."""
+    nlos, radio_gated = radio
+    runs = gated.shape[0]
+    out["gated_ranges"][:, k] = gated.reshape(runs, -1).sum(axis=-1) if gated.any() else 0
+    out["nlos_ranges"][:, k] = out["false_rejections"][:, k] = 0
+    some_nlos, some_gated = bool(nlos.any()), bool(radio_gated.any())
+    if not (some_nlos or some_gated):
+        return
+    read = np.isfinite(radio_ranges)
+    if some_nlos:
+        out["nlos_ranges"][:, k] = (nlos & read).sum(axis=(-1, -2))
+    if some_gated:
+        out["false_rejections"][:, k] = (radio_gated & ~nlos & read).sum(axis=(-1, -2))
 
 
 def _guarded(  # noqa: PLR0917 - the step's pieces, each named
