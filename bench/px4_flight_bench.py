@@ -17,7 +17,9 @@ runs in a session of its own under ``px4-sitl``).
 
 Printed per run: the ground's verdict (``expectations: PASS``/``FAIL``) and exit code, tail
 tracking RMS and the other metrics from the mission's summary.json, the steps each vehicle flew
-following the law (of the steps it flew; skipped steps) from its own summary.json, the range
+following the law (of the steps it flew; skipped steps) and when its setpoints left after t_k
+on the mission clock (an autopilot at speed factor s sees the mission's wall-clock delays s
+times over) from its own summary.json, the range
 aid's last line, the load average at the start and the end; and per process (each vehicle
 process, MAVSDK's threads included as MAVSDK 4 runs in the process; the range aid; ground;
 px4-sitl's own Python; each PX4 instance; mosquitto): CPU seconds over its life (user +
@@ -378,6 +380,9 @@ def _result(run: Run, watcher: Watcher, code: int | None, wall_s: float) -> dict
             "following": own.get("steps_by_state", {}).get("following"),
             "skipped": own.get("skipped_steps"),
             "state": own.get("state"),
+            # On the mission clock: what an autopilot at speed factor s sees of the mission's
+            # wall-clock delays, s times over.
+            "setpoint_after_t_k_s": own.get("setpoint_lateness_s", {}),
         }
     ranges_lines = [line for line in run.log("ranges").splitlines() if line.strip()]
     return {
@@ -425,7 +430,7 @@ def print_result(number: int, r: dict[str, Any]) -> None:
     for i, v in r["vehicles"].items():
         print(
             f"  vehicle {i}: {v['following']} / {v['steps']} steps following, "
-            f"{v['skipped']} skipped, ended {v['state']}"
+            f"{v['skipped']} skipped, ended {v['state']}{_lateness(v['setpoint_after_t_k_s'])}"
         )
     if r["ranges_last_line"]:
         print(f"  range aid: {r['ranges_last_line']}")
@@ -434,6 +439,13 @@ def print_result(number: int, r: dict[str, Any]) -> None:
         print(f"  {name:18s} {p['cpu_s']:7.1f}  {p['life_s']:7.1f}   {p['core_percent']:6.1f} %")
     if r["folder"]:
         print(f"  logs and outputs kept in {r['folder']}")
+
+
+def _lateness(percentiles: dict[str, float]) -> str:
+    if not percentiles:
+        return ""
+    shown = ", ".join(f"{k} {1000 * v:.0f}" for k, v in percentiles.items())
+    return f"; setpoint after t_k (mission ms): {shown}"
 
 
 def _fmt(value: Any) -> str:

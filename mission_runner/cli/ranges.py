@@ -124,6 +124,8 @@ def command(arguments: argparse.Namespace) -> int:
         + (
             "; vision odometry per second: "
             + ", ".join(f"{i}: {rate:.1f}" for i, rate in stats.vision_rates_hz.items())
+            + f"; kept {stats.vision_after_steps_s:.1f} s after the last step while the "
+            f"vehicles landed ({stats.vehicles_done} of {len(scenario.vehicles)} done)"
             if stats.vision_rates_hz
             else ""
         )

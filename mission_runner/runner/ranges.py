@@ -56,9 +56,10 @@ from ..bus import (
     Sender,
     Subscription,
     Topics,
+    VehicleStatus,
     open_bus,
 )
-from ..records import TruthSample
+from ..records import ControllerState, TruthSample
 from ..scenario import target_positions
 from ..sensors import UwbRanging, ranging_plan
 from ..wiring import RangingGraph
@@ -101,6 +102,12 @@ MAX_WAIT_S = 0.25
 #: waiting for the next one, in periods of the truth rate (the wait was half a period on average
 #: and put every step's ranges, and every vehicle's step behind them, that much later).
 EXTRAPOLATE_PERIODS = 1.5
+#: After its last step, the longest the aid goes on feeding the vision odometry while the
+#: vehicles land [s]: until every vehicle reports itself done (landed and disarmed) for this
+#: mission, else this long (the ground station waits 60 s for a landing). A VIO does not switch
+#: off when the mission's steps end; when the aid's did, EKF2 lost its position aiding in the
+#: descent, and a vehicle was once still not landed and disarmed 60 s later.
+VISION_AFTER_STEPS_S = 90.0
 
 
 class FlatEarth:
@@ -262,6 +269,10 @@ class RangeStats:
     position_rates_hz: dict[int, float] = field(default_factory=dict)
     #: Vision odometry messages sent per second during the mission, by vehicle id (if asked).
     vision_rates_hz: dict[int, float] = field(default_factory=dict)
+    #: How long the vision odometry went on after the last step, while the vehicles landed [s].
+    vision_after_steps_s: float = 0.0
+    #: Vehicles the aid saw report themselves done (only waited for with a vision odometry).
+    vehicles_done: int = 0
 
     def lateness_percentiles_ms(self) -> dict[str, float]:
         if not self.lateness_s:
@@ -515,12 +526,14 @@ async def run_range_provider(
     steps: int | None = None,
     seed: int = 0,
     start_timeout_s: float = 600.0,
+    vision_after_s: float = VISION_AFTER_STEPS_S,
     unix_s: Callable[[], float] = time.time,
 ) -> RangeStats:
     """Publish synthetic ranges for ``steps`` steps (default: the scenario's) from the ground
     station's start, and with ``vision`` (``sih`` only) a vision odometry to every instance from
-    the moment its truth arrives. Returns :class:`RangeStats`. ``unix_s``: the UNIX clock the
-    mission clock, the truth's arrivals and the steps' deadlines read."""
+    the moment its truth arrives until every vehicle is done or ``vision_after_s`` after the
+    last step. Returns :class:`RangeStats`. ``unix_s``: the UNIX clock the mission clock, the
+    truth's arrivals and the steps' deadlines read."""
     truth_rate_hz = _truth_rate(scenario, source, vision, truth_rate_hz)
     topics = scenario.bus.topics(scenario.name)
     ranging = RangingGraph.of(scenario)
@@ -567,7 +580,44 @@ async def run_range_provider(
             extrapolate_s=EXTRAPOLATE_PERIODS / rate_hz,
         )
         rates.measure(stats)
+        if odometry:
+            await _vision_while_landing(
+                bus, topics, scenario, start.mission_id, stats=stats, timeout_s=vision_after_s
+            )
     return stats
+
+
+async def _vision_while_landing(
+    bus: Bus,
+    topics: Topics,
+    scenario: Scenario,
+    mission_id: str | None,
+    *,
+    stats: RangeStats,
+    timeout_s: float,
+) -> None:
+    """Keep the vision odometry going (the truth links stay open) until every vehicle of the
+    scenario reports itself done for ``mission_id`` (statuses are retained: one done before
+    this began counts), or ``timeout_s``."""
+    waiting = {vehicle.id for vehicle in scenario.vehicles}
+    began_s = time.monotonic()
+    logger.info("vision odometry kept on while the vehicles land (at most %g s)", timeout_s)
+    async with bus.subscribe(topics.all_status()) as heard:
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout_s):
+                async for _, status in heard.messages(VehicleStatus):
+                    if status.mission_id == mission_id and status.state == ControllerState.DONE:
+                        waiting.discard(status.vehicle_id)
+                    if not waiting:
+                        break
+    stats.vision_after_steps_s = time.monotonic() - began_s
+    stats.vehicles_done = len(scenario.vehicles) - len(waiting)
+    if waiting:
+        logger.warning(
+            "vision odometry stopped %g s after the last step with vehicles %s not done",
+            timeout_s,
+            sorted(waiting),
+        )
 
 
 def _truth_rate(

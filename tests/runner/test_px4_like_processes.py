@@ -169,6 +169,8 @@ def test_the_mission_flies_on_px4_like_vehicles_as_separate_processes(tmp_path, 
         rf"ranges: {STEPS} steps \(\d+ skipped[^)]*\), \d+ ranges published", ranges_out
     ), ranges_out
     assert re.search(r"vision odometry per second: 1: [1-9]", ranges_out), ranges_out
+    # The vision went on while the vehicles landed, until each said it was done.
+    assert re.search(r"while the vehicles landed \(4 of 4 done\)", ranges_out), ranges_out
     for number in range(1, 5):
         summary = json.loads((mission / f"vehicle_{number}" / "summary.json").read_text())
         assert summary["state"] == "done"

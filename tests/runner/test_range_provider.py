@@ -17,7 +17,9 @@ from mission_runner.bus import (
     MissionControl,
     MqttBus,
     RangeSet,
+    Sender,
     TargetObservation,
+    VehicleStatus,
 )
 from mission_runner.checks import validate_scenario
 from mission_runner.runner.errors import RunnerError
@@ -64,10 +66,15 @@ async def fly_aid(
     kill_after_start_s=None,
     start_in_s=2.0,
     steps=8,
+    done=(1, 2, 3),
+    during=None,
 ):
     """Run the aid for 8 steps against three parked emulated vehicles; returns the start time,
     the aid's stats and what it published. ``seen(emulator)`` looks at the emulator before it
-    stops; ``kill_after_start_s``: vehicle 3 dies that long after k = 0."""
+    stops; ``kill_after_start_s``: vehicle 3 dies that long after k = 0; ``done``: the vehicles
+    whose status says done (landed) from the start; ``during(emulator, report, end_s)`` runs
+    beside the aid (``report(vehicle_id, mission_id)`` says a vehicle is done, ``end_s`` is the
+    last step's deadline)."""
     mission = scenario(mosquitto)
     ports = free_port_config(3, gcs=True)
     config = EmulatorConfig(
@@ -96,18 +103,36 @@ async def fly_aid(
             clock_reference_s=start_s if clock_rate else None,
         )
         await bus.publish_message(topics.control(), start, retain=True, timeout=5.0)
-        stats = await run_range_provider(
-            mission,
-            source=source,
-            urls=[f"udpin://0.0.0.0:{ports.gcs_remote_port}"],
-            truth_port_base=config.truth_stream.remote_base,
-            truth_rate_hz=truth_rate_hz,
-            vision=vision,
-            steps=steps,
-        )
+
+        async def report(vehicle_id, mission_id="m1"):
+            status = VehicleStatus(vehicle_id, 0.0, "done", steps, False, mission_id=mission_id)
+            sender = Sender.vehicle(vehicle_id)
+            topic = topics.status(vehicle_id)
+            await bus.publish_message(topic, status, retain=True, timeout=5.0, sender=sender)
+
+        for vehicle_id in done:
+            await report(vehicle_id)
+        end_s = start_s + (steps - 1) * STEP_S + mission.flight.step_deadline_s
+        async with asyncio.TaskGroup() as group:
+            if during is not None:
+                group.create_task(during(emulator, report, end_s))
+            stats = await run_range_provider(
+                mission,
+                source=source,
+                urls=[f"udpin://0.0.0.0:{ports.gcs_remote_port}"],
+                truth_port_base=config.truth_stream.remote_base,
+                truth_rate_hz=truth_rate_hz,
+                vision=vision,
+                steps=steps,
+            )
         if seen is not None:
             seen(emulator)
         await bus.publish(topics.control(), b"", retain=True, timeout=5.0)
+        for vehicle_id in range(1, 4):
+            sender = Sender.vehicle(vehicle_id)
+            await bus.publish(
+                topics.status(vehicle_id), b"", retain=True, timeout=5.0, sender=sender
+            )
         # The aid returns once it has published; the broker may still be delivering the last.
         sets, measured = [], []
         while len(measured) < stats.ranges:
@@ -243,6 +268,42 @@ async def test_the_aid_feeds_each_instance_a_vision_odometry_from_its_truth(mosq
         assert abs(last.q[0]) == pytest.approx(1.0, abs=0.01)
         assert last.pose_covariance[0] == pytest.approx(0.01**2)
         assert last.velocity_covariance[6] == pytest.approx(0.02**2)
+
+
+async def _condition(check, timeout_s=10.0):
+    """Until ``check()`` holds (polled), at most ``timeout_s``."""
+    async with asyncio.timeout(timeout_s):
+        while not check():
+            await asyncio.sleep(0.02)
+
+
+@pytest.mark.timeout(60)
+async def test_the_vision_odometry_outlives_the_steps_until_every_vehicle_is_done(mosquitto):
+    """A VIO does not switch off when the mission's steps end: the aid goes on feeding every
+    instance while the vehicles land, until each reports itself done for this mission (a done
+    of another mission does not count), then stops."""
+    settings = VisionSettings(rate_hz=20.0)
+    counts = []
+
+    async def during(emulator, report, end_s):
+        def received():
+            return emulator.autopilot(2).external_vision_received
+
+        await _condition(lambda: time.time() > end_s + 0.3)
+        after_steps = received()
+        await _condition(lambda: received() >= after_steps + 5)  # still fed, steps over
+        await report(3, mission_id="another")
+        before = received()
+        await _condition(lambda: received() >= before + 5)  # another mission's: still fed
+        counts.append(received())
+        await report(3)
+
+    _, stats, _, _, _ = await fly_aid(
+        mosquitto, source="sih", truth=True, vision=settings, done=(1, 2), during=during
+    )
+    assert counts  # the vision went on after the steps until vehicle 3 was done
+    assert stats.vehicles_done == 3
+    assert 0.3 < stats.vision_after_steps_s < 10.0
 
 
 async def test_a_vision_odometry_needs_a_simulator_truth(mosquitto):
