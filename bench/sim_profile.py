@@ -1,7 +1,8 @@
-"""Where a simulator step's time goes: 1000 vehicles on a k-nearest graph (k = 6), one run under
+"""Where a simulator step's time goes: 1000 vehicles on a k-nearest graph (k = 6), or with
+``--graph complete`` 256 vehicles on the complete graph (sim_bench.py's part 2), one run under
 cProfile, the cumulative time of each stage per step. Prints figures; asserts nothing.
 
-    python bench/sim_profile.py [--steps 20] [--vehicles 1000] [--root DIR]
+    python bench/sim_profile.py [--steps 20] [--vehicles 1000] [--graph complete] [--root DIR]
 
 ``--root`` profiles another checkout's package (its bench/sim_bench.py builds the scenario), so
 that two trees are compared with the same script in one sitting.
@@ -32,7 +33,9 @@ STAGES = [
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=20)
-    parser.add_argument("--vehicles", type=int, default=1000)
+    parser.add_argument("--vehicles", type=int, help="default 1000 (k-nearest), 256 (complete)")
+    parser.add_argument("--graph", choices=["k_nearest", "complete"], default="k_nearest")
+    parser.add_argument("--top", type=int, default=0, help="also the N costliest functions")
     parser.add_argument("--root", type=Path, default=Path(__file__).resolve().parents[1])
     arguments = parser.parse_args()
     root = arguments.root.resolve()
@@ -41,10 +44,13 @@ def main():
 
     from mission_runner.sim.simulator import simulate  # noqa: PLC0415 - idem
 
-    graph = {"kind": "k_nearest", "k": 6}
+    complete = arguments.graph == "complete"
+    n = arguments.vehicles or (256 if complete else 1000)
 
     def scenario(steps):
-        n = arguments.vehicles
+        if complete:  # as sim_bench.py's large_swarm
+            return ring_scenario(n, steps, radius_m=40.0, omega_rad_s=0.05)
+        graph = {"kind": "k_nearest", "k": 6}
         return ring_scenario(n, steps, radius_m=400.0, omega_rad_s=0.005, graph=graph)
 
     simulate(scenario(2))  # warm-up
@@ -58,13 +64,15 @@ def main():
     cumulative = {
         (path, name): (calls, cum) for (path, _, name), (_, calls, _, cum, _) in stats.items()
     }
-    print(f"{root}: {arguments.vehicles} vehicles, {steps} steps, {wall * 1e3:.0f} ms unprofiled")
+    print(f"{root}: {n} vehicles ({arguments.graph}), {steps} steps, {wall * 1e3:.0f} ms bare")
     for suffix, name, what in STAGES:
-        found = [v for (path, n), v in cumulative.items() if n == name and path.endswith(suffix)]
+        found = [v for (path, f), v in cumulative.items() if f == name and path.endswith(suffix)]
         if found:
             calls, cum = found[0]
             per_step = cum / steps * 1e3
             print(f"  {what:28s} {calls:4d} calls  {cum * 1e3:8.1f} ms  {per_step:7.2f} ms/step")
+    if arguments.top:
+        pstats.Stats(profile).sort_stats("tottime").print_stats(arguments.top)
 
 
 if __name__ == "__main__":

@@ -203,9 +203,11 @@ def tracking_error(
 def edge_rms(error_m: NDArray[np.float64]) -> NDArray[np.float64]:
     """RMS over edges of |phat_ij - p_ij|: error_m ``(..., R, S)`` (NaN: not estimated, which does
     not count; inf: diverged, which does) -> ``(...)`` (0 where no edge is estimated)."""
-    counted = ~np.isnan(error_m)
-    square = np.where(counted, error_m * error_m, 0.0).sum(axis=(-1, -2))
-    return np.sqrt(square / np.maximum(counted.sum(axis=(-1, -2)), 1))
+    uncounted = np.isnan(error_m)
+    square = error_m * error_m
+    np.copyto(square, 0.0, where=uncounted)  # in place: a 256-vehicle swarm's plane is 0.5 MB
+    counted = (~uncounted).sum(axis=(-1, -2))
+    return np.sqrt(square.sum(axis=(-1, -2)) / np.maximum(counted, 1))
 
 
 def closest_pair(distance_m: NDArray[np.float64], live: NDArray[np.bool_]) -> NDArray[np.float64]:

@@ -298,7 +298,9 @@ class UwbRanging:
             kept &= ~self._exchanged(lost)
         if sensors.range_max_m is not None:
             kept &= readings <= sensors.range_max_m
-        return np.where(kept, np.abs(readings), np.nan)
+        readings = np.abs(readings)  # a new array: true_m is the caller's
+        np.copyto(readings, np.nan, where=~kept)  # in place: n^2 ranges
+        return readings
 
     @property
     def draws(self) -> bool:

@@ -65,7 +65,7 @@ def coupling_rate(
 
 #: Up to this many slots the neighbour sums are one matrix product with the weights, O(R S L),
 #: of np.cos and np.sin of every l theta; above, sums over every heard slot, O(S L) for any
-#: number of rows, of the harmonics by angle addition (:func:`harmonics`).
+#: number of rows, of the harmonics as phasors e^{i l theta} by doubling (:func:`phasors`).
 #: Both are the same sums up to rounding; the product keeps the bundled scenarios (a handful of
 #: vehicles) bit-identical to the results published with them, and costs little at that size,
 #: while for the simulator's 256-vehicle complete graph it and the sines were most of the step.
@@ -129,18 +129,43 @@ def _summed_coupling(
 ) -> NDArray[np.float64]:
     """:func:`coupling_rate` in O(S L): with the same gains for every row,
     ``sum_{j heard} sum_l (K_l / l) sin(l (theta_i - theta_j))
-    = sum_l (K_l / l) (sin(l theta_i) C_l - cos(l theta_i) S_l)`` with C_l, S_l the sums of
-    cos(l theta_j), sin(l theta_j) over the heard slots; a heard row's own term is sin(0) = 0,
-    so the sum over its neighbours is the sum over every heard slot. Phases finite."""
+    = sum_l (K_l / l) Im(e^{i l theta_i} conj(Z_l))`` with Z_l the sum of e^{i l theta_j} over
+    the heard slots; a heard row's own term is sin(0) = 0, so the sum over its neighbours is the
+    sum over every heard slot. Phases finite."""
     n_harmonics = gains.shape[-1]
-    cos_slots, sin_slots = harmonics(phase_slots, n_harmonics)  # (..., S, L)
-    heard_weights = heard[..., None, :].astype(float)  # (..., 1, S)
-    scaled = gains[..., :, None] / np.arange(1, n_harmonics + 1)[:, None]  # (..., L, 1)
-    sum_cos, sum_sin = heard_weights @ cos_slots, heard_weights @ sin_slots  # (..., 1, L)
-    rates = sin_slots @ (scaled * np.swapaxes(sum_cos, -1, -2))
-    rates -= cos_slots @ (scaled * np.swapaxes(sum_sin, -1, -2))  # (..., S, 1)
+    # Real products over the phasors' (cos, sin) pairs, which numpy keeps interleaved: complex
+    # ones start BLAS threads that cost twice the CPU for no gain in time.
+    pairs = phasors(phase_slots, n_harmonics).view(np.float64)  # (..., L, 2S): cos, sin
+    spread = np.zeros((*heard.shape[:-1], 2 * heard.shape[-1], 2))  # (..., 2S, 2)
+    spread[..., 0::2, 0] = heard
+    spread[..., 1::2, 1] = heard
+    sums = pairs @ spread  # (..., L, 2): C_l, S_l (Z_l = C_l + i S_l)
+    scaled = gains / np.arange(1, n_harmonics + 1)  # (..., L)
+    # sin(l theta_i) C_l - cos(l theta_i) S_l, l = 1..L: the weights of cos and of sin.
+    weights = np.stack([-sums[..., 1], sums[..., 0]], axis=-2) * scaled[..., None, :]
+    mixed = weights @ pairs  # (..., 2, 2S)
+    rates = mixed[..., 0, 0::2] + mixed[..., 1, 1::2]  # (..., S)
     n_neighbours = np.sum(heard, axis=-1, keepdims=True) - heard[..., row_slots]  # (..., R)
-    return rates[..., row_slots, 0] / np.maximum(n_neighbours, 1)
+    return rates[..., row_slots] / np.maximum(n_neighbours, 1)
+
+
+def phasors(phase_rad: NDArray[np.float64], n_harmonics: int) -> NDArray[np.complex128]:
+    """e^{i l theta} for l = 1..n_harmonics, ``(..., n_harmonics, S)`` complex for phases
+    ``(..., S)`` [rad] (harmonic l - 1 on the second axis from the end): :func:`harmonics` as
+    complex numbers, one complex product a harmonic (harmonics d+1..2d are harmonics 1..d
+    times e^{i d theta}) instead of four real products and two sums, each with its temporary;
+    a harmonic's slots are contiguous, so each doubling multiplies whole rows. Three times
+    faster than :func:`harmonics` for a 256-vehicle swarm."""
+    slots = phase_rad.shape[-1]
+    result = np.empty((*phase_rad.shape[:-1], n_harmonics, slots), dtype=np.complex128)
+    result[..., 0, :] = np.exp(1j * phase_rad)
+    done = 1
+    while done < n_harmonics:
+        width = min(done, n_harmonics - done)
+        turn = np.exp(1j * (done * phase_rad))[..., None, :]
+        np.multiply(result[..., :width, :], turn, out=result[..., done : done + width, :])
+        done += width
+    return result
 
 
 def _edge_coupling(

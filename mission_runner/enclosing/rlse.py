@@ -21,6 +21,7 @@ distinct entries: contiguous planes are several times faster than ``(..., 2)`` a
 trailing axes for the large swarms the simulator runs.
 """
 
+import functools
 from dataclasses import dataclass
 from typing import Self
 
@@ -66,9 +67,10 @@ class EdgeEstimates:
             anchor_east_m=np.zeros(shape),
         )
 
-    @property
+    @functools.cached_property
     def anchored(self) -> NDArray[np.bool_]:
-        """``(..., R, S)`` bool: the edge has had at least one range with both odometries."""
+        """``(..., R, S)`` bool: the edge has had at least one range with both odometries.
+        Worked out once (a step asks four times; the arrays are never written in place)."""
         return np.isfinite(self.anchor_range_m)
 
     @property

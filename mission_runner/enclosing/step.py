@@ -412,9 +412,11 @@ def _formation_errors(
     offsets[..., TARGET_SLOT, :] = 0.0
     row_offsets = desired_offsets(row_phase, params.radius_m, inputs.shape_now)
     row_offsets_next = desired_offsets(phase_next, params.radius_m, inputs.shape_next)
-    if edge_index is None:
-        error_north = estimate_north - (row_offsets[..., :, None, 0] - offsets[..., None, :, 0])
-        error_east = estimate_east - (row_offsets[..., :, None, 1] - offsets[..., None, :, 1])
+    if edge_index is None:  # r_i - r_j, then phat_ij minus it in place (large swarms' planes)
+        error_north = row_offsets[..., :, None, 0] - offsets[..., None, :, 0]
+        error_east = row_offsets[..., :, None, 1] - offsets[..., None, :, 1]
+        np.subtract(estimate_north, error_north, out=error_north)
+        np.subtract(estimate_east, error_east, out=error_east)
     else:
         error_north = estimate_north - edge_index.difference(row_offsets[..., 0], offsets[..., 0])
         error_east = estimate_east - edge_index.difference(row_offsets[..., 1], offsets[..., 1])

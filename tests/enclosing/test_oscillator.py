@@ -16,6 +16,7 @@ from mission_runner.enclosing.oscillator import (
     harmonic_gains,
     harmonics,
     pair_coupling,
+    phasors,
     splay_spacing_error,
 )
 
@@ -91,6 +92,43 @@ def test_harmonics_by_angle_addition_equal_the_direct_ones(n_harmonics):
     np.testing.assert_allclose(cos, np.cos(angle), rtol=0, atol=1e-11)
     np.testing.assert_allclose(sin, np.sin(angle), rtol=0, atol=1e-11)
     assert cos.shape == sin.shape == (3, 40, n_harmonics)
+
+
+def pairwise_coupling(theta, heard, gains):
+    """The coupling of every slot as the mean over its heard neighbours of the sum over the
+    harmonics, pair by pair (each difference wrapped to a half turn, so l times it keeps its
+    precision)."""
+    difference = theta[:, None] - theta[None, :]
+    difference -= 2 * np.pi * np.rint(difference / (2 * np.pi))
+    order = np.arange(1, gains.size + 1)
+    per_pair = np.sin(difference[..., None] * order) @ (gains / order)  # (S, S)
+    mask = heard[None, :] & ~np.eye(theta.size, dtype=bool)
+    return np.sum(np.where(mask, per_pair, 0.0), axis=-1) / np.maximum(mask.sum(axis=-1), 1)
+
+
+@pytest.mark.parametrize("n_slots", [9, PRODUCT_MAX_SLOTS, PRODUCT_MAX_SLOTS + 1, 200])
+@pytest.mark.parametrize("seed", range(3))
+def test_coupling_equals_the_pairwise_sum_below_and_above_the_product_threshold(n_slots, seed):
+    rng = np.random.default_rng([n_slots, seed])
+    theta = rng.uniform(0, 2 * np.pi, n_slots)
+    heard = rng.uniform(size=n_slots) < 0.8
+    gains = harmonic_gains(heard.sum(), n_slots - 1, 1.3, -0.7)
+    rows = np.arange(n_slots)
+    expected = pairwise_coupling(theta, heard, gains)
+    np.testing.assert_allclose(
+        coupling_rate(theta, rows, heard, gains), expected, rtol=0, atol=1e-12
+    )
+
+
+@pytest.mark.parametrize("n_harmonics", [1, 2, 7, 256, 300])
+def test_phasors_equal_the_harmonics(n_harmonics):
+    phase = np.random.default_rng(n_harmonics).uniform(-50, 50, (3, 40))
+    powers = np.swapaxes(phasors(phase, n_harmonics), -1, -2)
+    cos, sin = harmonics(phase, n_harmonics)
+    assert powers.shape == (3, 40, n_harmonics)
+    # both are within a few eps of the exact values; np.cos(l theta) is not (see above)
+    np.testing.assert_allclose(powers.real, cos, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(powers.imag, sin, rtol=0, atol=1e-13)
 
 
 def test_unheard_neighbours_with_nan_phase_do_not_poison_the_sum():
