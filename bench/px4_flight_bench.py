@@ -19,7 +19,8 @@ Printed per run: the ground's verdict (``expectations: PASS``/``FAIL``) and exit
 tracking RMS and the other metrics from the mission's summary.json, the steps each vehicle flew
 following the law (of the steps it flew; skipped steps) and when its setpoints left after t_k
 on the mission clock (an autopilot at speed factor s sees the mission's wall-clock delays s
-times over) from its own summary.json, the range
+times over) from its own summary.json, and how many of its steps awaited their inputs until the
+step deadline (ran without one that came too late) from its steps.csv, the range
 aid's last line, the load average at the start and the end; and per process (each vehicle
 process, MAVSDK's threads included as MAVSDK 4 runs in the process; the range aid; ground;
 px4-sitl's own Python; each PX4 instance; mosquitto): CPU seconds over its life (user +
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import csv
 import json
 import os
 import shutil
@@ -383,6 +385,7 @@ def _result(run: Run, watcher: Watcher, code: int | None, wall_s: float) -> dict
             # On the mission clock: what an autopilot at speed factor s sees of the mission's
             # wall-clock delays, s times over.
             "setpoint_after_t_k_s": own.get("setpoint_lateness_s", {}),
+            "at_deadline": _at_deadline(mission / f"vehicle_{i}" / "steps.csv", run.config),
         }
     ranges_lines = [line for line in run.log("ranges").splitlines() if line.strip()]
     return {
@@ -398,6 +401,17 @@ def _result(run: Run, watcher: Watcher, code: int | None, wall_s: float) -> dict
             for name, u in sorted(watcher.usage.items(), key=lambda item: _order(item[0]))
         },
     }
+
+
+def _at_deadline(steps_csv: Path, config: Path) -> tuple[int, int]:
+    """(steps whose inputs were awaited until the step deadline, steps with a timing): those
+    ran without an input that came too late."""
+    deadline_s = float(yaml.safe_load(config.read_text())["flight"]["step_deadline_s"])
+    with contextlib.suppress(OSError), steps_csv.open() as rows:
+        waits = [row["inputs_lateness_s"] for row in csv.DictReader(rows)]
+        timed = [float(w) for w in waits if w not in ("", "nan")]
+        return sum(w >= deadline_s - 0.001 for w in timed), len(timed)
+    return 0, 0
 
 
 def _share(usage: Usage) -> float:
@@ -431,6 +445,7 @@ def print_result(number: int, r: dict[str, Any]) -> None:
         print(
             f"  vehicle {i}: {v['following']} / {v['steps']} steps following, "
             f"{v['skipped']} skipped, ended {v['state']}{_lateness(v['setpoint_after_t_k_s'])}"
+            f"; inputs awaited until the deadline: {v['at_deadline'][0]} of {v['at_deadline'][1]}"
         )
     if r["ranges_last_line"]:
         print(f"  range aid: {r['ranges_last_line']}")
