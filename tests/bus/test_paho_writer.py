@@ -4,6 +4,10 @@ that queues it; one it cannot take at once waits for the writer and still arrive
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import os
+import signal
+from collections.abc import Iterator
 
 import aiomqtt
 import pytest
@@ -48,13 +52,27 @@ async def test_what_the_socket_does_not_take_goes_out_when_it_is_writable(
     ):
         await receiver.subscribe("cpu/big")
         write_at_once(sender)
-        info = sender._client.publish("cpu/big", b"y" * BIG_BYTES, qos=0)
+        # The broker paused: nothing drains the socket while the call writes (a broker reading
+        # on the other core once took all 32 MiB in one call).
+        with _paused(mosquitto):
+            info = sender._client.publish("cpu/big", b"y" * BIG_BYTES, qos=0)
         assert not info.is_published()  # the rest waits for the socket
         await sender.publish("cpu/after", b"small")  # queued behind it, on the same socket
         async with asyncio.timeout(60):
             message = await anext(aiter(receiver.messages))
     assert info.is_published()
     assert message.payload == b"y" * BIG_BYTES
+
+
+@contextlib.contextmanager
+def _paused(broker: MosquittoBroker) -> Iterator[None]:
+    process = broker._process
+    assert process is not None
+    os.kill(process.pid, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        os.kill(process.pid, signal.SIGCONT)
 
 
 def test_an_unknown_client_is_refused() -> None:
