@@ -30,7 +30,6 @@ import abc
 import asyncio
 import collections
 import contextlib
-import functools
 import logging
 from collections.abc import AsyncIterator, Iterator
 from contextlib import AbstractAsyncContextManager
@@ -46,19 +45,40 @@ logger = logging.getLogger(__name__)
 
 M = TypeVar("M", bound=Message)
 
-#: Payloads whose decoded message is remembered (:func:`_decoded`).
+#: Payloads whose decoded message is remembered (:data:`_decoded`).
 DECODED_CACHE_SIZE = 256
 
 
-@functools.lru_cache(maxsize=DECODED_CACHE_SIZE)
-def _decoded(message_type: type[Message], payload: bytes) -> Message:
-    """``message_type.from_payload(payload)``, remembered: the in-process bus hands one payload
-    to every subscription to its topic (a step message to each vehicle), and decoding and
-    validating it again for each is most of what receiving costs the controllers. A message
-    is deeply immutable (a frozen dataclass of numbers, strings, enums and tuples), so
-    one decoded message can go to all. Errors are not remembered: each subscription counts its
-    own."""
-    return message_type.from_payload(payload)
+class _DecodedMessages:
+    """``message_type.from_payload(payload)``, remembered for the last ``size`` payloads: the
+    in-process bus hands one payload to every subscription to its topic (a step message to each
+    vehicle), and decoding and validating it again for each is most of what receiving costs the
+    controllers. A message is deeply immutable (a frozen dataclass of numbers, strings, enums and
+    tuples), so one decoded message can go to all. A publisher leaves the message it encoded
+    (:meth:`remember`), so that a receiver in its own process does not decode it at all: the
+    payload is that message's own encoding, which decodes to an equal message. Errors are not
+    remembered: each subscription counts its own."""
+
+    def __init__(self, size: int) -> None:
+        self._size = size
+        self._messages: dict[tuple[type[Message], bytes], Message] = {}
+
+    def __call__(self, message_type: type[Message], payload: bytes) -> Message:
+        found = self._messages.get((message_type, payload))
+        if found is None:
+            found = message_type.from_payload(payload)
+            self.remember(found, payload)
+        return found
+
+    def remember(self, message: Message, payload: bytes) -> None:
+        """``message`` is what ``payload`` decodes to (it is ``message.to_payload()``)."""
+        messages = self._messages
+        if len(messages) >= self._size:
+            del messages[next(iter(messages))]  # the oldest: a payload's receivers come at once
+        messages[type(message), payload] = message
+
+
+_decoded = _DecodedMessages(DECODED_CACHE_SIZE)
 
 
 DEFAULT_QUEUE_SIZE = 256
@@ -197,7 +217,7 @@ class Subscription:
             return None  # MQTT's "retained value cleared": no message, not an error
         try:
             if type(payload) is bytes:
-                decoded: Message = _decoded(message_type, payload)  # type: ignore[arg-type]
+                decoded: Message = _decoded(message_type, payload)
                 return decoded  # type: ignore[return-value]  # of message_type, as cached
             return message_type.from_payload(payload)
         except MessageDecodeError as exc:
@@ -377,9 +397,9 @@ class Bus(abc.ABC):
         sender: Sender | None = None,
     ) -> None:
         """Encode ``message`` and publish it (see ``publish``)."""
-        await self.publish(
-            topic, message.to_payload(), retain=retain, timeout=timeout, sender=sender
-        )
+        payload = message.to_payload()
+        _decoded.remember(message, payload)
+        await self.publish(topic, payload, retain=retain, timeout=timeout, sender=sender)
 
 
 class BusClient:

@@ -445,7 +445,7 @@ def _command(
     else:
         weights, unsaturated = _edge_consensus(used, errors, params.beta, edge_index)
     consensus = saturate(unsaturated, params.saturation_m_s)
-    target_velocity = np.nan_to_num(target_velocity_m_s, nan=0.0)
+    target_velocity = np.where(np.isnan(target_velocity_m_s), 0.0, target_velocity_m_s)
     velocity = consensus + feed_forward + target_velocity[..., None, :]
     return velocity, consensus, weights
 

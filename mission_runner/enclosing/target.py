@@ -122,7 +122,8 @@ def track_target(
 
     # o_0 over the interval since the last update: the velocity the track held then, none once lost.
     elapsed_s = (step - track.step) * step_s if track.step >= 0 else 0.0
-    moving = np.where(track.lost[..., None], 0.0, np.nan_to_num(track.velocity_m_s))
+    held = track.velocity_m_s
+    moving = np.where(track.lost[..., None] | np.isnan(held), 0.0, held)
     predicted = track.odometry_m + elapsed_s * moving
     observing = np.isfinite(own).all(-1)
     continuing = observing & np.isfinite(track.offset_m).all(-1) & (step - track.step == 1)
@@ -139,7 +140,7 @@ def track_target(
     )
     estimate = TargetEstimate(
         status=status,
-        velocity_m_s=np.where(lost[..., None], 0.0, np.nan_to_num(new_velocity)),
+        velocity_m_s=np.where(lost[..., None] | np.isnan(new_velocity), 0.0, new_velocity),
         odometry_m=odometry,
         age_s=age_s,
     )

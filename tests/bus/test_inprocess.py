@@ -70,13 +70,35 @@ async def test_every_subscription_gets_the_one_message_decoded_once() -> None:
         subscriptions = [
             await stack.enter_async_context(bus.subscribe(TOPICS.all_steps())) for _ in range(4)
         ]
-        await bus.publish_message(TOPICS.step(3), step(3, 11), timeout=0.1)
+        await bus.publish(TOPICS.step(3), step(3, 11).to_payload(), timeout=0.1)
         received = [
             (await subscription.receive_message(StepMessage, timeout=1.0))[1]
             for subscription in subscriptions
         ]
     assert received[0] == step(3, 11)
     assert all(message is received[0] for message in received)
+
+
+@pytest.mark.asyncio
+async def test_a_published_message_reaches_its_receivers_without_being_decoded() -> None:
+    # The publisher's own message is what its payload decodes to (the round trip is exact,
+    # tests/bus/test_messages.py): receivers in its process get that object, checked seal and all.
+    sent = step(3, 12)
+    async with InProcessBus() as bus, contextlib.AsyncExitStack() as stack:
+        subscriptions = [
+            await stack.enter_async_context(bus.subscribe(TOPICS.all_steps())) for _ in range(3)
+        ]
+        await bus.publish_message(TOPICS.step(3), sent, timeout=0.1)
+        received = [
+            (await subscription.receive_message(StepMessage, timeout=1.0))[1]
+            for subscription in subscriptions
+        ]
+        forged = await stack.enter_async_context(bus.subscribe(TOPICS.all_steps()))
+        await bus.as_sender(Sender.vehicle(2)).publish_message(
+            TOPICS.step(3), step(3, 13), timeout=0.1
+        )
+        assert forged.poll() is None  # the seal is still checked: vehicle 2 cannot speak for 3
+    assert all(message is sent for message in received)
 
 
 @pytest.mark.asyncio
