@@ -87,16 +87,9 @@ Gain = Annotated[float, Field(gt=0, le=MAX_GAIN)]
 
 
 class Model(BaseModel):
-    """Strict, immutable, closed: unknown keys, wrong types and NaN/inf are errors.
+    """Strict, immutable, closed: unknown keys, wrong types and NaN/inf are errors."""
 
-    Built on first use (``defer_build``), not at import: a model's validator is then built once,
-    inside the scenario's, instead of once on its own at import and again inside every model that
-    holds it (a third of a vehicle process's imports, 0.14 CPU s of 0.44).
-    """
-
-    model_config = ConfigDict(
-        strict=True, extra="forbid", allow_inf_nan=False, frozen=True, defer_build=True
-    )
+    model_config = ConfigDict(strict=True, extra="forbid", allow_inf_nan=False, frozen=True)
 
 
 def _expression(text: str) -> str:

@@ -48,10 +48,7 @@ from mission_runner.environment import DEFAULT_KEY_ENV
 #: As strict as the rest of a scenario: ``"0.01"``, ``true`` or ``1883.0`` where a number or a
 #: port is meant are errors, not guesses (``true`` read as a loss probability of 1.0), and so are
 #: NaN and infinities.
-#: Built on first use, as the scenario's models (:class:`mission_runner.config.Model`).
-_STRICT = ConfigDict(
-    extra="forbid", frozen=True, strict=True, allow_inf_nan=False, defer_build=True
-)
+_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 #: A file name: a string in the YAML (a strict Path would take only Path objects).
 FilePath = Annotated[Path, Strict(False)]
 #: The longest any wait on the broker may be [s]: the event loop's timers overflow long before
