@@ -14,7 +14,8 @@
    process over its whole life (start, take-off, mission, landing), MAVSDK's threads included
    (MAVSDK 4 runs in the process), as a share of one core. The project's bytecode is compiled
    first, as after an install or a first run: with PYTHONDONTWRITEBYTECODE set and no cache,
-   every process compiled its sources again (0.25-0.4 CPU s of a vehicle's 2-4).
+   every process compiled its sources again (0.25-0.4 CPU s of a vehicle's 2-4). Vehicle 1's
+   CPU is also printed per 5 s of its life, its Python thread apart from MAVSDK's threads.
 3. ``realtime``: the tracking mission at 1x in one process: setpoint time - t_k over every
    vehicle-step (``bench/flight_bench.py``).
 4. ``swarm``: the largest swarm one process holds in real time at T = 0.125 s
@@ -38,6 +39,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -134,6 +136,52 @@ def _wait_rusage(process: subprocess.Popen[bytes]) -> float:
     return usage.ru_utime + usage.ru_stime
 
 
+class _CpuTimeline:
+    """A process's CPU, its own thread (the Python one) and the others (MAVSDK's), read from /proc
+    once a second while it lives: where in its life a vehicle process spends (start, waiting,
+    mission, end). One read a second of three small files: nothing the process notices."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self.samples: list[tuple[float, float, float]] = []  # (wall s, main CPU s, others CPU s)
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> tuple[float, float]:
+        tick = os.sysconf("SC_CLK_TCK")
+        main = others = 0.0
+        for tid in os.listdir(f"/proc/{self.pid}/task"):
+            with open(f"/proc/{self.pid}/task/{tid}/stat") as stat:
+                fields = stat.read().rsplit(")", 1)[1].split()
+            cpu_s = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+            if int(tid) == self.pid:
+                main += cpu_s
+            else:
+                others += cpu_s
+        return main, others
+
+    def _watch(self) -> None:
+        started = time.perf_counter()
+        while True:
+            try:
+                main, others = self._read()
+            except (OSError, ValueError, IndexError):  # the process (or a thread) is gone
+                return
+            self.samples.append((time.perf_counter() - started, main, others))
+            time.sleep(1.0)  # a bench sampling /proc, not a test
+
+    def report(self, name: str) -> None:
+        """Per 5 s of its life: the CPU of its Python thread and of its other threads."""
+        self._thread.join(timeout=2.0)
+        print(f"   {name}, CPU s per 5 s of its life, Python thread + other threads:")
+        cells, last = [], (0.0, 0.0)
+        for when, main, others in self.samples[5::5]:
+            cells.append(f"{when:3.0f} s {main - last[0]:.2f}+{others - last[1]:.2f}")
+            last = (main, others)
+        for row in range(0, len(cells), 6):
+            print("     " + "   ".join(cells[row : row + 6]))
+
+
 def bench_processes(steps: int) -> dict[str, object]:
     from tests.mosquitto import TEST_BUS_KEY  # noqa: PLC0415 - needs pytest
     from tests.sitl.helpers import free_port_config  # noqa: PLC0415
@@ -178,6 +226,7 @@ def bench_processes(steps: int) -> dict[str, object]:
             )
             for i in range(len(data["vehicles"]))
         ]  # fmt: skip
+        timeline = _CpuTimeline(vehicles[0][0].pid)
         rows = {}
         for i, (process, started) in enumerate(vehicles, start=1):
             cpu_s = _wait_rusage(process)
@@ -197,6 +246,7 @@ def bench_processes(steps: int) -> dict[str, object]:
         shares[name] = 100 * cpu_s / wall_s
         print(f"   {name:30s} {cpu_s:7.2f}  {wall_s:7.1f}   {shares[name]:6.2f} %")
     vehicle_shares = [v for k, v in shares.items() if k.startswith("vehicle")]
+    timeline.report("vehicle 1")
     print(
         f"   a vehicle process (MAVSDK's threads included): {min(vehicle_shares):.2f}-"
         f"{max(vehicle_shares):.2f} % of a core"
